@@ -196,9 +196,9 @@ class DepthSource(abc.ABC):
         """Stop the stream and release the device.  Safe to call more than once."""
 
     @abc.abstractmethod
-    def read(self, timeout: float = 1.0) -> DepthFrame | None:
-        """The next frame, waiting at most ``timeout`` seconds; ``None`` at the end of a
-        recording."""
+    def read(self, timeout: float | None = 1.0) -> DepthFrame | None:
+        """The next frame, waiting at most ``timeout`` seconds (``None``: as long as it takes);
+        ``None`` at the end of a recording."""
 
     def __enter__(self) -> "DepthSource":
         self.open()
@@ -208,8 +208,10 @@ class DepthSource(abc.ABC):
         self.close()
 
     def __iter__(self) -> Iterator[DepthFrame]:
+        """Every frame until the recording ends (a live camera never ends).  Waits as long as a
+        frame takes; a lost device still raises.  Use :meth:`read` for a bounded wait."""
         while True:
-            frame = self.read()
+            frame = self.read(timeout=None)
             if frame is None:
                 return
             yield frame

@@ -1,0 +1,337 @@
+"""Depth images on disk as a depth source: a 16-bit PNG/TIFF file, or a folder of them.
+
+``open_depth("images:tum/depth?scale=5000&rate=30&loop=1")`` reaches :func:`open_images`.
+Frames come in natural name order (``frame_2`` before ``frame_10``), one file decoded per
+:meth:`ImageFolderSource.read`, converted to uint16 millimetres.  The codecs are our own
+(:mod:`hw.png`, :mod:`hw.tiff`); nothing here needs Pillow.
+"""
+
+from __future__ import annotations
+
+import datetime
+import decimal
+import fnmatch
+import math
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
+from hw.errors import DepthFileError, DeviceError, FrameError, FrameTimeout, UriError
+from hw.png import PNG_SIGNATURE, decode_png, read_file
+from hw.tiff import decode_tiff
+
+#: Frame period (µs) assumed when file names carry no time: 30 Hz, as OpenNI cameras.
+DEFAULT_PERIOD_US = 1_000_000 // 30
+_OPTIONS = ("scale", "rate", "loop", "intrinsics", "pattern")
+_TRUE = {"1", "true", "yes", "on", ""}
+_FALSE = {"0", "false", "no", "off"}
+# TUM RGB-D: "<seconds>.<fraction>", e.g. 1305031102.160407
+_SECONDS_STEM = re.compile(r"\d+\.\d+")
+# PCL's image grabber: "frame_20121214T142255.814212_depth" (local time, read as UTC)
+_DATETIME_STEM = re.compile(r"(\d{8}T\d{6})(\.\d{1,6})?")
+
+
+def read_depth_image(path: str | Path, scale: float = 1000.0) -> np.ndarray:
+    """Read a 16-bit PNG or TIFF depth image as (H, W) uint16 millimetres.
+
+    ``scale``: raw units per metre in the file (1000 = millimetres, the default; 5000 = TUM
+    RGB-D).  Values are converted with rounding (half up) and saturate at 65535; 0 (no
+    reading) stays 0.  The format is told from the file's first bytes, not its name.  Raises
+    :class:`DepthFileError` for a missing, corrupt or unsupported file, including an 8-bit
+    image (not depth).
+    """
+    data = read_file(path)
+    name = str(path)
+    if data.startswith(PNG_SIGNATURE):
+        raw = decode_png(data, name)
+    elif data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        raw = decode_tiff(data, name)
+    elif not data:
+        raise DepthFileError(f"{name}: the file is empty")
+    else:
+        raise DepthFileError(f"{name}: neither a PNG nor a TIFF (by its first bytes); depth "
+                             "images must be 16-bit grayscale PNG or TIFF")
+    if raw.dtype != np.uint16:
+        raise DepthFileError(f"{name}: 8-bit grayscale image is not a depth image; depth "
+                             "images are 16-bit (millimetres, or raw units with a scale)")
+    return to_millimetres(raw, scale)
+
+
+def to_millimetres(raw: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W) uint16 raw units, ``scale`` of them per metre -> (H, W) uint16 millimetres
+    (rounded half up, saturated at 65535; 0 stays 0).  Returns ``raw`` itself when scale is
+    1000."""
+    if scale == 1000.0:
+        return raw
+    millimetres = np.floor(raw * 1000.0 / scale + 0.5)
+    return np.minimum(millimetres, 65535.0).astype(np.uint16)
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key putting ``frame_2`` before ``frame_10`` (digit runs compare as numbers,
+    letters case-insensitively; the exact name breaks ties)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(part) if index % 2 else part.lower()
+                 for index, part in enumerate(parts)), name
+
+
+def stem_timestamp_us(stem: str) -> int | None:
+    """The time a file name gives, in µs, or None.
+
+    ``1305031102.160407`` (TUM: seconds with a fraction) -> 1305031102160407;
+    ``frame_20121214T142255.814212_depth`` (PCL grabber: date and time, taken as UTC) -> µs
+    since 1970.  A plain number such as ``000123`` is a frame number, not a time: None.
+    """
+    if _SECONDS_STEM.fullmatch(stem):
+        seconds = decimal.Decimal(stem)
+        return int((seconds * 1_000_000).to_integral_value(decimal.ROUND_HALF_UP))
+    match = _DATETIME_STEM.search(stem)
+    if match:
+        try:
+            moment = datetime.datetime.strptime(match.group(1), "%Y%m%dT%H%M%S")
+        except ValueError:
+            return None
+        moment = moment.replace(tzinfo=datetime.timezone.utc)
+        fraction = match.group(2) or ".0"
+        micros = int(fraction[1:].ljust(6, "0"))
+        return int(moment.timestamp()) * 1_000_000 + micros
+    return None
+
+
+def list_images(folder: Path, pattern: str | None = None) -> list[Path]:
+    """The depth image files in ``folder`` (``*.png``, ``*.tif``, ``*.tiff``, any case, hidden
+    files skipped, optionally only names matching the glob ``pattern``), in natural name
+    order.  Raises :class:`DepthFileError` when there are none."""
+    try:
+        entries = list(folder.iterdir())
+    except OSError as exc:
+        raise DepthFileError(f"{folder}: cannot list the folder ({exc.strerror or exc})") from None
+    files = [path for path in entries
+             if path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+             and (pattern is None or fnmatch.fnmatch(path.name, pattern)) and path.is_file()]
+    if not files:
+        looked_for = ", ".join(f"*{suffix}" for suffix in IMAGE_SUFFIXES)
+        if pattern is not None:
+            looked_for += f" matching {pattern!r}"
+        raise DepthFileError(f"{folder}: no depth images in this folder (looked for "
+                             f"{looked_for})")
+    return sorted(files, key=lambda path: natural_key(path.name))
+
+
+class ImageFolderSource(DepthSource):
+    """Depth images delivered as frames, like a camera.
+
+    ``files``: the images in delivery order; ``scale``: raw units per metre; ``rate``: frames
+    per second to pace delivery at (None: as fast as they are read); ``loop``: start again
+    after the last file; ``intrinsics``: an :class:`Intrinsics` for the images' size,
+    ``"fx,fy,cx,cy"`` text, or None for :meth:`Intrinsics.openni_default`.
+
+    Frame ``index`` counts delivered positions across loops.  ``timestamp_us`` comes from the
+    file names when every name holds a time (see :func:`stem_timestamp_us`; later loops are
+    shifted to keep time increasing), else ``index`` / 30 s.  Every file must have the size of
+    the first (:class:`FrameError` otherwise).  A file that fails to decode raises
+    :class:`DepthFileError` and counts as dropped; the next read moves on to the next file.
+    """
+
+    def __init__(self, files: list[Path], *, scale: float = 1000.0, rate: float | None = None,
+                 loop: bool = False, intrinsics: Intrinsics | str | None = None) -> None:
+        super().__init__()
+        if not files:
+            raise DepthFileError("an images source needs at least one file")
+        self.files = list(files)
+        self.scale = scale
+        self.rate = rate
+        self.loop = loop
+        self._given_intrinsics = intrinsics
+        self._intrinsics: Intrinsics | None = None
+        self._first: np.ndarray | None = None  # first image, decoded early for its size
+        self._position = 0
+        self._due: float | None = None
+        self._open = False
+        stamps = [stem_timestamp_us(path.stem) for path in self.files]
+        if all(stamp is not None for stamp in stamps):
+            order = sorted(range(len(self.files)), key=lambda i: (stamps[i], i))
+            self.files = [self.files[i] for i in order]
+            self._stamps: list[int] | None = [stamps[i] for i in order]  # type: ignore[misc]
+        else:
+            self._stamps = None
+
+    def __repr__(self) -> str:
+        where = self.files[0] if len(self.files) == 1 else self.files[0].parent
+        return f"<ImageFolderSource {where} ({len(self.files)} files)>"
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """Intrinsics of the frames (decodes the first image to learn the size, if needed)."""
+        if self._intrinsics is None:
+            self._first = self._decode(self.files[0])
+            height, width = self._first.shape
+            self._intrinsics = self._make_intrinsics(width, height)
+        return self._intrinsics
+
+    def _make_intrinsics(self, width: int, height: int) -> Intrinsics:
+        given = self._given_intrinsics
+        if given is None:
+            return Intrinsics.openni_default(width, height)
+        if isinstance(given, str):
+            return Intrinsics.parse(given, width, height)
+        if (given.width, given.height) != (width, height):
+            raise FrameError(
+                f"{self.files[0]}: the images are {width}x{height} but the intrinsics given "
+                f"are for {given.width}x{given.height}; pass intrinsics for {width}x{height} "
+                "(Intrinsics.scaled)")
+        return given
+
+    def open(self) -> None:
+        """Start at the first file (again, after :meth:`close`); learns the image size."""
+        if self._open:
+            return
+        self._position = 0
+        self._due = None
+        self.intrinsics  # noqa: B018 - decode the first file: size and intrinsics errors now
+        self._open = True
+
+    def close(self) -> None:
+        """Stop; a later :meth:`open` starts from the first file."""
+        self._open = False
+        self._first = None
+
+    def read(self, timeout: float | None = 1.0) -> DepthFrame | None:
+        """The next frame; ``None`` after the last file when not looping.
+
+        With a ``rate``, waits until the frame is due; if that is more than ``timeout`` seconds
+        away, waits ``timeout`` and raises :class:`FrameTimeout` (the frame stays next).
+        """
+        if not self._open:
+            raise DeviceError(f"{self!r} is not open: call open() or use it in a 'with' block")
+        count = len(self.files)
+        if self._position >= count and not self.loop:
+            return None
+        self._wait_until_due(timeout)
+        index = self._position
+        self._position += 1
+        lap, slot = divmod(index, count)
+        path = self.files[slot]
+        if index == 0 and self._first is not None:
+            depth, self._first = self._first, None
+        else:
+            try:
+                depth = self._decode(path)
+            except DepthFileError:
+                self.stats.dropped += 1
+                raise
+        intrinsics = self.intrinsics
+        if depth.shape != (intrinsics.height, intrinsics.width):
+            self.stats.dropped += 1
+            raise FrameError(
+                f"{path}: is {depth.shape[1]}x{depth.shape[0]} but {self.files[0].name} is "
+                f"{intrinsics.width}x{intrinsics.height}; every image in a folder must have "
+                "the same size")
+        frame = DepthFrame(depth, self._timestamp_us(lap, slot, index), index, intrinsics)
+        self.stats.delivered += 1
+        return frame
+
+    def _decode(self, path: Path) -> np.ndarray:
+        return read_depth_image(path, self.scale)
+
+    def _timestamp_us(self, lap: int, slot: int, index: int) -> int:
+        if self._stamps is None:
+            return index * 1_000_000 // 30
+        stamps = self._stamps
+        span = stamps[-1] - stamps[0]
+        period = span // (len(stamps) - 1) if len(stamps) > 1 else DEFAULT_PERIOD_US
+        return stamps[slot] + lap * (span + max(period, 1))
+
+    def _wait_until_due(self, timeout: float | None) -> None:
+        if self.rate is None:
+            return
+        period = 1.0 / self.rate
+        now = time.monotonic()
+        due = now if self._due is None else self._due
+        wait = due - now
+        if wait > 0:
+            if timeout is not None and wait > timeout:
+                time.sleep(max(timeout, 0.0))
+                raise FrameTimeout(
+                    f"{self!r}: no frame within {timeout} s; the source is paced at "
+                    f"{self.rate} Hz (lower the rate option or raise the read timeout)")
+            time.sleep(wait)
+        # the next frame is one period after this one; a late reader does not get a burst
+        self._due = max(due, now) + period
+
+
+def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any = False,
+                intrinsics: Any = None, pattern: Any = None, **unknown: Any) -> ImageFolderSource:
+    """The ``images:`` backend of :func:`hw.depth.open_depth`.
+
+    ``target``: an image file or a folder of them.  Options (Python values, or the strings of
+    a URI query): ``scale`` raw units per metre (1000 = mm, 5000 = TUM); ``rate`` Hz to pace
+    delivery at; ``loop`` (1/0, true/false, yes/no); ``intrinsics`` an :class:`Intrinsics` or
+    ``"fx,fy,cx,cy"``; ``pattern`` a glob the file names must match (e.g. ``*_depth.tiff``).
+    Raises :class:`UriError` for bad or unknown options and :class:`DepthFileError` when the
+    target is missing or holds no images.  The source is returned unopened.
+    """
+    if unknown:
+        raise UriError(f"images option(s) {', '.join(sorted(unknown))} unknown; the images "
+                       f"backend takes {', '.join(_OPTIONS)}")
+    scale_value = _positive_number("scale", scale, "raw units per metre: 1000 for millimetres, "
+                                   "5000 for TUM RGB-D")
+    rate_value = None if rate is None or rate == "" else _positive_number(
+        "rate", rate, "frames per second; leave it out to read as fast as possible")
+    loop_value = _flag("loop", loop)
+    if isinstance(intrinsics, str) and not intrinsics.strip():
+        intrinsics = None
+    if isinstance(intrinsics, str):
+        _check_four_numbers(intrinsics)
+    elif intrinsics is not None and not isinstance(intrinsics, Intrinsics):
+        raise UriError(f"images option intrinsics={intrinsics!r}: expected an Intrinsics or "
+                       "'fx,fy,cx,cy' text")
+    if pattern is not None and not isinstance(pattern, str):
+        raise UriError(f"images option pattern={pattern!r}: expected a glob such as "
+                       "'*_depth.png'")
+
+    path = Path(target)
+    if path.is_dir():
+        files = list_images(path, pattern or None)
+    elif path.is_file():
+        files = [path]
+    else:
+        raise DepthFileError(f"{target}: no such file or folder (expected a depth image or a "
+                             "folder of them)")
+    return ImageFolderSource(files, scale=scale_value, rate=rate_value, loop=loop_value,
+                             intrinsics=intrinsics)
+
+
+def _positive_number(name: str, value: Any, meaning: str) -> float:
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and number > 0):
+        raise UriError(f"images option {name}={value!r}: expected a number > 0 ({meaning})")
+    return number
+
+
+def _flag(name: str, value: Any) -> bool:
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
+        return value.strip().lower() in _TRUE
+    raise UriError(f"images option {name}={value!r}: expected 1 or 0 (true/false, yes/no)")
+
+
+def _check_four_numbers(text: str) -> None:
+    parts = text.split(",")
+    try:
+        ok = len(parts) == 4 and all(math.isfinite(float(part)) for part in parts)
+    except ValueError:
+        ok = False
+    if not ok:
+        raise UriError(f"images option intrinsics={text!r}: expected four numbers "
+                       "'fx,fy,cx,cy' in pixels, e.g. '525,525,319.5,239.5'")
