@@ -33,3 +33,42 @@ class ConfigError(RobotChangeError, ValueError):
 
 class ProtocolError(RobotChangeError):
     """Bytes from the base controller that do not form a valid message."""
+
+
+class MixtureFileError(RobotChangeError):
+    """A saved Gaussian mixture that cannot be read back.
+
+    Examples: the file is truncated or not an .npz; its header names another format or a newer
+    version than this robot_change understands; the checksum of its arrays does not match (the
+    file was changed or damaged after it was written). The message names the file and what to do
+    (fit and save the reference again, or upgrade robot_change).
+    """
+
+
+class ConvergenceWarning(UserWarning):
+    """An iterative fit stopped at its iteration bound before it converged.
+
+    The result is still usable (the last iterate); raise ``max_iter`` or ``tol`` if it recurs.
+    """
+
+
+class MessageError(ProtocolError, ValueError):
+    """A protocol message whose fields or payload bytes are invalid.
+
+    Raised when a message is built with a bad value (``SetParam(param=1, value=99)``: watch_m
+    allows 1..10) and when received payload bytes do not decode.  ``reason`` is the NAK reason
+    code (docs/protocol.md, "NAK reasons") a receiver answers with: 2 bad payload, 4 unknown
+    parameter, 5 value out of range.
+    """
+
+    def __init__(self, message: str, reason: int = 2) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class LinkError(ProtocolError):
+    """The link to the base controller was used in a way the protocol does not allow.
+
+    Examples: the module tries to send a base-only message (CHECK); a heartbeat of the wrong
+    direction is installed.  The message names the message type and who may send it.
+    """

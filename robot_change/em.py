@@ -1,0 +1,478 @@
+"""Numba kernels of EM for 3-D Gaussian mixtures with full covariances.
+
+Every kernel is ``@njit(cache=True, nogil=True)``, single-threaded, without fastmath, and takes
+and returns float64 arrays.  Each has a plain NumPy twin in ``tests/test_mixture.py``.
+
+Conventions (as in scikit-learn's ``sklearn/mixture``):
+
+- ``prec_chol[k]`` is the upper-triangular Cholesky factor of the precision of component k,
+  ``inv(L_k).T`` with ``covariances[k] = L_k @ L_k.T``; then the Mahalanobis term is
+  ``|(x - mu_k) @ prec_chol[k]|^2``.
+- ``log_det[k] = sum(log(diag(prec_chol[k]))) = -0.5 * log(det(covariances[k]))``.
+
+Status codes returned by :func:`em_loop`: ``0`` converged, ``1`` hit ``max_iter``,
+``2`` a free component lost its points (its index is returned; the caller removes it and
+calls again).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+LOG_2PI = math.log(2.0 * math.pi)
+#: A free component whose responsibility mass falls below this many points is removed.
+EMPTY_MASS = 1e-3
+#: In the fused EM step, terms below exp(-SKIP_LOG) of the largest are dropped: they are below
+#: half an ulp of the normaliser (exp(-40) = 4e-18), so the log-likelihood does not change and
+#: the responsibilities change by less than 1e-17 absolute.
+SKIP_LOG = 40.0
+_EPS10 = 10.0 * np.finfo(np.float64).eps  # as sklearn: keeps nk > 0 in the M-step
+
+STATUS_CONVERGED = 0
+STATUS_MAX_ITER = 1
+STATUS_EMPTY = 2
+
+
+@njit(cache=True, nogil=True)
+def _chol3(c, out):
+    """Lower Cholesky factor of one symmetric 3x3 matrix.
+
+    Parameters
+    ----------
+    c : array, shape (3, 3)
+    out : array, shape (3, 3), written with L (lower triangular, zeros above).
+
+    Returns
+    -------
+    ok : bool
+        False when ``c`` is not positive definite (``out`` is then undefined).
+    """
+    a00 = c[0, 0]
+    if not a00 > 0.0:
+        return False
+    l00 = math.sqrt(a00)
+    l10 = c[1, 0] / l00
+    l20 = c[2, 0] / l00
+    a11 = c[1, 1] - l10 * l10
+    if not a11 > 0.0:
+        return False
+    l11 = math.sqrt(a11)
+    l21 = (c[2, 1] - l20 * l10) / l11
+    a22 = c[2, 2] - l20 * l20 - l21 * l21
+    if not a22 > 0.0:
+        return False
+    l22 = math.sqrt(a22)
+    out[0, 0] = l00
+    out[0, 1] = 0.0
+    out[0, 2] = 0.0
+    out[1, 0] = l10
+    out[1, 1] = l11
+    out[1, 2] = 0.0
+    out[2, 0] = l20
+    out[2, 1] = l21
+    out[2, 2] = l22
+    return True
+
+
+@njit(cache=True, nogil=True)
+def precision_cholesky(covariances):
+    """Precision Cholesky factors and their log-determinants.
+
+    Parameters
+    ----------
+    covariances : array, shape (K, 3, 3)
+
+    Returns
+    -------
+    prec_chol : array, shape (K, 3, 3)
+        Upper triangular, ``inv(cholesky(cov)).T``.
+    log_det : array, shape (K,)
+        ``sum(log(diag(prec_chol)))`` = ``-0.5 * log det(cov)``.
+    ok : array of bool, shape (K,)
+        False where a covariance is not positive definite (its rows are then zero).
+    """
+    k_n = covariances.shape[0]
+    prec = np.zeros((k_n, 3, 3))
+    log_det = np.zeros(k_n)
+    ok = np.ones(k_n, dtype=np.bool_)
+    low = np.empty((3, 3))
+    for k in range(k_n):
+        if not _chol3(covariances[k], low):
+            ok[k] = False
+            continue
+        # inverse of the lower factor, written transposed (upper)
+        i00 = 1.0 / low[0, 0]
+        i11 = 1.0 / low[1, 1]
+        i22 = 1.0 / low[2, 2]
+        i10 = -low[1, 0] * i00 * i11
+        i21 = -low[2, 1] * i11 * i22
+        i20 = -(low[2, 0] * i00 + low[2, 1] * i10) * i22
+        prec[k, 0, 0] = i00
+        prec[k, 1, 1] = i11
+        prec[k, 2, 2] = i22
+        prec[k, 0, 1] = i10
+        prec[k, 1, 2] = i21
+        prec[k, 0, 2] = i20
+        log_det[k] = math.log(i00) + math.log(i11) + math.log(i22)
+    return prec, log_det, ok
+
+
+@njit(cache=True, nogil=True)
+def _log_gauss_row(x0, x1, x2, means, prec, log_det, log_w, out):
+    """``log w_k + log N(x | mu_k, Sigma_k)`` of one point for every k; returns their max."""
+    k_n = means.shape[0]
+    best = -np.inf
+    for k in range(k_n):
+        d0 = x0 - means[k, 0]
+        d1 = x1 - means[k, 1]
+        d2 = x2 - means[k, 2]
+        p = prec[k]
+        y0 = d0 * p[0, 0]
+        y1 = d0 * p[0, 1] + d1 * p[1, 1]
+        y2 = d0 * p[0, 2] + d1 * p[1, 2] + d2 * p[2, 2]
+        v = log_w[k] + log_det[k] - 0.5 * (3.0 * LOG_2PI + y0 * y0 + y1 * y1 + y2 * y2)
+        out[k] = v
+        if v > best:
+            best = v
+    return best
+
+
+@njit(cache=True, nogil=True)
+def e_step(points, weights, means, prec_chol, log_det):
+    """E-step in the log domain.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    weights : array, shape (K,)
+    means : array, shape (K, 3)
+    prec_chol : array, shape (K, 3, 3)
+    log_det : array, shape (K,)
+
+    Returns
+    -------
+    log_resp : array, shape (N, K)
+        Log responsibilities, ``log p(k | x_n)``.
+    log_prob : array, shape (N,)
+        ``log p(x_n)`` under the mixture (log-sum-exp over components).
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights)
+    log_resp = np.empty((n, k_n))
+    log_prob = np.empty(n)
+    for i in range(n):
+        row = log_resp[i]
+        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
+                              log_det, log_w, row)
+        s = 0.0
+        for k in range(k_n):
+            s += math.exp(row[k] - best)
+        lp = best + math.log(s)
+        log_prob[i] = lp
+        for k in range(k_n):
+            row[k] -= lp
+    return log_resp, log_prob
+
+
+@njit(cache=True, nogil=True)
+def log_prob_samples(points, weights, means, prec_chol, log_det):
+    """``log p(x_n)`` under the mixture, without storing responsibilities.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    weights, means, prec_chol, log_det : as in :func:`e_step`
+
+    Returns
+    -------
+    log_prob : array, shape (N,)
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights)
+    row = np.empty(k_n)
+    log_prob = np.empty(n)
+    for i in range(n):
+        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
+                              log_det, log_w, row)
+        s = 0.0
+        for k in range(k_n):
+            s += math.exp(row[k] - best)
+        log_prob[i] = best + math.log(s)
+    return log_prob
+
+
+@njit(cache=True, nogil=True)
+def log_prob_labels(points, weights, means, prec_chol, log_det):
+    """``log p(x_n)`` and the most probable component of each point, in one pass.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    weights, means, prec_chol, log_det : as in :func:`e_step`
+
+    Returns
+    -------
+    log_prob : array, shape (N,)
+    labels : array of int64, shape (N,)
+        ``argmax_k log p(k | x_n)`` (the first on ties, as ``numpy.argmax``).
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights)
+    row = np.empty(k_n)
+    log_prob = np.empty(n)
+    labels = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
+                              log_det, log_w, row)
+        s = 0.0
+        arg = -1
+        for k in range(k_n):
+            t = row[k] - best
+            if arg < 0 and row[k] == best:
+                arg = k
+            if t >= -SKIP_LOG:
+                s += math.exp(t)
+        labels[i] = arg
+        log_prob[i] = best + math.log(s)
+    return log_prob, labels
+
+
+@njit(cache=True, nogil=True)
+def m_step(points, resp, reg_covar):
+    """M-step from responsibilities (two passes per component, as scikit-learn).
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    resp : array, shape (N, K)
+        Responsibilities (not logs).
+    reg_covar : float
+        Added to the diagonal of every covariance.
+
+    Returns
+    -------
+    nk : array, shape (K,)
+        Responsibility mass per component (plus 10 eps).
+    means : array, shape (K, 3)
+    covariances : array, shape (K, 3, 3)
+    """
+    n = points.shape[0]
+    k_n = resp.shape[1]
+    nk = np.zeros(k_n)
+    means = np.zeros((k_n, 3))
+    covs = np.zeros((k_n, 3, 3))
+    for i in range(n):
+        for k in range(k_n):
+            r = resp[i, k]
+            nk[k] += r
+            means[k, 0] += r * points[i, 0]
+            means[k, 1] += r * points[i, 1]
+            means[k, 2] += r * points[i, 2]
+    for k in range(k_n):
+        nk[k] += _EPS10
+        for a in range(3):
+            means[k, a] /= nk[k]
+    for i in range(n):
+        for k in range(k_n):
+            r = resp[i, k]
+            d0 = points[i, 0] - means[k, 0]
+            d1 = points[i, 1] - means[k, 1]
+            d2 = points[i, 2] - means[k, 2]
+            covs[k, 0, 0] += r * d0 * d0
+            covs[k, 0, 1] += r * d0 * d1
+            covs[k, 0, 2] += r * d0 * d2
+            covs[k, 1, 1] += r * d1 * d1
+            covs[k, 1, 2] += r * d1 * d2
+            covs[k, 2, 2] += r * d2 * d2
+    for k in range(k_n):
+        _finish_cov(covs[k], nk[k], reg_covar)
+    return nk, means, covs
+
+
+@njit(cache=True, nogil=True)
+def _finish_cov(c, nk, reg_covar):
+    """Scale the upper triangle of accumulated scatter by 1/nk, mirror it, add the floor."""
+    for a in range(3):
+        for b in range(a, 3):
+            c[a, b] /= nk
+            c[b, a] = c[a, b]
+        c[a, a] += reg_covar
+
+
+@njit(cache=True, nogil=True)
+def em_step(points, weights, means, prec_chol, log_det, reg_covar):
+    """One fused EM iteration: E-step on the given parameters and the M-step statistics.
+
+    The scatter is accumulated about the *old* means in one pass and corrected to the new
+    means afterwards (``S = sum r d d^T / nk - e e^T`` with ``e`` the mean shift); the old mean
+    is close to the new one, so there is no cancellation of large coordinates.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    weights, means, prec_chol, log_det : the current parameters, as in :func:`e_step`
+    reg_covar : float
+
+    Returns
+    -------
+    mean_log_prob : float
+        Mean log-likelihood per point of the *given* parameters.
+    nk : array, shape (K,)
+    new_means : array, shape (K, 3)
+    new_covariances : array, shape (K, 3, 3)
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights)
+    row = np.empty(k_n)
+    nk = np.zeros(k_n)
+    s1 = np.zeros((k_n, 3))
+    s2 = np.zeros((k_n, 3, 3))
+    total = 0.0
+    for i in range(n):
+        x0 = points[i, 0]
+        x1 = points[i, 1]
+        x2 = points[i, 2]
+        best = _log_gauss_row(x0, x1, x2, means, prec_chol, log_det, log_w, row)
+        s = 0.0
+        for k in range(k_n):
+            t = row[k] - best
+            if t < -SKIP_LOG:
+                row[k] = 0.0
+            else:
+                e = math.exp(t)
+                row[k] = e
+                s += e
+        total += best + math.log(s)
+        inv = 1.0 / s
+        for k in range(k_n):
+            r = row[k] * inv
+            if r == 0.0:
+                continue
+            d0 = x0 - means[k, 0]
+            d1 = x1 - means[k, 1]
+            d2 = x2 - means[k, 2]
+            nk[k] += r
+            s1[k, 0] += r * d0
+            s1[k, 1] += r * d1
+            s1[k, 2] += r * d2
+            rd0 = r * d0
+            rd1 = r * d1
+            s2[k, 0, 0] += rd0 * d0
+            s2[k, 0, 1] += rd0 * d1
+            s2[k, 0, 2] += rd0 * d2
+            s2[k, 1, 1] += rd1 * d1
+            s2[k, 1, 2] += rd1 * d2
+            s2[k, 2, 2] += r * d2 * d2
+    new_means = np.empty((k_n, 3))
+    for k in range(k_n):
+        nk[k] += _EPS10
+        e0 = s1[k, 0] / nk[k]
+        e1 = s1[k, 1] / nk[k]
+        e2 = s1[k, 2] / nk[k]
+        new_means[k, 0] = means[k, 0] + e0
+        new_means[k, 1] = means[k, 1] + e1
+        new_means[k, 2] = means[k, 2] + e2
+        c = s2[k]
+        _finish_cov(c, nk[k], 0.0)
+        c[0, 0] -= e0 * e0
+        c[0, 1] -= e0 * e1
+        c[0, 2] -= e0 * e2
+        c[1, 1] -= e1 * e1
+        c[1, 2] -= e1 * e2
+        c[2, 2] -= e2 * e2
+        c[1, 0] = c[0, 1]
+        c[2, 0] = c[0, 2]
+        c[2, 1] = c[1, 2]
+        for a in range(3):
+            c[a, a] += reg_covar
+    return total / n, nk, new_means, s2
+
+
+@njit(cache=True, nogil=True)
+def em_loop(points, weights, means, covariances, fixed, fix_weights, reg_covar, tol, max_iter):
+    """EM to convergence of the mean log-likelihood per point.
+
+    Each iteration evaluates the current parameters (E-step), updates them (M-step), and stops
+    when the mean log-likelihood changed by less than ``tol`` -- the same order as
+    scikit-learn's ``GaussianMixture.fit``, so the same start gives the same parameters.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    weights : array, shape (K,)
+    means : array, shape (K, 3)
+    covariances : array, shape (K, 3, 3)
+        Must be positive definite.
+    fixed : array of bool, shape (K,)
+        Components whose means and covariances are never changed.
+    fix_weights : bool
+        If True the fixed components keep their relative weights; only their total mass is
+        re-estimated (the exact M-step for that constraint).
+    reg_covar : float
+        Covariance floor added to the diagonal in the M-step.
+    tol : float
+    max_iter : int
+
+    Returns
+    -------
+    weights, means, covariances : the updated parameters (new arrays)
+    mean_log_prob : float
+        Mean log-likelihood per point of the parameters before the last M-step (-inf if
+        no iteration ran).
+    n_iter : int
+    status : int
+        ``STATUS_CONVERGED``, ``STATUS_MAX_ITER`` or ``STATUS_EMPTY``.
+    empty : int
+        Index of the free component that lost its points when ``status == STATUS_EMPTY``.
+    """
+    n = points.shape[0]
+    k_n = weights.shape[0]
+    w = weights.copy()
+    mu = means.copy()
+    cov = covariances.copy()
+    fixed_w_total = 0.0
+    for k in range(k_n):
+        if fixed[k]:
+            fixed_w_total += weights[k]
+    prev = -np.inf
+    lp = -np.inf
+    it = 0
+    while it < max_iter:
+        prec, log_det, ok = precision_cholesky(cov)
+        for k in range(k_n):
+            if not ok[k]:  # rounding on a degenerate cloud: fall back to the diagonal
+                for a in range(3):
+                    for b in range(3):
+                        if a != b:
+                            cov[k, a, b] = 0.0
+                    cov[k, a, a] = max(cov[k, a, a], reg_covar)
+        if not ok.all():
+            prec, log_det, ok = precision_cholesky(cov)
+        lp, nk, new_mu, new_cov = em_step(points, w, mu, prec, log_det, reg_covar)
+        it += 1
+        fixed_mass = 0.0
+        for k in range(k_n):
+            if fixed[k]:
+                fixed_mass += nk[k]
+                continue
+            if nk[k] < EMPTY_MASS:
+                return w, mu, cov, lp, it, STATUS_EMPTY, k
+            mu[k] = new_mu[k]
+            cov[k] = new_cov[k]
+        for k in range(k_n):
+            if fixed[k] and fix_weights and fixed_w_total > 0.0:
+                w[k] = weights[k] / fixed_w_total * fixed_mass / n
+            else:
+                w[k] = nk[k] / n
+        w /= w.sum()
+        if abs(lp - prev) < tol:
+            return w, mu, cov, lp, it, STATUS_CONVERGED, -1
+        prev = lp
+    return w, mu, cov, lp, it, STATUS_MAX_ITER, -1

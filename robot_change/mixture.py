@@ -1,0 +1,856 @@
+"""Gaussian mixtures of 3-D points: the immutable :class:`Mixture`, and split-EM fitting.
+
+:func:`fit_mixture` follows ALGORITHM.md section 2: start from K = 1 (or from a given
+mixture), run EM, split the component with the largest weighted Gaussianity deficiency
+``w_k * J_k`` into two along its principal axis, run EM over all components, and keep the split
+only if the model-selection criterion (MDL, BIC or AIC) drops; otherwise try the next
+candidate; stop when none helps or K reaches ``max_components``.
+
+Numeric module: arrays in, arrays out; the only I/O is :meth:`Mixture.save` /
+:meth:`Mixture.load`.  The EM kernels are in :mod:`robot_change.em`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import digamma
+
+from robot_change import em
+from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
+
+__all__ = [
+    "CRITERIA",
+    "FitRecord",
+    "FitStep",
+    "Mixture",
+    "benchmark_em",
+    "criterion_value",
+    "fit_mixture",
+    "gaussianity_deficiency",
+    "knn_entropy",
+    "reg_covar_for_leaf",
+]
+
+CRITERIA = ("mdl", "bic", "aic")
+FILE_FORMAT = "robot_change.mixture"
+FILE_VERSION = 1
+#: Free parameters of one full-covariance 3-D Gaussian (3 for the mean, 6 for the covariance).
+N_PARAMS_COMPONENT = 9
+#: Default voxel leaf (m) the covariance floor is tied to when neither is given.
+DEFAULT_LEAF = 0.02
+
+
+def reg_covar_for_leaf(leaf: float) -> float:
+    """Covariance floor (m^2) for a cloud voxelised with ``leaf`` (m): ``leaf**2 / 12``.
+
+    ``leaf**2 / 12`` is the variance of a uniform distribution over one voxel's width: the
+    quantisation a voxel grid puts on every coordinate.  No structure finer than that is in
+    the data, so no component needs to be thinner, and a plane (zero thickness in the ideal
+    case) stays well-conditioned.
+    """
+    if not (isinstance(leaf, (int, float)) and math.isfinite(leaf) and leaf > 0):
+        raise InputError(f"leaf must be a positive number of metres, got {leaf!r}")
+    return float(leaf) ** 2 / 12.0
+
+
+# --------------------------------------------------------------------------- the Mixture
+
+
+def _check_points(points, name: str = "points") -> np.ndarray:
+    """(N, 3) finite float64 copy-free view of ``points``; InputError otherwise."""
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a numeric (N, 3) array: {exc}") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise InputError(f"{name} is empty: a mixture needs at least one point")
+    if not np.isfinite(arr).all():
+        bad = int((~np.isfinite(arr).all(axis=1)).sum())
+        raise InputError(f"{name} has {bad} rows with NaN or inf; drop them first "
+                         f"(points[np.isfinite(points).all(axis=1)])")
+    return np.ascontiguousarray(arr)
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64, order="C", copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Mixture:
+    """A Gaussian mixture in 3-D: ``sum_k w_k N(x | mu_k, Sigma_k)``.
+
+    Attributes
+    ----------
+    weights : array, shape (K,)
+        Non-negative, summing to 1.
+    means : array, shape (K, 3)
+    covariances : array, shape (K, 3, 3)
+        Symmetric positive definite.
+    record : FitRecord or None
+        How :func:`fit_mixture` made it (not saved to file, not part of equality).
+
+    The arrays are float64 read-only copies.
+    """
+
+    weights: np.ndarray
+    means: np.ndarray
+    covariances: np.ndarray
+    record: FitRecord | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        w = _readonly(self.weights)
+        mu = _readonly(self.means)
+        cov = _readonly(self.covariances)
+        if w.ndim != 1 or w.shape[0] < 1:
+            raise InputError(f"weights must have shape (K,) with K >= 1, got {w.shape}")
+        k = w.shape[0]
+        if mu.shape != (k, 3):
+            raise InputError(f"means must have shape ({k}, 3), got {mu.shape}")
+        if cov.shape != (k, 3, 3):
+            raise InputError(f"covariances must have shape ({k}, 3, 3), got {cov.shape}")
+        for name, a in (("weights", w), ("means", mu), ("covariances", cov)):
+            if not np.isfinite(a).all():
+                raise InputError(f"{name} contain NaN or inf")
+        if (w < 0).any() or abs(w.sum() - 1.0) > 1e-9:
+            raise InputError(f"weights must be >= 0 and sum to 1, got sum {w.sum():.12g}, "
+                             f"min {w.min():.3g}; normalise them (w / w.sum())")
+        asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2))
+        scale = np.abs(cov).max(axis=(1, 2))
+        if (asym > 1e-12 * np.maximum(scale, 1e-300)).any():
+            raise InputError("covariances must be symmetric; symmetrise them "
+                             "(0.5 * (C + C.transpose(0, 2, 1)))")
+        _, _, ok = em.precision_cholesky(cov)
+        if not ok.all():
+            bad = np.flatnonzero(~ok).tolist()
+            raise InputError(f"covariances of components {bad} are not positive definite; "
+                             "add a floor to their diagonal (reg_covar)")
+        object.__setattr__(self, "weights", w)
+        object.__setattr__(self, "means", mu)
+        object.__setattr__(self, "covariances", cov)
+
+    @property
+    def n_components(self) -> int:
+        """K, the number of components."""
+        return int(self.weights.shape[0])
+
+    @cached_property
+    def _prec(self) -> tuple[np.ndarray, np.ndarray]:
+        prec, log_det, _ = em.precision_cholesky(self.covariances)
+        prec.setflags(write=False)
+        log_det.setflags(write=False)
+        return prec, log_det
+
+    def score_samples(self, points) -> np.ndarray:
+        """Log density of each point under the mixture.
+
+        Parameters
+        ----------
+        points : array, shape (N, 3)
+
+        Returns
+        -------
+        log_prob : array, shape (N,)
+        """
+        x = _check_points(points)
+        prec, log_det = self._prec
+        return em.log_prob_samples(x, np.asarray(self.weights), np.asarray(self.means), prec,
+                                   log_det)
+
+    def score(self, points) -> float:
+        """Mean log-likelihood per point (scikit-learn's ``GaussianMixture.score``)."""
+        return float(self.score_samples(points).mean())
+
+    def log_responsibilities(self, points) -> np.ndarray:
+        """``log p(k | x_n)``, shape (N, K)."""
+        x = _check_points(points)
+        prec, log_det = self._prec
+        log_resp, _ = em.e_step(x, np.asarray(self.weights), np.asarray(self.means), prec,
+                                log_det)
+        return log_resp
+
+    def responsibilities(self, points) -> np.ndarray:
+        """Posterior probability of each component for each point, shape (N, K)."""
+        return np.exp(self.log_responsibilities(points))
+
+    def predict(self, points) -> np.ndarray:
+        """Index of the most probable component for each point, shape (N,), int64."""
+        return self.log_responsibilities(points).argmax(axis=1)
+
+    def log_likelihood(self, points) -> float:
+        """Total log-likelihood ``sum_n log p(x_n)``."""
+        return float(self.score_samples(points).sum())
+
+    # ----------------------------------------------------------------------- files
+
+    def _checksum(self) -> str:
+        h = hashlib.sha256()
+        for a in (self.weights, self.means, self.covariances):
+            h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+        return h.hexdigest()
+
+    def save(self, path) -> None:
+        """Write to ``path`` (.npz with a JSON header), atomically: temp file, fsync, rename.
+
+        The header holds the format name, the version, K, the criterion the fit used (if
+        known) and a SHA-256 of the arrays, checked by :meth:`load`.
+        """
+        path = Path(path)
+        header = {
+            "format": FILE_FORMAT,
+            "version": FILE_VERSION,
+            "n_components": self.n_components,
+            "criterion": self.record.criterion if self.record is not None else None,
+            "sha256": self._checksum(),
+        }
+        buf = io.BytesIO()
+        np.savez(buf, header=np.array(json.dumps(header, sort_keys=True)),
+                 weights=self.weights, means=self.means, covariances=self.covariances)
+        directory = path.parent if str(path.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(buf.getvalue())
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            raise
+        try:  # make the rename itself durable
+            dfd = os.open(directory, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(dfd)
+        except OSError:
+            pass
+        finally:
+            os.close(dfd)
+
+    @classmethod
+    def load(cls, path) -> Mixture:
+        """Read a mixture written by :meth:`save`; verify format, version and checksum.
+
+        Raises
+        ------
+        MixtureFileError
+            Unreadable or truncated file, another format, a newer version, a checksum that
+            does not match, or arrays that do not form a valid mixture.
+        FileNotFoundError
+            ``path`` does not exist.
+        """
+        path = Path(path)
+        redo = "fit and save the mixture again"
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                header = json.loads(str(data["header"][()]))
+                arrays = {k: np.array(data[k]) for k in ("weights", "means", "covariances")}
+        except FileNotFoundError:
+            raise
+        except Exception as exc:  # zipfile.BadZipFile, KeyError, ValueError, EOFError, ...
+            raise MixtureFileError(f"{path}: not a readable mixture file "
+                                   f"({type(exc).__name__}: {exc}); {redo}") from exc
+        if not isinstance(header, dict) or header.get("format") != FILE_FORMAT:
+            fmt = header.get("format") if isinstance(header, dict) else None
+            raise MixtureFileError(f"{path}: format {fmt!r} is not {FILE_FORMAT!r}; "
+                                   f"is this the right file?")
+        version = header.get("version")
+        if not isinstance(version, int) or version < 1:
+            raise MixtureFileError(f"{path}: bad version {version!r}; {redo}")
+        if version > FILE_VERSION:
+            raise MixtureFileError(f"{path}: version {version} is newer than this robot_change "
+                                   f"reads ({FILE_VERSION}); upgrade robot_change")
+        try:
+            mixture = cls(**arrays)
+        except InputError as exc:
+            raise MixtureFileError(f"{path}: the arrays do not form a valid mixture ({exc}); "
+                                   f"{redo}") from exc
+        if header.get("n_components") != mixture.n_components:
+            raise MixtureFileError(f"{path}: header says K = {header.get('n_components')}, "
+                                   f"arrays hold {mixture.n_components}; {redo}")
+        if header.get("sha256") != mixture._checksum():
+            raise MixtureFileError(f"{path}: checksum mismatch, the file was changed or "
+                                   f"damaged after it was written; {redo}")
+        return mixture
+
+
+# --------------------------------------------------------------------------- fit record
+
+
+@dataclass(frozen=True)
+class FitStep:
+    """One EM run inside :func:`fit_mixture`.
+
+    ``action`` is ``"start"`` (the initial EM), ``"split k"`` (component k of the current
+    mixture was split) or ``"seed"`` (a novelty component was added); ``accepted`` says whether
+    the result became the current mixture.
+    """
+
+    action: str
+    n_components: int
+    criterion: float
+    log_likelihood: float
+    n_iter: int
+    converged: bool
+    accepted: bool
+    seconds: float
+
+
+@dataclass(frozen=True)
+class FitRecord:
+    """How a mixture was fitted: settings, every EM run, and the totals."""
+
+    criterion: str
+    n_points: int
+    reg_covar: float
+    max_components: int
+    steps: tuple[FitStep, ...]
+    n_iter: int
+    seconds: float
+    stop_reason: str
+
+    @property
+    def k_tried(self) -> tuple[int, ...]:
+        """K of every EM run, in order."""
+        return tuple(s.n_components for s in self.steps)
+
+
+# --------------------------------------------------------------------------- criteria
+
+
+def _n_free_weights(k: int, n_fixed: int, fix_weights: bool) -> int:
+    if fix_weights and n_fixed > 0:
+        return (k - n_fixed) + 1 - 1
+    return k - 1
+
+
+def criterion_value(name: str, log_likelihood: float, n_points: int, weights,
+                    fixed=None, fix_weights: bool = False) -> float:
+    """Model-selection criterion L_SC = -log L + P(K); smaller is better.
+
+    Parameters
+    ----------
+    name : {"mdl", "bic", "aic"}
+    log_likelihood : float
+        Total log-likelihood ``sum_n log p(x_n)``.
+    n_points : int
+        N.
+    weights : array, shape (K,)
+    fixed : array of bool, shape (K,), optional
+        Components given, not estimated: their 9 parameters are not counted (nor their
+        weights when ``fix_weights``).
+
+    Returns
+    -------
+    float
+        AIC = -2 log L + 2p; BIC = -2 log L + p ln N; MDL (Figueiredo & Jain) = -log L +
+        (Np/2) sum_k log(N w_k / 12) + (K/2) log(N/12) + K (Np + 1)/2, with p = 10K - 1 and
+        Np = 9 when no component is fixed.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    k = w.shape[0]
+    fixed = np.zeros(k, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+    n_fixed = int(fixed.sum())
+    k_free = k - n_fixed
+    p = N_PARAMS_COMPONENT * k_free + _n_free_weights(k, n_fixed, fix_weights)
+    n = float(n_points)
+    if name == "aic":
+        return -2.0 * log_likelihood + 2.0 * p
+    if name == "bic":
+        return -2.0 * log_likelihood + p * math.log(n)
+    if name == "mdl":
+        k_w = _n_free_weights(k, n_fixed, fix_weights) + 1
+        nw = np.maximum(n * w[~fixed], 1e-300)
+        return (-log_likelihood + 0.5 * N_PARAMS_COMPONENT * float(np.log(nw / 12.0).sum())
+                + 0.5 * k_w * math.log(n / 12.0) + 0.5 * (N_PARAMS_COMPONENT * k_free + k_w))
+    raise InputError(f"criterion must be one of {CRITERIA}, got {name!r}")
+
+
+# --------------------------------------------------------------------------- split choice
+
+
+def knn_entropy(points: np.ndarray, k: int = 4, floor: float = 1e-9, queries=None) -> float:
+    """Kozachenko–Leonenko k-nearest-neighbour estimate of differential entropy (nats).
+
+    ``H = psi(n) - psi(k) + log(V_3) + (3/m) sum_i log(max(eps_i, floor))`` with ``eps_i`` the
+    distance from query point i to its k-th neighbour among the n points and
+    ``V_3 = 4 pi / 3``.
+
+    Parameters
+    ----------
+    points : array, shape (n, 3), n > k
+    k : int
+    floor : float
+        Smallest distance used (m): duplicate points would otherwise give log(0).
+    queries : array of int, shape (m,), optional
+        Indices of the points whose distances are averaged (default: all).  A random subset
+        gives an unbiased estimate of the same average at the full density.
+    """
+    n = points.shape[0]
+    if n <= k:
+        raise InputError(f"k-NN entropy needs more than k = {k} points, got {n}")
+    q = points if queries is None else points[queries]
+    dist, _ = cKDTree(points).query(q, k=k + 1)
+    eps = np.maximum(dist[:, k], floor)
+    return float(digamma(n) - digamma(k) + math.log(4.0 * math.pi / 3.0)
+                 + 3.0 * np.log(eps).mean())
+
+
+def gaussianity_deficiency(points: np.ndarray, blur: float, k: int = 4, n_queries: int = 2000,
+                           rng=None) -> float:
+    """J = H_gauss - H_est of points blurred at scale ``blur``: how far they are from Gaussian.
+
+    The points are blurred by isotropic Gaussian noise of standard deviation ``blur`` (m, the
+    voxel size) first, then ``H_est`` is the k-NN entropy of the blurred points and
+    ``H_gauss = 0.5 log((2 pi e)^3 det S)`` with S their sample covariance, the largest entropy
+    any density with that covariance can have.  So J >= 0 up to estimation noise, J ~ 0 for
+    Gaussian points, and J does not depend on the unit of length (unlike the paper's ratio of
+    entropies).  Without the blur, a voxelised surface is 2-D at the scale of its k-th
+    neighbour and the 3-D estimator overstates its entropy, making J of planes negative.
+
+    Parameters
+    ----------
+    points : array, shape (n, 3), n > k
+    blur : float
+        Standard deviation of the blur (m), >= 0.
+    n_queries : int
+        At most this many points are queried (all points stay in the k-NN tree).
+    rng : numpy Generator, optional
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    xb = points + rng.normal(0.0, blur, points.shape) if blur > 0 else points
+    n = xb.shape[0]
+    queries = None if n <= n_queries else rng.choice(n, n_queries, replace=False)
+    cov = np.cov(xb, rowvar=False, bias=True)
+    det = max(float(np.linalg.det(cov)), 1e-300)
+    h_gauss = 0.5 * (3.0 * math.log(2.0 * math.pi * math.e) + math.log(det))
+    return h_gauss - knn_entropy(xb, k, 1e-9 + 1e-3 * blur, queries)
+
+
+def _split_component(x: np.ndarray, mean, cov, weight: float, reg_covar: float,
+                     n_lloyd: int = 5):
+    """Two-means split of one component's points along its principal axis.
+
+    Parameters
+    ----------
+    x : array, shape (n, 3)
+        Points hard-assigned to the component.
+    mean : array, shape (3,)
+    cov : array, shape (3, 3)
+    weight : float
+
+    Returns
+    -------
+    (weights (2,), means (2, 3), covariances (2, 3, 3)) or None when a half gets < 2 points.
+    """
+    lam, vec = np.linalg.eigh(cov)
+    step = math.sqrt(max(lam[-1], 0.0)) * vec[:, -1]
+    centres = np.stack([mean - step, mean + step])
+    for it in range(n_lloyd + 1):
+        # nearer to centres[1] <=> x . (c1 - c0) > (|c1|^2 - |c0|^2) / 2
+        side = x @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1]
+                                                     - centres[0] @ centres[0])
+        if side.all() or not side.any():
+            return None
+        if it == n_lloyd:
+            break
+        new = np.stack([x[~side].mean(axis=0), x[side].mean(axis=0)])
+        if np.array_equal(new, centres):
+            break
+        centres = new
+    halves = (x[~side], x[side])
+    if min(len(h) for h in halves) < 2:
+        return None
+    ws = np.array([len(h) for h in halves], dtype=np.float64) / len(x) * weight
+    mus = np.stack([h.mean(axis=0) for h in halves])
+    covs = np.stack([np.cov(h, rowvar=False, bias=True) + reg_covar * np.eye(3) for h in halves])
+    return ws, mus, covs
+
+
+# --------------------------------------------------------------------------- EM driver
+
+
+@dataclass
+class _State:
+    """Mutable working copy of a mixture inside :func:`fit_mixture`.
+
+    ``j`` caches each component's Gaussianity deficiency (NaN: not computed yet).
+    """
+
+    weights: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+    fixed: np.ndarray
+    j: np.ndarray
+    log_l: float = -np.inf
+    crit: float = np.inf
+    n_iter: int = 0
+    converged: bool = True
+
+
+def _run_em(x, st: _State, *, fix_weights, reg_covar, tol, max_iter) -> _State:
+    """EM from ``st`` to convergence, removing free components that lose their points."""
+    w, mu, cov, fixed, j = st.weights, st.means, st.covs, st.fixed, st.j
+    total_iter = 0
+    while True:
+        w2, mu2, cov2, _, n_it, status, empty = em.em_loop(
+            x, w, mu, cov, fixed, fix_weights, reg_covar, tol, max(max_iter - total_iter, 1))
+        total_iter += n_it
+        if status != em.STATUS_EMPTY:
+            break
+        keep = np.arange(len(w)) != empty
+        w, mu, cov, fixed, j = w2[keep], mu2[keep], cov2[keep], fixed[keep], j[keep]
+        w = w / w.sum()
+    return _State(w2, mu2, cov2, fixed, j, n_iter=total_iter,
+                  converged=status == em.STATUS_CONVERGED)
+
+
+def _evaluate(x, st: _State, criterion, fix_weights, n_total):
+    """Final E-step: fills ``st.log_l`` and ``st.crit``; returns hard labels (N,).
+
+    With ``x`` a subsample of ``n_total`` points, log L is scaled to the whole cloud.
+    """
+    prec, log_det, _ = em.precision_cholesky(st.covs)
+    log_prob, labels = em.log_prob_labels(x, st.weights, st.means, prec, log_det)
+    st.log_l = float(log_prob.sum()) * (n_total / x.shape[0])
+    st.crit = criterion_value(criterion, st.log_l, n_total, st.weights, st.fixed, fix_weights)
+    return labels
+
+
+def fit_mixture(
+    points,
+    criterion: str = "mdl",
+    init: Mixture | None = None,
+    *,
+    leaf: float = DEFAULT_LEAF,
+    reg_covar: float | None = None,
+    max_components: int = 16,
+    tol: float = 1e-3,
+    max_iter: int = 100,
+    seed: int = 0,
+    fixed=None,
+    fix_weights: bool = False,
+    novelty=None,
+    split: bool = True,
+    min_points: int = 10,
+    max_tries: int = 3,
+    entropy_k: int = 4,
+    entropy_subsample: int = 2000,
+    search_points: int | None = 2000,
+) -> Mixture:
+    """Fit a Gaussian mixture to 3-D points by split-EM, choosing K by a criterion.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+        Finite coordinates (m).
+    criterion : {"mdl", "bic", "aic"}
+    init : Mixture, optional
+        Start EM from this mixture instead of K = 1 (e.g. the station's reference).
+    leaf : float
+        Voxel size of the cloud (m); sets ``reg_covar = leaf**2 / 12`` when that is None.
+    reg_covar : float, optional
+        Covariance floor (m^2) added to every covariance's diagonal in the M-step.  The blur
+        of the Gaussianity deficiency is ``sqrt(12 reg_covar)`` (= leaf).
+    max_components : int
+        Bound on K: no split once K reaches it.
+    tol : float
+        EM stops when the mean log-likelihood per point changes by less than this.
+    max_iter : int
+        Bound on the iterations of each EM run; reaching it warns (ConvergenceWarning).
+    seed : int
+        Seed of the random subsets (entropy estimate, search subsample); same seed, same fit.
+    fixed : "init", array of bool (K_init,) or of int indices, optional
+        Components of ``init`` held fixed: their means and covariances never change, and
+        they are never split (background for novelty components, ALGORITHM.md section 3).
+    fix_weights : bool
+        Fixed components also keep their relative weights (only their total is re-estimated).
+    novelty : array of bool, shape (N,), optional
+        Points the start explains poorly: one free component is seeded from their mean and
+        covariance and kept if the criterion prefers it; splitting then refines it.
+    split : bool
+        If False, only run EM from the start (fixed K).
+    min_points : int
+        A component is a split candidate only with >= 2 * min_points hard-assigned points, and a
+        split is rejected if any free component ends with fewer than ``min_points`` (N w_k).
+    max_tries : int
+        Candidates tried per round (in order of w_k J_k) before the search stops.
+    entropy_k, entropy_subsample : int
+        k of the k-NN entropy estimate, and the most query points per component.
+    search_points : int, optional
+        If set and N is larger, the split search runs on a fixed random subset of this many
+        points (log L scaled to N in the criterion, the entropy blur scaled by
+        sqrt(N / search_points)), and a final EM on all points polishes the chosen mixture.
+        None: the search uses every point (exact, about 5x slower on a room-sized cloud).
+        Ignored when ``split`` is False.
+
+    Returns
+    -------
+    Mixture
+        With ``.record`` (a :class:`FitRecord`).
+    """
+    t_start = time.perf_counter()
+    x = _check_points(points)
+    n = x.shape[0]
+    if criterion not in CRITERIA:
+        raise InputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    if reg_covar is None:
+        reg_covar = reg_covar_for_leaf(leaf)
+    if not (isinstance(reg_covar, (int, float)) and math.isfinite(reg_covar) and reg_covar > 0):
+        raise InputError(f"reg_covar must be > 0 (m^2), got {reg_covar!r}; "
+                         f"leaf**2/12 of the voxel size is the usual choice")
+    for name, v, lo in (("max_components", max_components, 1), ("max_iter", max_iter, 1),
+                        ("min_points", min_points, 1), ("max_tries", max_tries, 1),
+                        ("entropy_k", entropy_k, 1), ("entropy_subsample", entropy_subsample, 8),
+                        ("search_points", 100 if search_points is None else search_points, 100)):
+        if int(v) != v or v < lo:
+            raise InputError(f"{name} must be an integer >= {lo}, got {v!r}")
+    if not (tol >= 0):
+        raise InputError(f"tol must be >= 0, got {tol!r}")
+    rng = np.random.default_rng(seed)
+    opts = dict(fix_weights=bool(fix_weights), reg_covar=float(reg_covar), tol=float(tol),
+                max_iter=int(max_iter))
+    blur = math.sqrt(12.0 * reg_covar)
+    steps: list[FitStep] = []
+
+    if init is None:
+        if fixed is not None:
+            raise InputError("fixed needs init: there are no given components to hold fixed")
+        cov = np.cov(x, rowvar=False, bias=True) if n > 1 else np.zeros((3, 3))
+        cov = 0.5 * (cov + cov.T) + reg_covar * np.eye(3)
+        st = _State(np.ones(1), x.mean(axis=0)[None, :], cov[None], np.zeros(1, dtype=bool),
+                    np.full(1, np.nan))
+    else:
+        if not isinstance(init, Mixture):
+            raise InputError(f"init must be a Mixture, got {type(init).__name__}")
+        st = _State(np.array(init.weights), np.array(init.means), np.array(init.covariances),
+                    _fixed_mask(fixed, init.n_components), np.full(init.n_components, np.nan))
+    mask = None
+    if novelty is not None:
+        mask = np.asarray(novelty)
+        if mask.dtype != bool or mask.shape != (n,):
+            raise InputError(f"novelty must be a boolean mask of shape ({n},), "
+                             f"got {mask.dtype} {mask.shape}")
+
+    xs = x
+    if split and search_points is not None and n > search_points:
+        sub = np.sort(rng.choice(n, search_points, replace=False))
+        xs = x[sub]
+        mask = None if mask is None else mask[sub]
+        blur *= math.sqrt(n / search_points)  # a surface subsample is a coarser voxel grid
+
+    def run(state: _State, action: str, data=xs) -> tuple[_State, np.ndarray]:
+        t0 = time.perf_counter()
+        out = _run_em(data, state, **opts)
+        labels = _evaluate(data, out, criterion, fix_weights, n)
+        steps.append(FitStep(action, len(out.weights), out.crit, out.log_l, out.n_iter,
+                             out.converged, False, time.perf_counter() - t0))
+        return out, labels
+
+    def accept():
+        steps[-1] = _replace_accepted(steps[-1])
+
+    cur, labels = run(st, "start")
+    accept()
+    if mask is not None and mask.sum() >= 2:
+        seeded = _seed_component(cur, xs[mask], mask.mean(), reg_covar)
+        cand, cand_labels = run(seeded, "seed")
+        if cand.crit < cur.crit:
+            accept()
+            cur, labels = cand, cand_labels
+
+    stop = "split disabled" if not split else "no split lowers the criterion"
+    while split:
+        if len(cur.weights) >= max_components:
+            stop = f"K reached max_components = {max_components}"
+            break
+        order = _split_order(xs, labels, cur, min_points, entropy_k, entropy_subsample, blur, rng)
+        if not order:
+            stop = "no component has enough points to split"
+            break
+        improved = False
+        for k in order[:max_tries]:
+            start = _split_start(xs[labels == k], cur, k, reg_covar, opts)
+            if start is None:
+                continue
+            cand, cand_labels = run(start, f"split {k}")
+            free_mass = n * cand.weights[~cand.fixed]
+            if cand.crit < cur.crit and (free_mass >= min_points).all():
+                accept()
+                cur, labels = cand, cand_labels
+                improved = True
+                break
+        if not improved:
+            break
+
+    if xs is not x:
+        cur, _ = run(cur, "polish", x)
+        accept()
+    n_iter = sum(s.n_iter for s in steps)
+    if not all(s.converged for s in steps):
+        warnings.warn(f"EM reached max_iter = {max_iter} without converging to tol = {tol} in "
+                      f"{sum(not s.converged for s in steps)} of {len(steps)} runs; "
+                      f"the result is the last iterate. Raise max_iter or tol.",
+                      ConvergenceWarning, stacklevel=2)
+    record = FitRecord(criterion, n, float(reg_covar), int(max_components), tuple(steps), n_iter,
+                       time.perf_counter() - t_start, stop)
+    return Mixture(cur.weights / cur.weights.sum(), cur.means, _symmetric(cur.covs), record)
+
+
+def _symmetric(c: np.ndarray) -> np.ndarray:
+    return 0.5 * (c + c.transpose(0, 2, 1))
+
+
+def _replace_accepted(step: FitStep) -> FitStep:
+    d = dict(step.__dict__)
+    d["accepted"] = True
+    return FitStep(**d)
+
+
+def _fixed_mask(fixed, k: int) -> np.ndarray:
+    """Boolean (K,) mask from None, "init", a boolean mask or indices."""
+    if fixed is None:
+        return np.zeros(k, dtype=bool)
+    if isinstance(fixed, str):
+        if fixed != "init":
+            raise InputError(f'fixed must be "init", a boolean mask or indices, got {fixed!r}')
+        return np.ones(k, dtype=bool)
+    arr = np.asarray(fixed)
+    if arr.dtype == bool:
+        if arr.shape != (k,):
+            raise InputError(f"fixed mask must have shape ({k},), got {arr.shape}")
+        return arr.copy()
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer) or (arr < 0).any() or \
+            (arr >= k).any():
+        raise InputError(f"fixed indices must be integers in [0, {k}), got {fixed!r}")
+    mask = np.zeros(k, dtype=bool)
+    mask[arr] = True
+    return mask
+
+
+def _seed_component(cur: _State, xs: np.ndarray, frac: float, reg_covar: float) -> _State:
+    """``cur`` plus one free component on the points ``xs`` (weight ``frac``)."""
+    cov = np.cov(xs, rowvar=False, bias=True) + reg_covar * np.eye(3)
+    w = np.concatenate([cur.weights * (1.0 - frac), [frac]])
+    return _State(w / w.sum(), np.vstack([cur.means, xs.mean(axis=0)]),
+                  np.concatenate([cur.covs, cov[None]]), np.append(cur.fixed, False),
+                  np.append(cur.j, np.nan))
+
+
+def _split_start(xk: np.ndarray, cur: _State, k: int, reg_covar: float, opts) -> _State | None:
+    """Start of the EM after splitting component k (its points ``xk``), or None.
+
+    Two-means along the principal axis, then a local EM of the two halves on ``xk`` alone
+    (cheap: n_k points, two components), so that the EM over all components starts close to
+    its optimum and needs few iterations.
+    """
+    parts = _split_component(xk, cur.means[k], cur.covs[k], cur.weights[k], reg_covar)
+    if parts is None:
+        return None
+    ws, mus, covs = parts
+    lw, lmu, lcov, _, _, status, _ = em.em_loop(
+        xk, ws / ws.sum(), mus, covs, np.zeros(2, dtype=bool), False, opts["reg_covar"],
+        opts["tol"], opts["max_iter"])
+    if status != em.STATUS_EMPTY:
+        ws, mus, covs = lw * cur.weights[k], lmu, lcov
+    keep = np.arange(len(cur.weights)) != k
+    return _State(np.concatenate([cur.weights[keep], ws]), np.vstack([cur.means[keep], mus]),
+                  np.concatenate([cur.covs[keep], covs]),
+                  np.concatenate([cur.fixed[keep], [False, False]]),
+                  np.concatenate([cur.j[keep], [np.nan, np.nan]]))
+
+
+def _split_order(x, labels, cur: _State, min_points, entropy_k, subsample, blur, rng):
+    """Free components with >= 2 * min_points points, by decreasing w_k * J_k.
+
+    J_k is computed once per component, when it is first ranked, and cached in ``cur.j``:
+    EM moves the other components only a little after a split.
+    """
+    counts = np.bincount(labels, minlength=len(cur.weights))
+    scored = []
+    for k in np.flatnonzero((counts >= 2 * min_points) & ~cur.fixed):
+        if np.isnan(cur.j[k]):
+            cur.j[k] = gaussianity_deficiency(x[labels == k], blur, entropy_k, subsample, rng)
+        scored.append((-cur.weights[k] * cur.j[k], int(k)))
+    scored.sort()
+    return [k for _, k in scored]
+
+
+# --------------------------------------------------------------------------- benchmark
+
+
+def benchmark_em(points, n_components: int = 8, runs: int = 7, warmup: int = 2,
+                 criterion: str = "mdl", iter_points: int = 18000,
+                 **fit_options) -> dict[str, float | int]:
+    """Times for ``robot-change bench --json``: one EM iteration and the whole fit.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+        A room-sized cloud (15k-20k points).
+    n_components : int
+        K of the single-iteration timing (components seeded from an 8-way split of the data
+        along x, deterministic).
+    iter_points : int
+        The single-iteration timing uses at most this many points (evenly spaced in the input order).
+
+    Returns
+    -------
+    dict
+        ``em_iter_ms`` (median of one fused EM iteration at K = n_components), ``fit_ms``
+        (median of the whole split-EM fit), ``fit_k`` (K chosen), ``n_points``.
+    """
+    x_all = _check_points(points)
+    if len(x_all) > iter_points:
+        x = x_all[np.linspace(0, len(x_all) - 1, iter_points).astype(np.int64)]
+    else:
+        x = x_all
+    order = np.argsort(x[:, 0], kind="stable")
+    chunks = np.array_split(order, n_components)
+    w = np.array([len(c) for c in chunks], dtype=np.float64) / len(x)
+    mu = np.stack([x[c].mean(axis=0) for c in chunks])
+    cov = np.stack([np.cov(x[c], rowvar=False) + 1e-4 * np.eye(3) for c in chunks])
+    prec, log_det, _ = em.precision_cholesky(cov)
+
+    def one_iter():
+        em.em_step(x, w, mu, prec, log_det, 1e-4)
+
+    def one_fit():
+        return fit_mixture(x_all, criterion, **fit_options)
+
+    iter_ms = _median_ms(one_iter, runs * 5, warmup)
+    fit_ms = _median_ms(one_fit, runs, warmup)
+    return {"em_iter_ms": iter_ms, "fit_ms": fit_ms,
+            "fit_k": one_fit().n_components, "n_points": int(len(x_all)),
+            "iter_points": int(len(x))}
+
+
+def _median_ms(function, runs: int, warmup: int) -> float:
+    for _ in range(warmup):
+        function()
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        function()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times))
