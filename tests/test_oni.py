@@ -1,0 +1,221 @@
+"""hw.oni: the .oni writer, the 16z codec and the header check -- played back through the real
+libOpenNI2 (OniFile driver), so every pixel and timestamp is checked by the native player."""
+
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hw.depth import Intrinsics
+from hw.errors import DepthFileError, FrameError
+from hw.oni import MAX_16Z_VALUE, OniWriter, encode_16z, read_oni_header, write_oni
+from hw.openni2 import open_recording
+
+
+def room_depth(height: int, width: int, seed: int) -> np.ndarray:
+    """A Kinect-like depth image (mm): a tilted floor/wall gradient, a box, noise, holes."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width]
+    depth = 1500.0 + 4.0 * yy + 1.5 * xx
+    depth[height // 4: height // 2, width // 3: width // 2] = 900.0 + seed  # a box
+    depth += rng.normal(0.0, 2.0, depth.shape)  # small noise: most steps fit in a nibble
+    out = depth.astype(np.uint16)
+    out[rng.random(out.shape) < 0.02] = 0  # dropouts
+    out[: height // 10, :] = 0  # a band with no reading
+    return out
+
+
+def play(path: Path, timeout: float = 5.0) -> list:
+    """Every frame of a recording, through the real OpenNI2 player."""
+    frames = []
+    with open_recording(str(path)) as source:
+        while True:
+            frame = source.read(timeout)
+            if frame is None:
+                break
+            frames.append(frame)
+        assert source.read(0.1) is None  # stays ended
+    return frames
+
+
+@pytest.mark.parametrize("codec", ["none", "16z"])
+def test_write_then_play_back_exact_pixels_timestamps_and_count(tmp_path: Path, codec: str) -> None:
+    images = [room_depth(480, 640, seed) for seed in range(4)]
+    stamps = [0, 33_000, 70_123, 100_000]
+    path = tmp_path / f"room-{codec}.oni"
+    with OniWriter(path, 640, 480, codec=codec) as writer:
+        for image, stamp in zip(images, stamps):
+            writer.write(image, stamp)
+    frames = play(path)
+    assert len(frames) == 4
+    for image, stamp, frame, index in zip(images, stamps, frames, range(1, 5)):
+        assert frame.depth.dtype == np.uint16 and frame.shape == (480, 640)
+        np.testing.assert_array_equal(frame.depth, image)
+        assert frame.timestamp_us == stamp
+        assert frame.index == index
+    info = read_oni_header(path)
+    expected_codec = "NONE" if codec == "none" else "16zP"
+    assert (info.width, info.height, info.frames, info.codec) == (640, 480, 4, expected_codec)
+    assert (info.first_timestamp_us, info.last_timestamp_us) == (0, 100_000)
+
+
+def test_default_timestamps_follow_fps(tmp_path: Path) -> None:
+    path = tmp_path / "fps.oni"
+    write_oni(path, [room_depth(24, 32, s) for s in range(3)], fps=25)
+    assert [f.timestamp_us for f in play(path)] == [0, 40_000, 80_000]
+    assert read_oni_header(path).fps == 25
+
+
+def test_16z_codes_every_kind_of_step_exactly(tmp_path: Path) -> None:
+    # odd pixel count (a lone last difference), steps of every size class, value extremes,
+    # and runs of equal pixels of 14, 15, 16 and 31 pairs (the run byte holds at most 15)
+    rng = np.random.default_rng(7)
+    parts = [
+        np.array([0, 6, 0, 7, 0, 63, 0, 64, 0, MAX_16Z_VALUE, 0, MAX_16Z_VALUE, MAX_16Z_VALUE - 6]),
+        np.full(29, 500), np.array([501]), np.full(31, 400), np.array([401]), np.full(33, 300),
+        np.full(63, 700), np.array([0]),
+        rng.integers(0, MAX_16Z_VALUE + 1, 200),  # mostly large jumps
+        np.cumsum(rng.integers(-6, 7, 300)) + 5000,  # small steps
+        np.cumsum(rng.integers(-63, 64, 300)) + 15000,  # medium steps
+    ]
+    flat = np.concatenate(parts)
+    width = 7
+    rows = flat.size // width
+    rows -= rows % 2 == 0  # odd rows x odd width: an odd number of pixels
+    image = flat[: rows * width].reshape(rows, width).astype(np.uint16)
+    assert image.size % 2 == 1 and image.size > 900
+    path = tmp_path / "steps.oni"
+    write_oni(path, [image, image[::-1].copy()], codec="16z")
+    frames = play(path)
+    np.testing.assert_array_equal(frames[0].depth, image)
+    np.testing.assert_array_equal(frames[1].depth, image[::-1])
+
+
+def test_16z_is_much_smaller_than_raw() -> None:
+    image = room_depth(480, 640, 1)
+    assert len(encode_16z(image)) < image.nbytes / 3
+    flat = encode_16z(np.full(101, 5, dtype=np.uint16))  # 100 equal steps: 50 pairs in runs
+    assert flat == b"\x05\x00" + b"\xef\xef\xef\xe5"
+
+
+def test_16z_rejects_values_it_cannot_store(tmp_path: Path) -> None:
+    image = np.full((4, 4), MAX_16Z_VALUE + 1, dtype=np.uint16)
+    with pytest.raises(FrameError, match="codec='none'"):
+        write_oni(tmp_path / "big.oni", [image], codec="16z")
+    assert not (tmp_path / "big.oni").exists()
+    write_oni(tmp_path / "big.oni", [image], codec="none")  # raw keeps full uint16
+    np.testing.assert_array_equal(play(tmp_path / "big.oni")[0].depth, image)
+
+
+def test_intrinsics_round_trip_through_the_field_of_view(tmp_path: Path) -> None:
+    intrinsics = Intrinsics(320, 240, 290.25, 288.5, 159.5, 119.5)
+    path = tmp_path / "k.oni"
+    write_oni(path, [room_depth(240, 320, 0)], intrinsics=intrinsics)
+    assert read_oni_header(path).intrinsics() == intrinsics
+    with open_recording(str(path)) as source:
+        got = source.read(5.0).intrinsics
+    assert got.fx == pytest.approx(290.25, abs=1e-3) and got.fy == pytest.approx(288.5, abs=1e-3)
+    assert (got.cx, got.cy) == (159.5, 119.5)
+
+
+def test_writer_is_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "partial.oni"
+    with pytest.raises(RuntimeError):
+        with OniWriter(path, 32, 24) as writer:
+            writer.write(room_depth(24, 32, 0))
+            raise RuntimeError("camera unplugged")
+    assert list(tmp_path.iterdir()) == []  # neither the file nor its temp file
+    with pytest.raises(FrameError, match="no frames"):
+        OniWriter(path, 32, 24).close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_rejects_bad_frames(tmp_path: Path) -> None:
+    with OniWriter(tmp_path / "x.oni", 32, 24) as writer:
+        with pytest.raises(FrameError, match=r"\(24, 32\) uint16"):
+            writer.write(np.zeros((24, 32), dtype=np.float32))
+        with pytest.raises(FrameError, match=r"\(24, 32\) uint16"):
+            writer.write(np.zeros((32, 24), dtype=np.uint16))
+        writer.write(np.zeros((24, 32), dtype=np.uint16), 1000)
+        with pytest.raises(FrameError, match="must not decrease"):
+            writer.write(np.zeros((24, 32), dtype=np.uint16), 999)
+    assert read_oni_header(tmp_path / "x.oni").frames == 1
+    with pytest.raises(FrameError, match="codec"):
+        OniWriter(tmp_path / "y.oni", 32, 24, codec="jpeg")
+    with pytest.raises(FrameError, match="1600x1200"):
+        OniWriter(tmp_path / "y.oni", 4000, 3000)
+    with pytest.raises(DepthFileError, match="does not exist"):
+        OniWriter(tmp_path / "no" / "such" / "dir.oni", 32, 24)
+
+
+@pytest.fixture()
+def good_file(tmp_path: Path) -> Path:
+    path = tmp_path / "good.oni"
+    write_oni(path, [room_depth(48, 64, s) for s in range(3)], codec="16z")
+    return path
+
+
+def test_header_check_describes_a_good_file(good_file: Path) -> None:
+    info = read_oni_header(good_file)
+    assert (info.width, info.height, info.fps, info.frames, info.version) == (64, 48, 30, 3, (1, 0, 1, 0))
+
+
+def test_header_check_rejects_missing_empty_and_foreign_files(tmp_path: Path) -> None:
+    with pytest.raises(DepthFileError, match="does not exist"):
+        read_oni_header(tmp_path / "nope.oni")
+    with pytest.raises(DepthFileError, match="folder"):
+        read_oni_header(tmp_path)
+    (tmp_path / "empty.oni").write_bytes(b"")
+    with pytest.raises(DepthFileError, match="not an .oni file"):
+        read_oni_header(tmp_path / "empty.oni")
+    (tmp_path / "png.oni").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    with pytest.raises(DepthFileError, match="not an OpenNI .oni file"):
+        read_oni_header(tmp_path / "png.oni")
+    noise = np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes()
+    (tmp_path / "garbage.oni").write_bytes(b"NI10" + noise)
+    with pytest.raises(DepthFileError):
+        read_oni_header(tmp_path / "garbage.oni")
+
+
+def test_header_check_rejects_a_newer_format_version(good_file: Path, tmp_path: Path) -> None:
+    data = bytearray(good_file.read_bytes())
+    data[4:12] = struct.pack("<BBHI", 2, 0, 0, 0)
+    bad = tmp_path / "v2.oni"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(DepthFileError, match="version 2.0.0.0"):
+        read_oni_header(bad)
+
+
+@pytest.mark.parametrize("keep", [30, 200, 0.5, -10, -1])
+def test_header_check_rejects_truncated_files(good_file: Path, tmp_path: Path, keep: float) -> None:
+    data = good_file.read_bytes()
+    cut = int(len(data) * keep) if isinstance(keep, float) else (keep if keep > 0 else len(data) + keep)
+    bad = tmp_path / "cut.oni"
+    bad.write_bytes(data[:cut])
+    with pytest.raises(DepthFileError, match="truncated|not an .oni|corrupt|no depth"):
+        read_oni_header(bad)
+
+
+def test_header_check_rejects_a_corrupted_record(good_file: Path, tmp_path: Path) -> None:
+    data = bytearray(good_file.read_bytes())
+    data[24:28] = b"XXXX"  # the first record's magic
+    bad = tmp_path / "bad.oni"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(DepthFileError, match="corrupt"):
+        read_oni_header(bad)
+
+
+def test_write_oni_keeps_depth_frames_timestamps(tmp_path: Path, good_file: Path) -> None:
+    originals = play(good_file)
+    shifted = [type(f)(f.depth, f.timestamp_us + 5_000_000, f.index, f.intrinsics) for f in originals]
+    copy = tmp_path / "copy.oni"
+    assert write_oni(copy, shifted) == 3
+    again = play(copy)
+    assert [f.timestamp_us for f in again] == [f.timestamp_us for f in originals]  # rebased to 0
+    for a, b in zip(again, originals):
+        np.testing.assert_array_equal(a.depth, b.depth)
+    assert os.path.getsize(copy) > os.path.getsize(good_file)  # "none" is the default codec
