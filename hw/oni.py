@@ -34,13 +34,13 @@ import dataclasses
 import math
 import os
 import struct
-import tempfile
 from pathlib import Path
 from typing import BinaryIO, Iterable
 
 import numpy as np
 
 from hw.depth import DepthFrame, Intrinsics
+from hw.atomic import AtomicFile
 from hw.errors import DepthFileError, FrameError
 
 # --- container constants (OpenNI2 Source/Drivers/OniFile/DataRecords.h) ---------------------
@@ -239,7 +239,7 @@ class OniWriter:
         self._first_timestamp = 0
         self._last_data_pos = 0
         self._file: BinaryIO | None = None
-        self._tmp_path: Path | None = None
+        self._target: AtomicFile | None = None
         self._node_added_pos = 0
         self._data_begin_pos = 0
         self._closed = False
@@ -320,26 +320,17 @@ class OniWriter:
         f.seek(self._data_begin_pos)
         self._write_record(REC_NODE_DATA_BEGIN, struct.pack("<IQ", self.frames, max_ts), b"")
         f.seek(end)
-        f.flush()
-        os.fsync(f.fileno())
-        f.close()
+        assert self._target is not None
         self._file = None
-        assert self._tmp_path is not None
-        os.replace(self._tmp_path, self.path)
-        _fsync_dir(self.path.parent)
+        self._target.commit()
         self._closed = True
         return self.path
 
     def abort(self) -> None:
         """Drop the unfinished file (nothing appears at ``path``)."""
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-        if self._tmp_path is not None and not self._closed:
-            try:
-                self._tmp_path.unlink()
-            except FileNotFoundError:
-                pass
+        self._file = None
+        if self._target is not None and not self._closed:
+            self._target.discard()
 
     # internals ------------------------------------------------------------------------------
     def _open(self) -> None:
@@ -347,11 +338,10 @@ class OniWriter:
         if not parent.is_dir():
             raise DepthFileError(f"cannot write {self.path}: the folder {parent} does not exist")
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent)
+            self._target = AtomicFile(self.path)
         except OSError as exc:
             raise DepthFileError(f"cannot write {self.path}: {exc.strerror}") from exc
-        self._tmp_path = Path(tmp)
-        self._file = os.fdopen(fd, "w+b")
+        self._file = self._target.file
         f = self._file
         f.write(_FILE_HEADER.pack(FILE_MAGIC, *FORMAT_VERSION, 0, DEPTH_NODE_ID))
         self._node_added_pos = f.tell()
@@ -400,18 +390,6 @@ def _string_field(text: str) -> bytes:
     raw = text.encode("ascii") + b"\0"
     return struct.pack("<I", len(raw)) + raw
 
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def write_oni(

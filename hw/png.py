@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 from typing import Union
@@ -22,6 +21,7 @@ from typing import Union
 import numpy as np
 from numba import njit
 
+from hw.atomic import write_atomically
 from hw.errors import DepthFileError, FrameError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -246,7 +246,11 @@ def write_png(path: str | os.PathLike, array: np.ndarray, *, level: int = 6,
     sum of absolute values (the libpng heuristic).  Raises :class:`FrameError` for another
     dtype or shape.
     """
-    write_atomically(path, encode_png(array, level=level, filter_type=filter_type))
+    data = encode_png(array, level=level, filter_type=filter_type)
+    try:
+        write_atomically(path, data)
+    except OSError as exc:
+        raise DepthFileError(f"{path}: cannot write it ({exc.strerror or exc})") from None
 
 
 def encode_png(array: np.ndarray, *, level: int = 6, filter_type: int | None = None) -> bytes:
@@ -320,34 +324,3 @@ def _chunk(kind: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
 
 
-def write_atomically(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the whole new one: a temp
-    file in the same folder, fsync, :func:`os.replace`, then fsync of the folder."""
-    path = Path(path)
-    folder = path.parent
-    try:
-        fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    except OSError as exc:
-        raise DepthFileError(f"{path}: cannot write it ({exc.strerror or exc})") from None
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp, path)
-    except BaseException:
-        try:
-            os.unlink(temp)
-        except FileNotFoundError:
-            pass
-        raise
-    try:
-        dir_fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return  # platforms without directory fds: the rename is done, fsync is best effort
-    try:
-        os.fsync(dir_fd)
-    except OSError:
-        pass
-    finally:
-        os.close(dir_fd)

@@ -17,7 +17,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
+from hw.atomic import write_atomically
 from robot_change import em
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
 
@@ -222,30 +222,7 @@ class Mixture:
         buf = io.BytesIO()
         np.savez(buf, header=np.array(json.dumps(header, sort_keys=True)),
                  weights=self.weights, means=self.means, covariances=self.covariances)
-        directory = path.parent if str(path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            raise
-        try:  # make the rename itself durable
-            dfd = os.open(directory, os.O_RDONLY)
-        except OSError:
-            return
-        try:
-            os.fsync(dfd)
-        except OSError:
-            pass
-        finally:
-            os.close(dfd)
+        write_atomically(path, buf.getvalue())
 
     @classmethod
     def load(cls, path) -> Mixture:

@@ -181,7 +181,7 @@ def test_write_is_atomic_and_leaves_no_temp_file(tmp_path, monkeypatch):
     def broken_replace(*args):
         raise OSError("disk gone")
 
-    monkeypatch.setattr("hw.png.os.replace", broken_replace)
+    monkeypatch.setattr("hw.atomic.os.replace", broken_replace)
     with pytest.raises(OSError, match="disk gone"):
         write_png(path, random_depth((8, 8)))
     assert path.read_bytes() == old

@@ -1,0 +1,92 @@
+"""Atomic file writes: readers (and a crash, or a kill -9) see the old file or the whole new one.
+
+The one implementation every writer in the project uses (PNG images, .oni recordings, saved
+mixtures, station references): a temp file in the same folder, fsync, permissions as a plain
+``open()`` would give, :func:`os.replace`, then fsync of the folder so the rename survives a
+power cut.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import BinaryIO
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+class AtomicFile:
+    """A temp file that becomes ``path`` on :meth:`commit`, or vanishes on :meth:`discard`.
+
+    ``file`` is open for reading and writing (``w+b``), so a writer may seek back and patch a
+    header before committing.  Raises ``OSError`` when the folder cannot be written.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        folder = self.path.parent
+        fd, temp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
+                                    dir=folder if str(folder) else ".")
+        self.temp_path = Path(temp)
+        self.file: BinaryIO = os.fdopen(fd, "w+b")
+        self._done = False
+
+    def commit(self) -> None:
+        """Flush, fsync and rename into place; then fsync the folder."""
+        if self._done:
+            return
+        try:
+            self.file.flush()
+            os.fsync(self.file.fileno())
+            os.fchmod(self.file.fileno(), 0o666 & ~_umask())
+            self.file.close()
+            os.replace(self.temp_path, self.path)
+        except BaseException:
+            self.discard()
+            raise
+        self._done = True
+        _fsync_folder(self.path.parent)
+
+    def discard(self) -> None:
+        """Close and remove the temp file; ``path`` is left as it was."""
+        if self._done:
+            return
+        self._done = True
+        self.file.close()
+        try:
+            self.temp_path.unlink()
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> BinaryIO:
+        return self.file
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()
+
+
+def write_atomically(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see the module docstring)."""
+    with AtomicFile(path) as handle:
+        handle.write(data)
+
+
+def _fsync_folder(folder: Path) -> None:
+    try:
+        fd = os.open(folder if str(folder) else ".", os.O_RDONLY)
+    except OSError:
+        return  # no directory fds here: the rename is done, its durability is best effort
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
