@@ -1,0 +1,427 @@
+"""sim_fixtures: the renderer against analytic depth, the noise models' statistics, the truth
+masks, and the checked-in scenes against their scene.json (and against a regeneration)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+from hw.depth import Intrinsics, open_depth
+from hw.png import read_png
+from sim_fixtures import DEMO_FRAME, SCENES_DIR, UnknownScene, load_scene, scene_names
+from sim_fixtures import render as render_mod
+from sim_fixtures.make_fixtures import noisy_frames, write_oni_recording
+from sim_fixtures.noise import (
+    PAPER_SIGMAS_M,
+    GaussianNoise,
+    KinectNoise,
+    kinect_axial_sigma,
+    quantise_depth,
+)
+from sim_fixtures.render import Box, Cylinder, Obj, Plane, Pose, cast_rays, render
+from sim_fixtures.scenes import (
+    SCENES,
+    SceneSpec,
+    box,
+    diff_layouts,
+    object_ids,
+    render_pair,
+    room,
+    truth_masks,
+)
+
+INTR = Intrinsics.openni_default()
+FX = INTR.fx
+
+
+def wall(x: float) -> Obj:
+    """A wall facing the camera at world x (the camera at the origin looks along +x)."""
+    return Obj("wall", (Plane((x, 0.0, 0.0), (1.0, 0.0, 0.0)),))
+
+
+FLAT = Pose((0.0, 0.0, 1.0))  # 1 m up, looking along world +x, level
+
+
+# ----------------------------------------------------------------------------- renderer
+
+
+def test_pose_convention():
+    rot = Pose((0, 0, 0)).rotation()
+    np.testing.assert_allclose(rot[:, 2], [1, 0, 0], atol=1e-12)  # optical z = world +x
+    np.testing.assert_allclose(rot[:, 0], [0, -1, 0], atol=1e-12)  # image right = world -y
+    np.testing.assert_allclose(rot[:, 1], [0, 0, -1], atol=1e-12)  # image down = world down
+    tilted = Pose((0, 0, 0), yaw_deg=30, pitch_deg=20, roll_deg=5).rotation()
+    np.testing.assert_allclose(tilted.T @ tilted, np.eye(3), atol=1e-12)
+    assert np.linalg.det(tilted) == pytest.approx(1.0)
+    assert tilted[2, 2] == pytest.approx(-math.sin(math.radians(20)))  # looks down
+    assert math.degrees(math.atan2(tilted[1, 2], tilted[0, 2])) == pytest.approx(30)
+
+
+def test_fronto_parallel_wall_is_2m_everywhere():
+    r = render([wall(2.0)], FLAT, INTR)
+    assert r.depth.shape == (480, 640) and r.depth.dtype == np.float64
+    np.testing.assert_allclose(r.depth, 2.0, rtol=0, atol=1e-12)
+    assert (r.ids == 1).all()
+    np.testing.assert_allclose(r.normals[240, 320], [0, 0, -1], atol=1e-12)
+    # incidence: cos = 1 / |((u - cx)/fx, (v - cy)/fy, 1)|
+    u, v = 0, 0
+    d = np.array([(u - INTR.cx) / FX, (v - INTR.cy) / FX, 1.0])
+    assert r.cos_incidence[v, u] == pytest.approx(1 / np.linalg.norm(d))
+    # back-projected points lie on the wall
+    np.testing.assert_allclose(r.points[..., 2], 2.0, atol=1e-12)
+    assert r.points[0, 0, 0] == pytest.approx((0 - INTR.cx) / FX * 2.0)
+
+
+@pytest.mark.parametrize("height,pitch_deg,yaw_deg", [(1.0, 20.0, 0.0), (0.6, 8.0, 137.0)])
+def test_floor_depth_per_row(height, pitch_deg, yaw_deg):
+    floor = Obj("floor", (Plane((0, 0, 0), (0, 0, 1)),))
+    r = render([floor], Pose((1.0, 2.0, height), yaw_deg, pitch_deg), INTR)
+    th = math.radians(pitch_deg)
+    yc = (np.arange(480) - INTR.cy) / INTR.fy
+    denom = math.sin(th) + yc * math.cos(th)
+    expected = np.where(denom > 0, height / np.where(denom > 0, denom, 1), 0.0)
+    for col in (0, 320, 639):  # the same in every column
+        np.testing.assert_allclose(r.depth[:, col], expected, rtol=1e-10, atol=1e-12)
+    assert (r.ids[denom <= 0] == 0).all() and (r.ids[denom > 0] == 1).all()
+
+
+def test_box_cylinder_and_rotated_box_against_analytic_depth():
+    cube = Obj("cube", (Box((3.0, 0.0, 1.0), (1.0, 1.0, 1.0)),))
+    r = render([wall(6.0), cube], FLAT, INTR)
+    assert r.depth[240, 320] == pytest.approx(2.5)  # front face at x = 2.5
+    cols = np.flatnonzero(r.ids[240] == 2)
+    assert abs(cols.min() - (INTR.cx - FX * 0.5 / 2.5)) <= 1  # 105 px either side
+    assert abs(cols.max() - (INTR.cx + FX * 0.5 / 2.5)) <= 1
+
+    turned = Obj("turned", (Box((3.0, 0.0, 1.0), (1.0, 1.0, 1.0),
+                                tuple(map(tuple, render_mod.rot_z(math.radians(45))))),))
+    r = render([wall(6.0), turned], FLAT, INTR)
+    # the nearest vertical edge points at the camera: 3 - sqrt(2)/2 (pixel 319.5 is between
+    # columns, so the centre columns see the edge 0.5 px off: allow that slope)
+    assert r.depth[240, 320] == pytest.approx(3 - math.sqrt(0.5), abs=0.5 / FX * 2.3 + 1e-9)
+
+    can = Obj("can", (Cylinder((3.0, 0.0, 0.0), 0.4, 2.0),))
+    r = render([wall(6.0), can], FLAT, INTR)
+    x = (np.arange(640) - INTR.cx) / FX  # ray slope in the row through the optical axis
+    # ray (t, -x t) in world (x, y) hits the circle |p - (3, 0)| = 0.4 at the smaller root
+    a, b, c = 1 + x**2, -6.0, 9 - 0.16
+    disc = b * b - 4 * a * c
+    hit = disc >= 0
+    t = (-b - np.sqrt(np.where(hit, disc, 0))) / (2 * a)
+    row = r.depth[int(INTR.cy)]  # row 239: 0.5 px above the axis, still within the can
+    np.testing.assert_allclose(row[hit], t[hit], atol=1e-9)
+    assert (row[~hit] == pytest.approx(6.0))
+
+
+def test_culling_gives_the_same_hits_as_testing_every_ray(monkeypatch):
+    spec = SCENES["lab_two_changes"]
+    objs, pose = spec.current, spec.current_pose
+    ids = list(range(1, len(objs) + 1))
+    rays = render_mod.camera_rays(INTR)[::7]
+    culled = cast_rays(objs, np.array(pose.position), pose.rotation(), rays, ids)
+    monkeypatch.setattr(render_mod, "_candidates", lambda *args: None)
+    brute = cast_rays(objs, np.array(pose.position), pose.rotation(), rays, ids)
+    np.testing.assert_array_equal(culled[1], brute[1])
+    np.testing.assert_array_equal(culled[0], brute[0])
+    np.testing.assert_array_equal(culled[2], brute[2])
+    assert len(np.unique(culled[1])) >= 8  # the test saw furniture, not only walls
+
+
+def test_renders_vga_well_under_a_second():
+    spec = SCENES["meeting_two_changes"]
+    render(spec.current, spec.current_pose, INTR)  # warm caches
+    start = time.perf_counter()
+    render(spec.current, spec.current_pose, INTR)
+    assert time.perf_counter() - start < 1.0
+
+
+# ----------------------------------------------------------------------------- noise
+
+
+@pytest.mark.parametrize("z", [1.0, 2.0, 3.0])
+def test_kinect_axial_std_matches_nguyen(z):
+    r = render([wall(z)], FLAT, INTR)
+    noise = KinectNoise()
+    frames = np.stack([noise.apply(r, np.random.default_rng([5, k])) for k in range(3)])
+    patch = frames[:, 100:380, 100:540].astype(np.float64) / 1000.0
+    assert (patch > 0).all()
+    sigma = 0.0012 + 0.0019 * (z - 0.4) ** 2
+    assert patch.std() == pytest.approx(sigma, rel=0.08)  # without the q^2/12 share: +10-14 %
+    assert abs(patch.mean() - z) < 0.2 * sigma + 0.001  # unbiased, up to the quantisation
+
+
+def test_quantisation_steps_grow_with_z_squared():
+    c = KinectNoise().quant_c_per_m
+    steps = {}
+    for z in (1.0, 2.0, 3.0, 4.0):
+        levels = np.unique(quantise_depth(np.linspace(z - 0.1, z + 0.1, 20001), c))
+        steps[z] = np.median(np.diff(levels))
+        assert steps[z] == pytest.approx(c * z * z, rel=0.05)
+    assert steps[2.0] / steps[1.0] == pytest.approx(4, rel=0.05)
+    assert steps[3.0] / steps[1.0] == pytest.approx(9, rel=0.05)
+    # the noisy output lands on those levels too: at 3 m its values are ~25.6 mm apart
+    r = render([wall(3.0)], FLAT, INTR)
+    values = np.unique(KinectNoise().apply(r, np.random.default_rng(1)))
+    values = values[values > 0]
+    assert np.median(np.diff(values)) == pytest.approx(1000 * c * 9, abs=1.5)
+
+
+def test_nguyen_angle_term_only_above_60_degrees():
+    assert kinect_axial_sigma(2.0, math.radians(50)) == pytest.approx(0.0012 + 0.0019 * 1.6**2)
+    steep = kinect_axial_sigma(2.0, math.radians(80))
+    assert steep == pytest.approx(0.0012 + 0.0019 * 1.6**2 + 0.0001 / math.sqrt(2)
+                                  * math.radians(80) ** 2 / math.radians(10) ** 2)
+
+
+@pytest.mark.parametrize("sigma", PAPER_SIGMAS_M)
+def test_paper_protocol_is_plain_gaussian(sigma):
+    r = render([wall(3.0)], FLAT, INTR)
+    frame = GaussianNoise(sigma).apply(r, np.random.default_rng(3))
+    assert frame.dtype == np.uint16 and (frame > 0).all()  # no dropouts, no range limit
+    z = frame.astype(np.float64) / 1000.0
+    expected = math.sqrt(sigma**2 + 1e-6 / 12)  # + rounding to whole millimetres
+    assert z.std() == pytest.approx(expected, rel=0.05)
+    assert abs(z.mean() - 3.0) < 4 * expected / math.sqrt(z.size) + 1e-4
+    if sigma >= 0.01:  # no disparity quantisation: every millimetre value occurs
+        assert np.median(np.diff(np.unique(frame))) == 1
+    assert PAPER_SIGMAS_M == (0.001, 0.01, 0.1)
+
+
+def test_beyond_range_is_invalid():
+    noise = KinectNoise()
+    for z, valid in ((0.3, 0.0), (2.0, 1.0), (5.5, 0.0)):
+        frame = noise.apply(render([wall(z)], FLAT, INTR), np.random.default_rng(0))
+        assert (frame > 0).mean() == pytest.approx(valid, abs=1e-9)
+
+
+def test_grazing_incidence_is_invalid():
+    floor = Obj("floor", (Plane((0, 0, 0), (0, 0, 1)),))
+    r = render([floor], Pose((0, 0, 0.3), 0, 14.0), INTR)
+    frame = KinectNoise(near_m=0.0, far_m=100.0).apply(r, np.random.default_rng(0))
+    theta = np.degrees(np.arccos(r.cos_incidence))
+    inner = np.zeros_like(r.depth, dtype=bool)
+    inner[2:-2, 2:-2] = True  # away from the image border and the horizon edge
+    hit = (r.depth > 0) & inner
+    assert (frame[hit & (theta < 77)] > 0).all()
+    assert (frame[hit & (theta > 88)] == 0).all()
+    middle = (frame[hit & (theta > 82) & (theta < 84)] > 0).mean()
+    assert 0.2 < middle < 0.6  # linear ramp 78 -> 88 degrees: ~40 % survive at 83
+    assert (hit & (theta > 88)).sum() > 1000
+
+
+def box_before_wall(baseline):
+    """A thin board at 1.5 m in front of a wall at 3 m, projector at ``baseline``."""
+    board = Obj("board", (Box((1.5, 0.0, 1.0), (0.02, 0.6, 0.6)),))
+    return render([wall(3.0), board], FLAT, INTR, projector_baseline_m=baseline)
+
+
+@pytest.mark.parametrize("baseline,side", [(0.075, "left"), (-0.075, "right")])
+def test_projector_shadow_falls_beside_the_object_away_from_the_projector(baseline, side):
+    r = box_before_wall(baseline)
+    row = r.shadow[240]
+    board = np.flatnonzero(r.ids[240] == 2)
+    shadow_cols = np.flatnonzero(row)
+    assert len(shadow_cols) and not r.shadow[r.ids == 2].any()
+    if side == "left":
+        assert shadow_cols.max() < board.min() and shadow_cols.min() > board.min() - 20
+    else:
+        assert shadow_cols.min() > board.max() and shadow_cols.max() < board.max() + 20
+    # width on the wall: b (z_wall / z_board - 1) m at 3 m -> fx * 0.075 / 3 ~ 13 px
+    z_board = 1.5 - 0.01
+    expected = FX * abs(baseline) * (3.0 / z_board - 1) / 3.0
+    assert len(shadow_cols) == pytest.approx(expected, abs=1.5)
+    frame = KinectNoise(projector_baseline_m=baseline).apply(r, np.random.default_rng(0))
+    assert (frame[r.shadow] == 0).all()
+    assert not box_before_wall(None).shadow.any()  # no projector, no shadow
+
+
+def test_depth_edges_drop_about_half_and_nothing_else():
+    r = box_before_wall(None)
+    noise = KinectNoise(projector_baseline_m=0.0)
+    frames = np.stack([noise.apply(r, np.random.default_rng(k)) for k in range(4)])
+    jump_cols = np.flatnonzero(np.abs(np.diff(r.depth[240])) > 0.5)
+    edge = np.zeros(640, dtype=bool)
+    edge[jump_cols] = edge[jump_cols + 1] = True
+    dropped = frames[:, 240, :] == 0
+    assert dropped[:, edge].mean() == pytest.approx(0.5, abs=0.25)
+    assert not dropped[:, ~edge].any()
+
+
+def test_lateral_noise_blurs_edges_only():
+    r = box_before_wall(None)
+    noise = KinectNoise(projector_baseline_m=0.0, lateral_sigma_px=0.8, edge_drop_prob=0.0)
+    frame = noise.apply(r, np.random.default_rng(0)).astype(np.float64) / 1000
+    board = r.ids == 2
+    interior = board.copy()
+    for axis in (0, 1):
+        for shift in (-3, 3):
+            interior &= np.roll(board, shift, axis=axis)
+    assert (np.abs(frame[interior] - 1.49) < 0.05).all()
+    wall_near = np.roll(board, 2, axis=1) & ~board  # 1-2 px right of the board
+    assert (np.abs(frame[wall_near] - 1.49) < 0.05).any()  # some read the board
+
+
+def test_frames_are_reproducible_and_independent():
+    spec = SCENES["office_box_added"]
+    ref, _ = render_pair(spec)
+    a = noisy_frames(spec, ref, 0, 2)
+    b = noisy_frames(spec, ref, 0, 2)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert (a[0] != a[1]).mean() > 0.3
+
+
+# ----------------------------------------------------------------------------- truth
+
+
+def test_diff_layouts_and_truth_masks_follow_object_ids():
+    base = room(4, 4, 2.5) + [box("stays", 3.0, 2.0, (0.5, 0.5, 0.5)),
+                             box("goes", 3.0, 1.0, (0.4, 0.4, 0.4)),
+                             box("moves", 3.0, 3.0, (0.4, 0.4, 0.4))]
+    cur = [o for o in base if o.name != "goes"]
+    cur = [o.moved(-0.5, 0.3) if o.name == "moves" else o for o in cur]
+    cur += [box("arrives", 2.0, 1.6, (0.3, 0.3, 0.3))]
+    changes = diff_layouts(base, cur)
+    assert [(c.kind, c.name) for c in changes] == [
+        ("removed", "goes"), ("moved", "moves"), ("added", "arrives")]
+    pose = Pose((0.3, 2.0, 1.0), 0.0, 15.0)
+    spec = SceneSpec("t", "dev", "", "two", (4, 4, 2.5), tuple(base), tuple(cur), pose, pose,
+                     KinectNoise(), 1)
+    ref, now = render_pair(spec)
+    appeared, disappeared = truth_masks(spec, ref, now)
+    ids = object_ids(spec)
+    np.testing.assert_array_equal(appeared, np.isin(now.ids, [ids["moves"], ids["arrives"]]))
+    np.testing.assert_array_equal(disappeared, np.isin(ref.ids, [ids["goes"], ids["moves"]]))
+    assert appeared.sum() > 500 and disappeared.sum() > 500
+    assert not (appeared & (now.ids == ids["stays"])).any()
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+def all_scenes():
+    return [load_scene(n) for n in scene_names()]
+
+
+def test_catalogue_matches_stored_scenes():
+    stored = scene_names()
+    assert sorted(SCENES) == stored
+    for name in stored:
+        assert load_scene(name).split == SCENES[name].split
+    holdout = scene_names("holdout")
+    assert set(holdout) | set(scene_names("dev")) == set(stored)
+    assert 0.25 <= len(holdout) / len(stored) <= 0.45
+    kinds = {load_scene(n).change for n in stored}
+    assert {"added", "removed", "moved", "none", "none_jitter", "two", "small"} <= kinds
+    sigmas = sorted(load_scene(n).meta["noise"].get("sigma_m", 0) for n in stored
+                    if load_scene(n).meta["noise"]["model"] == "gaussian")
+    assert sigmas == [0.001, 0.01, 0.1]
+
+
+def test_stored_files_match_scene_json():
+    total = 0
+    for scene in all_scenes():
+        meta = scene.meta
+        assert len(scene.reference_paths) == meta["frame_counts"]["reference"] >= 2
+        assert len(scene.current_paths) == meta["frame_counts"]["current"] >= 2
+        for rel, size in meta["bytes"].items():
+            assert (scene.folder / rel).stat().st_size == size, rel
+            total += size
+        for frame in scene.reference_frames() + scene.current_frames():
+            assert frame.dtype == np.uint16 and frame.shape == (480, 640)
+            assert (frame > 0).mean() > 0.6
+            assert frame[frame > 0].min() >= 400 and frame.max() <= 7000  # rooms up to 6 m
+            if meta["noise"]["model"] == "kinect":
+                assert frame.max() <= 1000 * meta["noise"]["far_m"]
+        assert scene.truth_appeared.shape == scene.truth_disappeared.shape == (480, 640)
+        assert scene.intrinsics == Intrinsics.openni_default()
+        assert meta["truth"]["appeared_pixels"] == scene.truth_appeared.sum()
+        assert meta["truth"]["disappeared_pixels"] == scene.truth_disappeared.sum()
+        assert meta["noise"]["model"] in ("kinect", "gaussian") and isinstance(meta["seed"], int)
+    assert total < 25e6  # the budget is 40 MB for the whole folder; keep well below
+
+
+def test_stored_truth_is_consistent_with_object_ids():
+    for scene in all_scenes():
+        changes = scene.changes
+        ids_ref, ids_cur = scene.object_ids("reference"), scene.object_ids("current")
+        new = [c["id"] for c in changes if c["kind"] in ("added", "moved")]
+        gone = [c["id"] for c in changes if c["kind"] in ("removed", "moved")]
+        np.testing.assert_array_equal(scene.truth_appeared, np.isin(ids_cur, new))
+        np.testing.assert_array_equal(scene.truth_disappeared, np.isin(ids_ref, gone))
+        if scene.change.startswith("none"):
+            assert not changes and not scene.truth_appeared.any()
+            assert not scene.truth_disappeared.any()
+        else:
+            assert changes and (scene.truth_appeared.any() or scene.truth_disappeared.any())
+            expected = {"two": 2}.get(scene.change, 1)
+            assert len(changes) == expected, scene.name
+        for c in changes:
+            for side, ids in (("before", ids_ref), ("after", ids_cur)):
+                if side in c:
+                    assert c[side]["visible_pixels"] == (ids == c["id"]).sum() > 300
+                    assert 0.5 < c[side]["centroid_m"][2] < 5.0
+        if scene.change == "small":
+            extent = changes[0]["after"]["extent_m"]
+            assert max(extent) < 0.2 and 2.0 < changes[0]["after"]["centroid_m"][2] < 3.0
+        if scene.change == "none_jitter":
+            ref, cur = scene.meta["camera"]["reference"], scene.meta["camera"]["current"]
+            shift = np.subtract(ref["position_m"], cur["position_m"])
+            assert 0.005 < np.linalg.norm(shift) < 0.02
+            assert 0.2 < abs(ref["yaw_deg"] - cur["yaw_deg"]) <= 0.6
+
+
+def test_regenerating_a_scene_reproduces_the_stored_frames():
+    name = "lab_crate_moved"
+    spec, scene = SCENES[name], load_scene(name)
+    ref, cur = render_pair(spec)
+    for epoch, (r, paths) in enumerate(((ref, scene.reference_paths),
+                                        (cur, scene.current_paths))):
+        frames = noisy_frames(spec, r, epoch, len(paths))
+        for frame, path in zip(frames, paths):
+            np.testing.assert_array_equal(frame, read_png(path))
+    appeared, disappeared = truth_masks(spec, ref, cur)
+    np.testing.assert_array_equal(appeared, scene.truth_appeared)
+    np.testing.assert_array_equal(disappeared, scene.truth_disappeared)
+    np.testing.assert_array_equal(cur.ids, scene.object_ids("current"))
+    assert scene.meta["seed"] == spec.seed
+    assert scene.meta["noise"] == json.loads(json.dumps(spec.noise.to_json()))
+
+
+def test_loader_errors_and_uri():
+    with pytest.raises(UnknownScene) as info:
+        load_scene("no_such_scene")
+    assert "office_box_added" in str(info.value) and isinstance(info.value, KeyError)
+    with pytest.raises(ValueError):
+        scene_names("train")
+    scene = load_scene("office_no_change")
+    with open_depth(scene.uri("current")) as source:
+        first = source.read()
+    np.testing.assert_array_equal(first.depth, scene.current_frames()[0])
+    assert SCENES_DIR.is_dir()
+
+
+def test_demo_frame_is_a_mostly_valid_room():
+    depth = read_png(DEMO_FRAME)
+    assert depth.dtype == np.uint16 and depth.shape == (480, 640)
+    valid = depth > 0
+    assert valid.mean() > 0.9
+    assert 500 <= depth[valid].min() and depth[valid].max() <= 5000
+    assert 1000 < np.median(depth[valid]) < 4000
+    meta = json.loads(DEMO_FRAME.with_suffix(".json").read_text())
+    assert meta["valid_fraction"] == pytest.approx(valid.mean(), abs=1e-4)
+
+
+def test_oni_writer_hook(tmp_path):
+    oni = pytest.importorskip("hw.oni")
+    spec = SCENES["paper_sigma_1mm"]
+    frames = [np.full((480, 640), 1000 + k, dtype=np.uint16) for k in range(2)]
+    (tmp_path / "reference").mkdir()
+    names = write_oni_recording(tmp_path / "reference", frames, spec)
+    assert names == ["reference.oni"]
+    info = oni.read_oni_header(tmp_path / "reference.oni")
+    assert (info.width, info.height, info.frames) == (640, 480, 2)
