@@ -1,0 +1,932 @@
+"""Point-cloud filters (ALGORITHM.md section 1): voxel grid, statistical outlier removal,
+RANSAC plane fit and removal, and temporal depth fusion.
+
+Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  The kernels are
+numba-compiled (``cache=True, nogil=True``), single-threaded and without fastmath, so the NumPy
+twins in the tests give identical results.
+
+Voxel keys
+----------
+A voxel is ``(ix, iy, iz) = floor(p * (1 / leaf_m))`` with the global origin at the camera.
+Each index must lie in ``[-2**20, 2**20 - 1]`` (about +-10 km at a 1 cm leaf) and is packed into
+one int64 as ``(ix + 2**20) << 42 | (iy + 2**20) << 21 | (iz + 2**20)``, so sorting by key sorts
+by x, then y, then z.  Points outside that range are dropped, never wrapped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numba
+import numpy as np
+
+from robot_change.errors import InputError
+from robot_change.geometry import check_points
+
+__all__ = [
+    "KEY_BITS",
+    "KEY_MAX_INDEX",
+    "KEY_MIN_INDEX",
+    "Plane",
+    "VoxelGrid",
+    "fit_plane_ransac",
+    "fuse_depth",
+    "knn_mean_distance",
+    "pack_keys",
+    "ransac_triples",
+    "remove_plane",
+    "statistical_outliers",
+    "unpack_keys",
+    "voxel_grid",
+]
+
+#: Bits per axis in a packed voxel key.
+KEY_BITS = 21
+_KEY_OFFSET = 1 << (KEY_BITS - 1)
+_KEY_FIELD = (1 << KEY_BITS) - 1
+#: Smallest and largest voxel index per axis that a key can hold.
+KEY_MIN_INDEX = -_KEY_OFFSET
+KEY_MAX_INDEX = _KEY_OFFSET - 1
+
+# Fibonacci hashing constant 2**64 / golden ratio.
+_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+
+
+# --------------------------------------------------------------------------------------------
+# voxel keys
+
+
+def pack_keys(indices: np.ndarray) -> np.ndarray:
+    """(M, 3) integer voxel indices -> (M,) int64 packed keys (see the module docstring).
+    Raises :class:`InputError` for indices outside ``[KEY_MIN_INDEX, KEY_MAX_INDEX]``."""
+    indices = np.asarray(indices)
+    if indices.ndim != 2 or indices.shape[1] != 3 or indices.dtype.kind not in "iu":
+        raise InputError(f"voxel indices must be an (M, 3) integer array, got {indices.dtype} "
+                         f"of shape {indices.shape}")
+    idx = indices.astype(np.int64)
+    if idx.size and (idx.min() < KEY_MIN_INDEX or idx.max() > KEY_MAX_INDEX):
+        raise InputError(f"voxel indices must lie in {KEY_MIN_INDEX}..{KEY_MAX_INDEX}")
+    biased = idx + _KEY_OFFSET
+    return (biased[:, 0] << (2 * KEY_BITS)) | (biased[:, 1] << KEY_BITS) | biased[:, 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """(M,) int64 packed keys -> (M, 3) int64 voxel indices ``(ix, iy, iz)``."""
+    keys = np.asarray(keys, dtype=np.int64)
+    out = np.empty((keys.shape[0], 3), dtype=np.int64)
+    out[:, 0] = ((keys >> (2 * KEY_BITS)) & _KEY_FIELD) - _KEY_OFFSET
+    out[:, 1] = ((keys >> KEY_BITS) & _KEY_FIELD) - _KEY_OFFSET
+    out[:, 2] = (keys & _KEY_FIELD) - _KEY_OFFSET
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# voxel grid
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class VoxelGrid:
+    """One point per occupied voxel.
+
+    ``points``: (M, 3) float32 centroids in metres (accumulated in float64).  ``counts``: (M,)
+    int32 input points per voxel.  ``keys``: (M,) int64 packed voxel indices, strictly
+    increasing.  ``inverse``: (N,) int32, for each input point the row of its voxel, -1 for
+    dropped rows (NaN/inf, or a voxel index the key cannot hold).  ``leaf_m``: edge length.
+    """
+
+    points: np.ndarray
+    counts: np.ndarray
+    keys: np.ndarray
+    inverse: np.ndarray
+    leaf_m: float
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+@numba.njit(cache=True, nogil=True)
+def _radix_argsort_keys(keys):
+    """Order that sorts distinct packed keys, (M,) int64 -> (M,) int64.
+
+    The keys are mapped to compact codes over their bounding box (same order: x, then y, then
+    z) and sorted by an LSD radix sort with at most 13-bit digits: for a room at a 2 cm leaf the
+    codes need about 26 bits, i.e. two linear passes instead of an O(M log M) sort.
+    """
+    m = keys.shape[0]
+    order = np.arange(m)
+    if m < 2:
+        return order
+    lo = np.full(3, _KEY_FIELD, dtype=np.int64)
+    hi = np.zeros(3, dtype=np.int64)
+    for j in range(m):
+        key = keys[j]
+        for a in range(3):
+            f = (key >> (KEY_BITS * (2 - a))) & _KEY_FIELD
+            if f < lo[a]:
+                lo[a] = f
+            if f > hi[a]:
+                hi[a] = f
+    ny = np.uint64(hi[1] - lo[1] + 1)
+    nz = np.uint64(hi[2] - lo[2] + 1)
+    codes = np.empty(m, dtype=np.uint64)
+    top = np.uint64(0)
+    for j in range(m):
+        key = keys[j]
+        fx = np.uint64(((key >> (2 * KEY_BITS)) & _KEY_FIELD) - lo[0])
+        fy = np.uint64(((key >> KEY_BITS) & _KEY_FIELD) - lo[1])
+        fz = np.uint64((key & _KEY_FIELD) - lo[2])
+        c = (fx * ny + fy) * nz + fz
+        codes[j] = c
+        if c > top:
+            top = c
+    bits = 0
+    while bits < 64 and (top >> np.uint64(bits)) != np.uint64(0):
+        bits += 1
+    passes = (bits + 12) // 13
+    if passes == 0:
+        return order
+    digit = (bits + passes - 1) // passes
+    buckets = 1 << digit
+    dmask = np.uint64(buckets - 1)
+    counts = np.empty(buckets, dtype=np.int64)
+    tmp_order = np.empty(m, dtype=np.int64)
+    tmp_codes = np.empty(m, dtype=np.uint64)
+    shift = np.uint64(0)
+    for _ in range(passes):
+        counts[:] = 0
+        for j in range(m):
+            counts[np.int64((codes[j] >> shift) & dmask)] += 1
+        total = 0
+        for b in range(buckets):
+            c = counts[b]
+            counts[b] = total
+            total += c
+        for j in range(m):
+            b = np.int64((codes[j] >> shift) & dmask)
+            dst = counts[b]
+            counts[b] = dst + 1
+            tmp_codes[dst] = codes[j]
+            tmp_order[dst] = order[j]
+        codes, tmp_codes = tmp_codes, codes
+        order, tmp_order = tmp_order, order
+        shift += np.uint64(digit)
+    return order
+
+
+#: Points per chunk in :func:`_voxel_kernel`: keys are computed for a chunk first (a
+#: branch-light loop), then looked up; the key buffer stays in L1.
+_CHUNK = 1024
+
+
+@numba.njit(cache=True, nogil=True)
+def _chunk_keys(points, start, stop, inv_leaf, out):
+    """Packed keys of points[start:stop] into out[:stop - start]; -1 for dropped rows."""
+    lo = np.float64(-_KEY_OFFSET)
+    hi = np.float64(_KEY_OFFSET - 1)
+    chunk = points[start:stop]
+    for i in range(chunk.shape[0]):
+        fx = np.floor(np.float64(chunk[i, 0]) * inv_leaf)
+        fy = np.floor(np.float64(chunk[i, 1]) * inv_leaf)
+        fz = np.floor(np.float64(chunk[i, 2]) * inv_leaf)
+        # NaN fails every comparison, inf fails the range: both dropped
+        if lo <= fx <= hi and lo <= fy <= hi and lo <= fz <= hi:
+            out[i] = (
+                ((np.int64(fx) + _KEY_OFFSET) << (2 * KEY_BITS))
+                | ((np.int64(fy) + _KEY_OFFSET) << KEY_BITS)
+                | (np.int64(fz) + _KEY_OFFSET)
+            )
+        else:
+            out[i] = -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _new_table(bits, vkeys, m):
+    """Hash table of 2**bits slots holding the first m keys of vkeys (rows 0..m-1).
+    Slot s holds (key, row) at [2s, 2s + 1]; row -1 = empty."""
+    size = 1 << bits
+    mask = size - 1
+    shift = np.uint64(64 - bits)
+    table = np.full(2 * size, -1, dtype=np.int64)
+    for q in range(m):
+        s = np.int64((np.uint64(vkeys[q]) * _HASH_MULT) >> shift)
+        while table[2 * s + 1] >= 0:
+            s = (s + 1) & mask
+        table[2 * s] = vkeys[q]
+        table[2 * s + 1] = q
+    return table
+
+
+@numba.njit(cache=True, nogil=True)
+def _chunk_insert(points, start, stop, keys, table, bits, vkeys, sums, counts, inverse, m,
+                  prev_key, prev_row):
+    """Look up (or insert) the keys of points[start:stop] and accumulate their sums and
+    counts.  The table must have room for ``stop - start`` more keys.  Returns
+    (m, prev_key, prev_row)."""
+    mask = np.uint64((1 << bits) - 1)
+    one = np.uint64(1)
+    two = np.uint64(2)
+    shift = np.uint64(64 - bits)
+    chunk = points[start:stop]
+    chunk_inverse = inverse[start:stop]
+    for i in range(chunk.shape[0]):
+        key = keys[i]
+        if key < 0:
+            chunk_inverse[i] = -1
+            continue
+        if key != prev_key:
+            slot = (np.uint64(key) * _HASH_MULT) >> shift  # unsigned: no negative-index checks
+            while True:
+                row = table[two * slot + one]
+                if row < 0:
+                    row = np.int64(m)
+                    table[two * slot] = key
+                    table[two * slot + one] = row
+                    vkeys[row] = key
+                    sums[row, 0] = 0.0
+                    sums[row, 1] = 0.0
+                    sums[row, 2] = 0.0
+                    counts[row] = 0
+                    m += 1
+                    break
+                if table[two * slot] == key:
+                    break
+                slot = (slot + one) & mask
+            prev_key = key
+            prev_row = row
+        sums[prev_row, 0] += np.float64(chunk[i, 0])
+        sums[prev_row, 1] += np.float64(chunk[i, 1])
+        sums[prev_row, 2] += np.float64(chunk[i, 2])
+        counts[prev_row] += 1
+        chunk_inverse[i] = prev_row
+    return m, prev_key, prev_row
+
+
+@numba.njit(cache=True, nogil=True)
+def _voxel_kernel(points, inv_leaf):
+    """(N, 3) float32, 1/leaf -> (sums (M, 3) float64, counts (M,) int32, keys (M,) int64
+    sorted, inverse (N,) int32).
+
+    Open-addressing hash (power-of-two table, Fibonacci hashing, linear probing, at most half
+    full) from key to voxel row, with the previous point's key cached (neighbouring pixels
+    mostly share a voxel).  Points go in chunks; before each chunk the table (and the per-voxel
+    arrays, sized to the table) grow by doubling until the chunk cannot fill it past half, so
+    nothing is reallocated inside the hot loop and memory follows M, not N.  Rows are then
+    sorted by key (radix sort).
+    """
+    n = points.shape[0]
+    inverse = np.empty(n, dtype=np.int32)
+    bits = 12
+    while bits < 18 and (1 << bits) < n // 8:
+        bits += 1
+    capacity = (1 << bits) // 2
+    vkeys = np.empty(capacity, dtype=np.int64)
+    sums = np.empty((capacity, 3), dtype=np.float64)
+    counts = np.empty(capacity, dtype=np.int32)
+    table = _new_table(bits, vkeys, 0)
+    buf = np.empty(_CHUNK, dtype=np.int64)
+    m = 0
+    prev_key = np.int64(-1)
+    prev_row = np.int64(-1)
+    for start in range(0, n, _CHUNK):
+        stop = min(n, start + _CHUNK)
+        if m + (stop - start) > capacity:
+            while m + (stop - start) > capacity:
+                bits += 1
+                capacity = (1 << bits) // 2
+            table = _new_table(bits, vkeys, m)
+            grown_keys = np.empty(capacity, dtype=np.int64)
+            grown_sums = np.empty((capacity, 3), dtype=np.float64)
+            grown_counts = np.empty(capacity, dtype=np.int32)
+            grown_keys[:m] = vkeys[:m]
+            grown_sums[:m] = sums[:m]
+            grown_counts[:m] = counts[:m]
+            vkeys = grown_keys
+            sums = grown_sums
+            counts = grown_counts
+        _chunk_keys(points, start, stop, inv_leaf, buf)
+        m, prev_key, prev_row = _chunk_insert(
+            points, start, stop, buf, table, bits, vkeys, sums, counts, inverse, m, prev_key,
+            prev_row,
+        )
+
+    order = _radix_argsort_keys(vkeys[:m])
+    rank = np.empty(m, dtype=np.int32)
+    out_sums = np.empty((m, 3), dtype=np.float64)
+    out_counts = np.empty(m, dtype=np.int32)
+    out_keys = np.empty(m, dtype=np.int64)
+    for j in range(m):
+        q = order[j]
+        rank[q] = j
+        out_sums[j, 0] = sums[q, 0]
+        out_sums[j, 1] = sums[q, 1]
+        out_sums[j, 2] = sums[q, 2]
+        out_counts[j] = counts[q]
+        out_keys[j] = vkeys[q]
+    for i in range(n):
+        if inverse[i] >= 0:
+            inverse[i] = rank[inverse[i]]
+    return out_sums, out_counts, out_keys, inverse
+
+
+def _check_positive(name: str, value: object, *, upper: float = math.inf, unit: str = "") -> float:
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{name}={value!r}: must be a number{unit}") from None
+    if not (math.isfinite(number) and 0.0 < number <= upper):
+        limit = f"0 < {name} <= {upper}" if math.isfinite(upper) else f"{name} > 0"
+        raise InputError(f"{name}={value!r}: must be finite and {limit}{unit}")
+    return number
+
+
+def voxel_grid(points: np.ndarray, leaf_m: float) -> VoxelGrid:
+    """Replace the points in each occupied cubic voxel of edge ``leaf_m`` by their centroid.
+
+    Parameters
+    ----------
+    points : (N, 3) float32
+        Metres.  Rows with NaN/inf, and rows whose voxel index does not fit a key (see the module
+        docstring), are dropped (``inverse == -1``).
+    leaf_m : float
+        Voxel edge in metres, > 0.
+
+    Returns
+    -------
+    VoxelGrid
+        Voxels sorted by packed key; centroids as float32.
+    """
+    points = check_points(points)
+    leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
+    if points.shape[0] >= 2**31:
+        raise InputError(f"points: {points.shape[0]} rows is too many for int32 indices")
+    sums, counts, keys, inverse = _voxel_kernel(points, 1.0 / leaf)
+    centroids = (sums / counts[:, None]).astype(np.float32)
+    return VoxelGrid(points=centroids, counts=counts, keys=keys, inverse=inverse, leaf_m=leaf)
+
+
+# --------------------------------------------------------------------------------------------
+# statistical outlier removal on the voxel grid
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _is_neighbour(key_a, key_b):
+    """True when the voxels of two distinct packed keys are at Chebyshev distance <= 1."""
+    dx = ((key_a >> (2 * KEY_BITS)) & _KEY_FIELD) - ((key_b >> (2 * KEY_BITS)) & _KEY_FIELD)
+    dy = ((key_a >> KEY_BITS) & _KEY_FIELD) - ((key_b >> KEY_BITS) & _KEY_FIELD)
+    dz = (key_a & _KEY_FIELD) - (key_b & _KEY_FIELD)
+    return -1 <= dx <= 1 and -1 <= dy <= 1 and -1 <= dz <= 1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _push_best(best, i, k, d):
+    """Insert d into row i of best (ascending, k long), dropping the largest: a branch-free
+    min/max pass (the values are unchanged, only placed)."""
+    for j in range(k):
+        b = best[i, j]
+        best[i, j] = min(b, d)
+        d = max(b, d)
+
+
+@numba.njit(cache=True, nogil=True)
+def _knn_mean_kernel(points, keys, k, cap):
+    """Mean of the k smallest min(distance, cap) to points in the 26 adjacent voxels, missing
+    neighbours counting as cap.  ``keys`` strictly increasing.  Returns (M,) float64.
+
+    Each unordered pair is visited once, through the 13 "forward" offsets: (0, 0, +1), then the
+    rows (0, +1, *), (+1, -1, *), (+1, 0, *), (+1, +1, *).  Because keys are sorted, the targets
+    ``key + row offset`` increase with the point, so one pointer per row walks forward through
+    the keys (a merge join, no search); the up to three voxels dz = -1, 0, +1 of a row are
+    contiguous from that pointer.  Keys that are only numerically adjacent (a carry between
+    fields) are rejected by unpacking.  The k best are kept as squared distances (capped at
+    cap**2); ``sqrt`` is taken of those k at the end, which gives the same numbers as capping
+    the distances (``sqrt(x * x) == x`` in IEEE arithmetic).
+    """
+    m = keys.shape[0]
+    cap2 = cap * cap
+    best = np.full((m, k), cap2, dtype=np.float64)
+    xs = np.empty(m, dtype=np.float64)
+    ys = np.empty(m, dtype=np.float64)
+    zs = np.empty(m, dtype=np.float64)
+    for i in range(m):
+        xs[i] = points[i, 0]
+        ys[i] = points[i, 1]
+        zs[i] = points[i, 2]
+    dy1 = np.int64(1) << KEY_BITS
+    dx1 = np.int64(1) << (2 * KEY_BITS)
+    offsets = np.array([dy1, dx1 - dy1, dx1, dx1 + dy1], dtype=np.int64)
+    ptr = np.zeros(4, dtype=np.int64)
+    for i in range(m):
+        key = keys[i]
+        x = xs[i]
+        y = ys[i]
+        z = zs[i]
+        for r in range(5):
+            if r == 0:  # (0, 0, +1): the next key, if it is key + 1
+                p = i + 1
+                low = key + 1
+                high = low
+            else:
+                low = key + offsets[r - 1] - 1
+                high = low + 2
+                p = ptr[r - 1]
+                while p < m and keys[p] < low:
+                    p += 1
+                ptr[r - 1] = p
+            while p < m and keys[p] <= high:
+                if _is_neighbour(key, keys[p]):
+                    dx = x - xs[p]
+                    dy = y - ys[p]
+                    dz = z - zs[p]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    _push_best(best, i, k, d2)
+                    _push_best(best, p, k, d2)
+                p += 1
+    out = np.empty(m, dtype=np.float64)
+    for i in range(m):
+        s = 0.0
+        for j in range(k):
+            s += math.sqrt(best[i, j])
+        out[i] = s / k
+    return out
+
+
+def _check_cloud_keys(points: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    points = check_points(points)
+    if not isinstance(keys, np.ndarray) or keys.dtype != np.int64 or keys.ndim != 1:
+        raise InputError("keys must be the (M,) int64 keys of a VoxelGrid (VoxelGrid.keys)")
+    if keys.shape[0] != points.shape[0]:
+        raise InputError(
+            f"keys has {keys.shape[0]} rows but points has {points.shape[0]}; pass the points "
+            "and keys of the same VoxelGrid"
+        )
+    if keys.shape[0] > 1 and not np.all(keys[1:] > keys[:-1]):
+        raise InputError("keys must be strictly increasing, as VoxelGrid returns them; pass a "
+                         "VoxelGrid's points and keys unchanged (or subset them with a mask)")
+    if not np.all(np.isfinite(points)):
+        raise InputError("points contain NaN or inf; pass voxel_grid(...).points")
+    return points, np.ascontiguousarray(keys)
+
+
+def knn_mean_distance(
+    points: np.ndarray, keys: np.ndarray, k: int, cap_m: float
+) -> np.ndarray:
+    """Per-point outlier statistic on a voxel cloud.
+
+    Parameters
+    ----------
+    points : (M, 3) float32
+        Voxel centroids (``VoxelGrid.points``, or a masked subset of them).
+    keys : (M,) int64
+        Their packed voxel keys, strictly increasing (``VoxelGrid.keys``).
+    k : int
+        Neighbours averaged, 1..26.
+    cap_m : float
+        Distances above ``cap_m`` count as ``cap_m``; so does each missing neighbour.
+
+    Returns
+    -------
+    (M,) float64
+        Mean over the k smallest of ``min(distance, cap_m)`` to the points in the 26 adjacent
+        voxels (Chebyshev voxel distance 1), in metres.
+    """
+    points, keys = _check_cloud_keys(points, keys)
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= 26:
+        raise InputError(f"k={k!r}: must be a whole number in 1..26 (the 26 adjacent voxels)")
+    cap = _check_positive("cap_m", cap_m, unit=" (metres)")
+    return _knn_mean_kernel(points, keys, int(k), cap)
+
+
+def statistical_outliers(
+    points: np.ndarray,
+    keys: np.ndarray,
+    leaf_m: float,
+    k: int = 4,
+    alpha: float = 2.0,
+    cap_leaves: float = 2.0,
+) -> np.ndarray:
+    """Statistical outlier removal on a voxel cloud; returns the (M,) bool inlier mask.
+
+    The statistic of a point is :func:`knn_mean_distance` with ``cap_m = cap_leaves * leaf_m``;
+    a point is an outlier when it is above ``mean + alpha * std`` of that statistic over the
+    cloud (PCL's rule, with the neighbour search restricted to the 26 adjacent voxels).
+
+    Defaults, for one point per voxel (PCL's k = 50 assumes the raw cloud's density):
+
+    * ``k = 4``: a point inside a surface has 8 neighbours in its plane, on a straight edge 5,
+      at a convex corner 3, on a one-voxel-wide line 2, an isolated speck 0.  k = 4 gives
+      surfaces and their edges the same statistic (about one leaf), so object outlines survive;
+      lines and corners score higher, specks and pairs score the cap.
+    * ``cap_leaves = 2``: adjacent centroids are up to 2*sqrt(3) leaves apart, so 2 leaves keeps a
+      single far neighbour (or a gap) from dominating the mean while a missing neighbour still
+      costs more than any present one at a typical distance of 1-1.4 leaves.
+    * ``alpha = 2``: the statistic is concentrated near one leaf (measured mean 0.82-1.06
+      leaves, std 0.08-0.21 on the TUM office frame, the table-top frames and a carpet scene at
+      1 and 2 cm), so mean + 2 std lay at 0.97-1.47 leaves: below the 1.75 leaves of a pair of
+      specks and the 2 of an isolated one, which were dropped on every frame measured.  On the
+      table-top frames (2 cm leaf) alpha = 1, PCL's value, dropped up to 13 % of an object's
+      pixels and 7 % of the table's (edges, rims, handles); alpha = 2 at most 2.6 % and 2.0 %;
+      alpha = 3 0.4 % and 0.1 %, but it lets points with two neighbours (veil pixels along
+      depth edges, ~1.5-1.6 leaves) through on the noisier room frame (threshold 1.67 leaves
+      at 1 cm).
+
+    Parameters
+    ----------
+    points : (M, 3) float32, keys : (M,) int64
+        A voxel grid's centroids and keys (or a masked subset of both).
+    leaf_m : float
+        The voxel grid's leaf size in metres.
+    k : int
+        Neighbours, 1..26.
+    alpha : float
+        Threshold in standard deviations, >= 0.
+    cap_leaves : float
+        Distance cap in leaf sizes, > 0.
+    """
+    leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
+    try:
+        a = float(alpha)
+    except (TypeError, ValueError):
+        raise InputError(f"alpha={alpha!r}: must be a number of standard deviations >= 0") from None
+    if not (math.isfinite(a) and a >= 0.0):
+        raise InputError(f"alpha={alpha!r}: must be a finite number of standard deviations >= 0")
+    cap = _check_positive("cap_leaves", cap_leaves, unit=" (leaf sizes)") * leaf
+    stat = knn_mean_distance(points, keys, k, cap)
+    if stat.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    threshold = stat.mean() + a * stat.std()
+    return stat <= threshold
+
+
+# --------------------------------------------------------------------------------------------
+# RANSAC plane
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Plane:
+    """A plane ``normal . p + offset = 0`` (metres) and which points lie on it.
+
+    ``normal``: (3,) float64 unit vector, oriented so that the camera origin is on its positive
+    side (``offset >= 0``).  ``inliers``: (M,) bool over the points it was fitted to.
+    ``n_inliers``: their number.  When no plane was found: ``normal`` and ``offset`` are NaN,
+    no inliers (``found`` is False).  ``iterations``: sample triples tried.
+    """
+
+    normal: np.ndarray
+    offset: float
+    inliers: np.ndarray
+    n_inliers: int
+    iterations: int = 0
+
+    @property
+    def found(self) -> bool:
+        return self.n_inliers > 0
+
+    @classmethod
+    def none(cls, n_points: int, iterations: int = 0) -> "Plane":
+        """The result when no plane qualifies."""
+        return cls(np.full(3, np.nan), math.nan, np.zeros(n_points, dtype=bool), 0, iterations)
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """(N,) float64 signed distances of (N, 3) points to the plane, metres."""
+        p = np.asarray(points, dtype=np.float64)
+        return p @ self.normal + self.offset
+
+
+#: Points per block when counting plane inliers: a branch-free inner loop the compiler can
+#: vectorise, with the "cannot win any more" test between blocks.
+_RANSAC_BLOCK = 256
+
+
+@numba.njit(cache=True, nogil=True)
+def _ransac_kernel(points, triples, distance, up, cos_min, confidence):
+    """Best plane over the given sample triples.
+
+    ``points`` (M, 3) float32; ``triples`` (T, 3) int64 row indices; ``up`` (3,) float64 unit
+    vector or all zeros for no constraint; a plane counts only when ``|n . up| >= cos_min``.
+    A triple whose cross product is below 1e-12 m^2 (repeated or collinear points) is skipped.
+    The plane through the triple is ``n = normalize((p1 - p0) x (p2 - p0))``, ``d = -n . p0``
+    (float64); a point is an inlier when ``|n . p + d| <= distance``.  The first triple with the
+    strictly largest inlier count wins.
+
+    Adaptive stop: after triple t, stop once ``t + 1 >= log(1 - confidence) / log(1 - w**3)``
+    with ``w`` = best count / M (the classic RANSAC bound; ``confidence >= 1`` never stops
+    early).  Returns (triple index or -1, count, n (3,), d, triples tried).
+    """
+    m = points.shape[0]
+    xs = np.empty(m, dtype=np.float64)
+    ys = np.empty(m, dtype=np.float64)
+    zs = np.empty(m, dtype=np.float64)
+    for i in range(m):
+        xs[i] = points[i, 0]
+        ys[i] = points[i, 1]
+        zs[i] = points[i, 2]
+    use_up = up[0] != 0.0 or up[1] != 0.0 or up[2] != 0.0
+    log_miss = math.log(1.0 - confidence) if confidence < 1.0 else -np.inf
+    needed = np.inf
+    best_t = -1
+    best_count = 0
+    best_n = np.zeros(3, dtype=np.float64)
+    best_d = 0.0
+    tried = 0
+    for t in range(triples.shape[0]):
+        tried = t + 1
+        a = triples[t, 0]
+        b = triples[t, 1]
+        c = triples[t, 2]
+        ux = xs[b] - xs[a]
+        uy = ys[b] - ys[a]
+        uz = zs[b] - zs[a]
+        vx = xs[c] - xs[a]
+        vy = ys[c] - ys[a]
+        vz = zs[c] - zs[a]
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if norm >= 1e-12 and not (
+            use_up and abs(nx / norm * up[0] + ny / norm * up[1] + nz / norm * up[2]) < cos_min
+        ):
+            nx /= norm
+            ny /= norm
+            nz /= norm
+            d = -(nx * xs[a] + ny * ys[a] + nz * zs[a])
+            count = 0
+            start = 0
+            while start < m:
+                stop = min(m, start + _RANSAC_BLOCK)
+                # slices index from 0, so the loop vectorises (no negative-index checks)
+                bx = xs[start:stop]
+                by = ys[start:stop]
+                bz = zs[start:stop]
+                block = 0
+                for i in range(bx.shape[0]):
+                    r = nx * bx[i] + ny * by[i] + nz * bz[i] + d
+                    block += abs(r) <= distance
+                count += block
+                start = stop
+                if count + (m - start) <= best_count:
+                    break  # cannot beat the best any more
+            if count > best_count:
+                best_count = count
+                best_t = t
+                best_n[0] = nx
+                best_n[1] = ny
+                best_n[2] = nz
+                best_d = d
+                w3 = (best_count / m) ** 3
+                if w3 >= 1.0:
+                    needed = 0.0
+                elif confidence < 1.0:
+                    needed = log_miss / math.log(1.0 - w3)
+        if tried >= needed:
+            break
+    return best_t, best_count, best_n, best_d, tried
+
+
+def _check_up(up: object, max_tilt_deg: object) -> tuple[np.ndarray, float]:
+    if up is None and max_tilt_deg is None:
+        return np.zeros(3), 0.0
+    if up is None or max_tilt_deg is None:
+        raise InputError(
+            f"up={up!r}, max_tilt_deg={max_tilt_deg!r}: give both (the camera-frame up vector "
+            "and the largest angle between it and the plane normal) or neither"
+        )
+    vec = np.asarray(up, dtype=np.float64)
+    norm = float(np.linalg.norm(vec)) if vec.shape == (3,) else 0.0
+    if vec.shape != (3,) or not math.isfinite(norm) or norm == 0.0:
+        raise InputError(
+            f"up={up!r}: must be a non-zero finite 3-vector in the camera frame, e.g. (0, -1, 0) "
+            "for a level camera (y points down)"
+        )
+    try:
+        tilt = float(max_tilt_deg)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"max_tilt_deg={max_tilt_deg!r}: must be a number of degrees") from None
+    if not (math.isfinite(tilt) and 0.0 <= tilt <= 90.0):
+        raise InputError(f"max_tilt_deg={max_tilt_deg!r}: must be in 0..90 degrees")
+    return vec / norm, math.cos(math.radians(tilt))
+
+
+def _orient(normal: np.ndarray, offset: float) -> tuple[np.ndarray, float]:
+    """Flip so that the camera origin is on the positive side (offset >= 0)."""
+    if offset < 0.0:
+        return -normal, -offset
+    return normal, offset
+
+
+def ransac_triples(m: int, iterations: int, seed: int) -> np.ndarray:
+    """(iterations, 3) int64 triples of distinct row indices in 0..m-1 (m >= 3), drawn with
+    ``np.random.default_rng(seed)``: uniform over ordered triples of distinct rows."""
+    rng = np.random.default_rng(int(seed))
+    draws = rng.integers(0, np.array([m, m - 1, m - 2]), size=(int(iterations), 3),
+                         dtype=np.int64)
+    a = draws[:, 0]
+    b = draws[:, 1] + (draws[:, 1] >= a)
+    lo = np.minimum(a, b)
+    hi = np.maximum(a, b)
+    c = draws[:, 2] + (draws[:, 2] >= lo)
+    c = c + (c >= hi)
+    return np.stack([a, b, c], axis=1)
+
+
+def fit_plane_ransac(
+    points: np.ndarray,
+    distance_m: float,
+    iterations: int,
+    seed: int,
+    *,
+    up: object = None,
+    max_tilt_deg: float | None = None,
+    min_inliers: int = 3,
+    confidence: float = 0.999,
+) -> Plane:
+    """Largest plane by RANSAC, refined by least squares.
+
+    Up to ``iterations`` triples of distinct points, drawn by :func:`ransac_triples` (NumPy's
+    ``default_rng(seed)``), are scored in order by :func:`_ransac_kernel` (inliers within
+    ``distance_m``; with ``up`` and ``max_tilt_deg``, only planes whose normal is within
+    ``max_tilt_deg`` of ``up`` count; adaptive stop at ``confidence``).  The winner is refitted
+    to its inliers (normal = eigenvector of the smallest eigenvalue of their covariance, through
+    their centroid) and its inliers are counted again; the refit is kept when it still meets the
+    tilt limit and has at least as many inliers.
+
+    Parameters
+    ----------
+    points : (M, 3) float32
+        Metres, finite.
+    distance_m : float
+        Inlier distance in metres, > 0.
+    iterations : int
+        Sample triples, >= 1.
+    seed : int
+        Seed of the triples; the same seed and points give the same plane.
+    up : (3,) array-like or None
+        Camera-frame direction the plane normal must be close to (e.g. (0, -1, 0) for the floor
+        seen by a level camera).
+    max_tilt_deg : float or None
+        Largest angle between normal and ``up``, 0..90 degrees.
+    min_inliers : int
+        A plane needs at least this many inliers, >= 1.
+    confidence : float
+        Stop drawing triples once a plane at least as large as the best so far would have been
+        hit with this probability (adaptive RANSAC); 1.0 tries all ``iterations``.
+
+    Returns
+    -------
+    Plane
+        With ``inliers`` over ``points``; :meth:`Plane.none` when fewer than 3 points or no
+        plane with ``min_inliers`` qualifies.
+    """
+    points = check_points(points)
+    if not np.all(np.isfinite(points)):
+        raise InputError("points contain NaN or inf; filter them first (voxel_grid drops them)")
+    dist = _check_positive("distance_m", distance_m, unit=" (metres)")
+    for name, value, low in (("iterations", iterations, 1), ("min_inliers", min_inliers, 1)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise InputError(f"{name}={value!r}: must be a whole number >= {low}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed={seed!r}: must be a whole number >= 0")
+    up_vec, cos_min = _check_up(up, max_tilt_deg)
+    try:
+        conf = float(confidence)
+    except (TypeError, ValueError):
+        conf = math.nan
+    if not 0.0 < conf <= 1.0:
+        raise InputError(f"confidence={confidence!r}: must be a probability in (0, 1], e.g. "
+                         "0.999 (1 tries every iteration)")
+    m = points.shape[0]
+    if m < 3:
+        return Plane.none(m)
+    triples = ransac_triples(m, iterations, seed)
+    best_t, count, normal, offset, tried = _ransac_kernel(points, triples, dist, up_vec,
+                                                          cos_min, conf)
+    if best_t < 0 or count < min_inliers:
+        return Plane.none(m, tried)
+
+    p64 = points.astype(np.float64)
+    inliers = np.abs(p64 @ normal + offset) <= dist
+    normal, offset = _orient(normal, float(offset))
+    # least-squares refit on the inliers
+    on = p64[inliers]
+    centroid = on.mean(axis=0)
+    centred = on - centroid
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    refit = vectors[:, 0]
+    refit = refit / np.linalg.norm(refit)
+    if refit @ normal < 0:
+        refit = -refit
+    refit_offset = -float(refit @ centroid)
+    refit_inliers = np.abs(p64 @ refit + refit_offset) <= dist
+    tilt_ok = not up_vec.any() or abs(float(refit @ up_vec)) >= cos_min
+    if tilt_ok and refit_inliers.sum() >= inliers.sum():
+        normal, offset = _orient(refit, refit_offset)
+        inliers = refit_inliers
+    return Plane(normal=normal, offset=float(offset), inliers=inliers,
+                 n_inliers=int(inliers.sum()), iterations=int(tried))
+
+
+def remove_plane(
+    points: np.ndarray,
+    distance_m: float,
+    iterations: int,
+    seed: int,
+    **options: object,
+) -> tuple[np.ndarray, Plane]:
+    """Fit the largest plane (:func:`fit_plane_ransac`, same arguments) and drop its inliers.
+    Returns ``(points without the plane (K, 3) float32, plane)``."""
+    plane = fit_plane_ransac(
+        points, distance_m, iterations, seed, **options  # type: ignore[arg-type]
+    )
+    return points[~plane.inliers], plane
+
+
+# --------------------------------------------------------------------------------------------
+# temporal fusion
+
+
+@numba.njit(cache=True, nogil=True)
+def _fuse_kernel(stack, min_valid):
+    """(N, H, W) uint16 -> (H, W) uint16 per-pixel median of the non-zero values.
+
+    Row by row and without sorting: the rank of reading i at a pixel is the number of valid
+    readings j smaller than it, or equal with j < i (so ranks 0..c-1 follow the sorted order).
+    The median is the reading of rank c // 2 (odd c) or the integer mean of ranks c // 2 - 1
+    and c // 2 (even c).  The inner loops run along the row, branch-free, and vectorise; the
+    work is O(N^2) per pixel, which for the ~10 frames of a fusion beats sorting.
+    """
+    n, height, width = stack.shape
+    out = np.zeros((height, width), dtype=np.uint16)
+    valid = np.zeros(width, dtype=np.int32)
+    rank = np.zeros(width, dtype=np.int32)
+    low = np.zeros(width, dtype=np.int32)
+    high = np.zeros(width, dtype=np.int32)
+    for v in range(height):
+        valid[:] = 0
+        low[:] = 0
+        high[:] = 0
+        for f in range(n):
+            row = stack[f, v]
+            for u in range(width):
+                valid[u] += row[u] > 0
+        for i in range(n):
+            a = stack[i, v]
+            rank[:] = 0
+            for j in range(n):
+                b = stack[j, v]
+                if j < i:
+                    for u in range(width):
+                        rank[u] += (b[u] > 0) & (b[u] <= a[u])
+                elif j > i:
+                    for u in range(width):
+                        rank[u] += (b[u] > 0) & (b[u] < a[u])
+            for u in range(width):
+                c = valid[u]
+                h = c // 2
+                value = np.int32(a[u])
+                if value > 0 and rank[u] == h:
+                    high[u] = value
+                if value > 0 and rank[u] == h - 1:
+                    low[u] = value
+        row_out = out[v]
+        for u in range(width):
+            c = valid[u]
+            if c >= min_valid and c > 0:
+                if c % 2 == 1:
+                    row_out[u] = high[u]
+                else:
+                    row_out[u] = (low[u] + high[u]) // 2
+    return out
+
+
+def fuse_depth(stack: np.ndarray, min_valid: int) -> np.ndarray:
+    """Temporal fusion of depth frames taken from a standing camera.
+
+    Parameters
+    ----------
+    stack : (N, H, W) uint16
+        Depth in millimetres, 0 = no reading.
+    min_valid : int
+        A pixel needs at least this many non-zero readings, 1..N.
+
+    Returns
+    -------
+    (H, W) uint16
+        Per pixel, the median of its non-zero readings (even count: ``(a + b) // 2`` of the two
+        middle ones); 0 where fewer than ``min_valid`` readings.
+    """
+    if not isinstance(stack, np.ndarray) or stack.dtype != np.uint16 or stack.ndim != 3:
+        described = (f"{stack.dtype} array of shape {stack.shape}"
+                     if isinstance(stack, np.ndarray) else type(stack).__name__)
+        raise InputError(
+            f"stack must be an (N, H, W) uint16 array of depth frames in millimetres, got a "
+            f"{described}; build it with np.stack([frame.depth for frame in frames])"
+        )
+    n = stack.shape[0]
+    if n == 0:
+        raise InputError("stack holds no frames; fuse at least one depth frame")
+    if (isinstance(min_valid, bool) or not isinstance(min_valid, (int, np.integer))
+            or not 1 <= min_valid <= n):
+        raise InputError(f"min_valid={min_valid!r}: must be a whole number in 1..{n} (the "
+                         "number of frames in the stack)")
+    return _fuse_kernel(np.ascontiguousarray(stack), int(min_valid))

@@ -1,0 +1,210 @@
+"""Depth image <-> points in the camera optical frame (ALGORITHM.md section 1).
+
+Camera optical frame: x right, y down, z forward, metres; pixel (row v, column u) with depth z
+back-projects to ``x = (u - cx) * z / fx``, ``y = (v - cy) * z / fy``.  Pixel centres are at
+integer coordinates (a centred VGA principal point is 319.5, 239.5).
+
+Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  The kernels are
+numba-compiled, single-threaded and without fastmath, so the NumPy twins in the tests give
+bit-identical results.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from hw.depth import Intrinsics
+from robot_change.errors import InputError
+
+__all__ = ["depth_to_points", "project_points", "check_points"]
+
+#: Largest depth a uint16 millimetre image can hold, in metres.
+MAX_DEPTH_M = 65.535
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_to_points_kernel(depth, fx, fy, cx, cy, min_mm, max_mm):
+    """(H, W) uint16 mm -> ((N, 3) float32 m, (N,) int32 flat pixel index), row-major order.
+
+    A pixel is kept when ``min_mm <= depth <= max_mm`` and ``depth > 0``.  Arithmetic in
+    float64: ``z = d / 1000``, ``x = (u - cx) * z / fx``, ``y = (v - cy) * z / fy``.
+    """
+    height, width = depth.shape
+    count = 0
+    for v in range(height):
+        for u in range(width):
+            d = depth[v, u]
+            if d > 0 and d >= min_mm and d <= max_mm:
+                count += 1
+    points = np.empty((count, 3), dtype=np.float32)
+    pixels = np.empty(count, dtype=np.int32)
+    i = 0
+    for v in range(height):
+        for u in range(width):
+            d = depth[v, u]
+            if d > 0 and d >= min_mm and d <= max_mm:
+                z = d / 1000.0
+                points[i, 0] = (u - cx) * z / fx
+                points[i, 1] = (v - cy) * z / fy
+                points[i, 2] = z
+                pixels[i] = v * width + u
+                i += 1
+    return points, pixels
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_kernel(points, fx, fy, cx, cy):
+    """(N, 3) float32/float64 m -> (N, 2) float64 pixel coordinates (u, v); NaN where z <= 0
+    or the point is not finite."""
+    n = points.shape[0]
+    out = np.empty((n, 2), dtype=np.float64)
+    for i in range(n):
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
+        if z > 0.0 and math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
+            out[i, 0] = fx * x / z + cx
+            out[i, 1] = fy * y / z + cy
+        else:
+            out[i, 0] = np.nan
+            out[i, 1] = np.nan
+    return out
+
+
+def _check_intrinsics(intrinsics: object) -> Intrinsics:
+    if not isinstance(intrinsics, Intrinsics):
+        raise InputError(
+            f"intrinsics must be a hw.depth.Intrinsics, got {type(intrinsics).__name__}; build one "
+            "with Intrinsics(width, height, fx, fy, cx, cy) or Intrinsics.openni_default()"
+        )
+    return intrinsics
+
+
+def _check_depth_range(min_depth_m: float, max_depth_m: float) -> tuple[float, float]:
+    try:
+        lo, hi = float(min_depth_m), float(max_depth_m)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"min_depth_m={min_depth_m!r}, max_depth_m={max_depth_m!r}: depth limits must be "
+            "numbers of metres"
+        ) from None
+    if not (math.isfinite(lo) and 0.0 <= lo <= MAX_DEPTH_M):
+        raise InputError(f"min_depth_m={min_depth_m!r}: must be in 0..{MAX_DEPTH_M} m")
+    if not (math.isfinite(hi) and lo < hi):
+        raise InputError(
+            f"max_depth_m={max_depth_m!r}: must be finite and greater than "
+            f"min_depth_m={min_depth_m!r}"
+        )
+    return lo, hi
+
+
+def depth_to_points(
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    *,
+    min_depth_m: float = 0.3,
+    max_depth_m: float = 5.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project the valid pixels of a depth image.
+
+    Parameters
+    ----------
+    depth : (H, W) uint16
+        Depth in millimetres, 0 = no reading.
+    intrinsics : hw.depth.Intrinsics
+        For an image of exactly W x H pixels.
+    min_depth_m, max_depth_m : float
+        Keep pixels with ``min_depth_m <= z <= max_depth_m`` (metres; the millimetre value is
+        compared with ``ceil(min * 1000)`` and ``floor(max * 1000)``).
+
+    Returns
+    -------
+    points : (N, 3) float32
+        Metres, camera optical frame (x right, y down, z forward), row-major pixel order.
+    pixels : (N,) int32
+        Flat pixel index ``row * W + col`` of each point.
+    """
+    if not isinstance(depth, np.ndarray):
+        raise InputError(
+            f"depth must be a numpy array (H, W) of uint16 millimetres, got "
+            f"{type(depth).__name__}"
+        )
+    if depth.dtype != np.uint16 or depth.ndim != 2:
+        raise InputError(
+            f"depth must be a 2-D uint16 array of millimetres, got {depth.dtype} of shape "
+            f"{depth.shape}; convert metres with np.round(z * 1000).astype(np.uint16)"
+        )
+    intrinsics = _check_intrinsics(intrinsics)
+    height, width = depth.shape
+    if (width, height) != (intrinsics.width, intrinsics.height):
+        raise InputError(
+            f"depth is {width}x{height} but the intrinsics are for "
+            f"{intrinsics.width}x{intrinsics.height}; pass intrinsics for this resolution "
+            "(Intrinsics.scaled)"
+        )
+    if height * width >= 2**31:
+        raise InputError(f"depth image {width}x{height} has too many pixels for int32 indices")
+    lo, hi = _check_depth_range(min_depth_m, max_depth_m)
+    min_mm = max(1, math.ceil(round(lo * 1000.0, 6)))
+    max_mm = min(65535, math.floor(round(hi * 1000.0, 6)))
+    return _depth_to_points_kernel(
+        np.ascontiguousarray(depth),
+        float(intrinsics.fx),
+        float(intrinsics.fy),
+        float(intrinsics.cx),
+        float(intrinsics.cy),
+        np.uint16(min_mm) if min_mm <= max_mm else np.uint16(65535),
+        np.uint16(max_mm) if min_mm <= max_mm else np.uint16(0),
+    )
+
+
+def check_points(
+    points: object, name: str = "points", *, allow_float64: bool = False
+) -> np.ndarray:
+    """Validate an (N, 3) float32 point array (float64 too when ``allow_float64``) and return it
+    C-contiguous.  Raises :class:`InputError` naming the problem and the fix."""
+    if not isinstance(points, np.ndarray):
+        raise InputError(
+            f"{name} must be a numpy array of shape (N, 3), got {type(points).__name__}"
+        )
+    allowed = (np.float32, np.float64) if allow_float64 else (np.float32,)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(
+            f"{name} must have shape (N, 3) (x, y, z in metres), got shape {points.shape}"
+        )
+    if points.dtype not in allowed:
+        wanted = " or ".join(np.dtype(t).name for t in allowed)
+        raise InputError(
+            f"{name} must be {wanted}, got {points.dtype}; convert with "
+            f"{name}.astype(np.float32)"
+        )
+    return np.ascontiguousarray(points)
+
+
+def project_points(points: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """Project camera-frame points to pixel coordinates.
+
+    Parameters
+    ----------
+    points : (N, 3) float32 or float64
+        Metres, camera optical frame.
+    intrinsics : hw.depth.Intrinsics
+
+    Returns
+    -------
+    (N, 2) float64
+        ``(u, v)`` = (column, row) in pixels, ``u = fx * x / z + cx``, ``v = fy * y / z + cy``;
+        NaN for points with ``z <= 0`` or non-finite coordinates.  Not clipped to the image.
+    """
+    points = check_points(points, allow_float64=True)
+    intrinsics = _check_intrinsics(intrinsics)
+    return _project_kernel(
+        points,
+        float(intrinsics.fx),
+        float(intrinsics.fy),
+        float(intrinsics.cx),
+        float(intrinsics.cy),
+    )
