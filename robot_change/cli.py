@@ -1,0 +1,261 @@
+"""``robot-change``: the command line.  The one place that builds hardware and wires it up.
+
+Exit status: 0 success, 2 bad input (a file, URI, option or parameter the command cannot use; the
+message says what to change), 1 an internal error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hw.depth import DepthFrame, Intrinsics, open_depth
+from hw.errors import HwError
+from robot_change.errors import InputError, RobotChangeError
+
+#: The source checkout's bundled fixtures (absent from a wheel install: pass --source there).
+SIM_FIXTURES = Path(__file__).resolve().parents[1] / "sim_fixtures"
+#: The VGA frame of a furnished room (Kinect noise model) used by ``demo`` and ``bench``.
+DEMO_FRAME = SIM_FIXTURES / "frames" / "room_vga.png"
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def _bundled(path: Path) -> str:
+    if not path.exists():
+        raise InputError(
+            f"the bundled fixture {path} is missing: it ships with the source checkout; "
+            "pass --source URI to use your own depth"
+        )
+    return str(path)
+
+
+def _read_depth(uri: str, frames: int, intrinsics: str | None) -> tuple[np.ndarray, Intrinsics, int]:
+    """Read up to ``frames`` frames from ``uri``; several are fused by per-pixel median.
+
+    Returns ((H, W) uint16 mm, intrinsics, number of frames read).
+    """
+    from robot_change.filters import fuse_depth
+
+    if frames < 1:
+        raise InputError(f"--frames {frames}: read at least one frame")
+    read: list[DepthFrame] = []
+    with open_depth(uri) as source:
+        for frame in source:
+            read.append(frame)
+            if len(read) == frames:
+                break
+    if not read:
+        raise InputError(f"{uri}: the source delivered no frame")
+    camera = read[0].intrinsics
+    if intrinsics:
+        camera = Intrinsics.parse(intrinsics, camera.width, camera.height)
+    if len(read) == 1:
+        return read[0].depth, camera, 1
+    # a pixel needs a reading in at least half of the frames: flicker at edges stays out
+    stack = np.stack([frame.depth for frame in read])
+    return fuse_depth(stack, min_valid=(len(read) + 1) // 2), camera, len(read)
+
+
+def _cloud_params(args: argparse.Namespace):
+    from robot_change.cloud import CloudParams
+
+    overrides = {}
+    if getattr(args, "leaf", None) is not None:
+        overrides["leaf_m"] = args.leaf
+    return CloudParams(**overrides)
+
+
+def _describe_plane(plane) -> dict[str, Any] | None:
+    """The removed plane as plain numbers (None when none was found)."""
+    if not plane.found:
+        return None
+    return {
+        "normal": [round(float(v), 4) for v in plane.normal],
+        "distance_m": round(float(plane.offset), 4),
+        "inliers": int(plane.n_inliers),
+    }
+
+
+def _print_json(payload: dict[str, Any]) -> None:
+    print(json.dumps(payload, indent=None, sort_keys=False))
+
+
+# ---------------------------------------------------------------------------------------------
+# commands
+
+
+def cmd_cloud(args: argparse.Namespace) -> int:
+    """Depth -> clean cloud: print a summary, optionally save the points and a picture."""
+    from robot_change.cloud import clean_cloud
+
+    started = time.perf_counter()
+    depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
+    params = _cloud_params(args)
+    cloud = clean_cloud(depth, camera, params)
+    summary = {
+        "source": args.source,
+        "frames": n_frames,
+        "size": [camera.width, camera.height],
+        "valid_pixels": int(np.count_nonzero(depth)),
+        "stage_counts": dict(cloud.stage_counts),
+        "plane": _describe_plane(cloud.plane),
+        "leaf_m": params.leaf_m,
+        "timings_ms": {key: round(value, 2) for key, value in cloud.timings_ms.items()},
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+    out_dir = Path(args.out) if args.out else None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        np.save(out_dir / "cloud.npy", cloud.points)
+        summary["files"] = [str(out_dir / "cloud.npy")]
+        if not args.no_picture:
+            from robot_change.report import draw_cloud
+
+            picture = draw_cloud(depth, camera, cloud, out_dir / "cloud.png", title=args.source)
+            summary["files"].append(str(picture))
+    if args.json:
+        _print_json(summary)
+    else:
+        _print_cloud_summary(summary)
+    return 0
+
+
+def _print_cloud_summary(summary: dict[str, Any]) -> None:
+    width, height = summary["size"]
+    valid = summary["valid_pixels"]
+    print(f"source      {summary['source']}  ({summary['frames']} frame(s), {width}x{height})")
+    print(f"valid       {valid} pixels ({100.0 * valid / (width * height):.1f} %)")
+    counts = summary["stage_counts"]
+    print("points      " + " -> ".join(f"{value} {key.replace('_', ' ')}"
+                                       for key, value in counts.items() if key != "pixels"))
+    plane = summary["plane"]
+    if plane is None:
+        print("plane       none found")
+    else:
+        print(f"plane       normal {plane['normal']}, {plane['distance_m']} m from the camera, "
+              f"{plane['inliers']} voxels removed")
+    timings = summary["timings_ms"]
+    print("time        " + ", ".join(f"{key[:-3]} {value:.2f} ms" for key, value in timings.items()))
+    for path in summary.get("files", []):
+        print(f"wrote       {path}")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The README's main job on bundled depth: one room frame -> clean cloud -> summary + PNG."""
+    args.source = _bundled(DEMO_FRAME)
+    args.frames, args.intrinsics, args.json, args.no_picture, args.leaf = 1, None, False, False, None
+    return cmd_cloud(args)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
+    from robot_change.benchmark import bench_preprocess, machine_info
+
+    source = args.source or _bundled(DEMO_FRAME)
+    depth, camera, _ = _read_depth(source, 1, None)
+    result: dict[str, Any] = {"frame": source, "runs": args.runs}
+    result.update(bench_preprocess(depth, camera, _cloud_params(args), runs=args.runs))
+    result["machine"] = machine_info()
+    if args.json:
+        _print_json(result)
+    else:
+        for key, value in result.items():
+            print(f"{key:16s}{value}")
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    """Record any depth source (a live camera, images, another .oni) to an .oni file."""
+    from hw.openni2 import record
+
+    if args.frames is not None and args.frames < 1:
+        raise InputError(f"--frames {args.frames}: record at least one frame")
+    with open_depth(args.source) as source:
+        written = record(source, args.out, frames=args.frames, codec=args.codec)
+    print(f"wrote {written} frame(s) to {args.out}")
+    return 0
+
+
+def cmd_list_devices(args: argparse.Namespace) -> int:
+    """The OpenNI2 cameras connected now."""
+    from hw.openni2 import list_devices
+
+    devices = list_devices()
+    if args.json:
+        _print_json({"devices": devices})
+    elif not devices:
+        print("no OpenNI2 camera found (is it plugged in? a Kinect v1 needs libfreenect's "
+              "OpenNI2 driver; see the README)")
+    for device in devices if not args.json else []:
+        serial = device.get("serial", "")
+        print(f"{device['uri']}  {device['vendor']} {device['name']}  {serial}".rstrip())
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="robot-change",
+        description="Scene change detection for robots with a depth camera.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    cloud = commands.add_parser("cloud", help="depth -> clean point cloud, with a summary and a picture")
+    cloud.add_argument("--source", required=True, help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
+    cloud.add_argument("--frames", type=int, default=1, help="frames to fuse by per-pixel median (default 1)")
+    cloud.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
+    cloud.add_argument("--leaf", type=float, help="voxel size in metres (default from CloudParams)")
+    cloud.add_argument("--out", help="folder for cloud.npy ((M,3) float32, metres) and cloud.png")
+    cloud.add_argument("--no-picture", action="store_true", help="with --out: skip cloud.png")
+    cloud.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    cloud.set_defaults(func=cmd_cloud)
+
+    demo = commands.add_parser("demo", help="run the main job on depth bundled in the repository")
+    demo.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
+    demo.set_defaults(func=cmd_demo)
+
+    bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    bench.add_argument("--runs", type=int, default=30, help="timed runs after warm-up (default 30)")
+    bench.add_argument("--source", help="depth URI to benchmark instead of the bundled frame")
+    bench.set_defaults(func=cmd_bench)
+
+    record = commands.add_parser("record", help="record a depth source to an .oni file")
+    record.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
+    record.add_argument("--out", required=True, help="the .oni file to write")
+    record.add_argument("--frames", type=int, help="stop after N frames (default: to the end, or Ctrl-C)")
+    record.add_argument("--codec", choices=("16z", "none"), default="16z",
+                        help="16z: lossless, ~3x smaller (default); none: raw uint16")
+    record.set_defaults(func=cmd_record)
+
+    devices = commands.add_parser("list-devices", help="list the OpenNI2 cameras connected now")
+    devices.add_argument("--json", action="store_true", help="print one JSON object")
+    devices.set_defaults(func=cmd_list_devices)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (HwError, RobotChangeError) as exc:
+        print(f"robot-change {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""The ``robot-change`` command line, run as a real subprocess like a user runs it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from hw.oni import write_oni
+from hw.png import read_png, write_png
+
+
+def run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "robot_change.cli", *args],
+        cwd=REPO, capture_output=True, text=True, timeout=timeout,
+    )
+
+
+def test_demo_prints_a_summary_and_writes_the_cloud_and_a_picture(tmp_path):
+    result = run("demo", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert "kept" in result.stdout and "plane" in result.stdout
+    cloud = np.load(tmp_path / "cloud.npy")
+    assert cloud.dtype == np.float32 and cloud.ndim == 2 and cloud.shape[1] == 3
+    assert 5_000 < len(cloud) < 100_000
+    picture = (tmp_path / "cloud.png").read_bytes()
+    assert picture.startswith(b"\x89PNG\r\n\x1a\n") and len(picture) > 20_000
+
+
+def test_cloud_json_on_a_fused_folder(tmp_path):
+    depth = np.zeros((120, 160), np.uint16)
+    depth[:, :] = 2000  # a wall 2 m away ...
+    depth[40:80, 60:100] = 1500  # ... with a box in front of it
+    for k in range(3):
+        write_png(tmp_path / f"frame_{k}.png", depth)
+    result = run("cloud", "--source", f"images:{tmp_path}", "--frames", "3", "--json",
+                 "--intrinsics", "131.25,131.25,79.5,59.5")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["frames"] == 3 and summary["size"] == [160, 120]
+    assert summary["stage_counts"]["pixels"] == 160 * 120
+    assert summary["plane"] is not None and abs(summary["plane"]["distance_m"] - 2.0) < 0.02
+    assert set(summary["timings_ms"]) == {"points_ms", "voxel_ms", "outlier_ms", "plane_ms",
+                                          "preprocess_ms"}
+
+
+def test_bench_json_has_the_promised_keys():
+    result = run("bench", "--json", "--runs", "3")
+    assert result.returncode == 0, result.stderr
+    figures = json.loads(result.stdout)
+    for key in ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms",
+                "n_points_in", "n_points_out", "machine"):
+        assert key in figures
+    assert figures["n_points_in"] > figures["n_points_out"] > 0
+    assert figures["preprocess_ms"] > 0
+
+
+def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):
+    frames = [np.full((48, 64), 1000 + 10 * k, np.uint16) for k in range(4)]
+    for k, frame in enumerate(frames):
+        write_png(tmp_path / f"f{k}.png", frame)
+    out = tmp_path / "rec.oni"
+    result = run("record", "--source", f"images:{tmp_path}", "--out", str(out), "--frames", "3")
+    assert result.returncode == 0, result.stderr
+    assert "wrote 3 frame(s)" in result.stdout
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    result = run("record", "--source", str(out), "--out", str(copy / "again.oni"))
+    assert result.returncode == 0, result.stderr
+    assert "wrote 3 frame(s)" in result.stdout
+
+
+def test_list_devices_without_a_camera_says_so():
+    result = run("list-devices", "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout) == {"devices": []}
+    result = run("list-devices")
+    assert "no OpenNI2 camera found" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["cloud", "--source", "kinect://0"], "unknown scheme"),
+        (["cloud", "--source", "/nonexistent/frame.png"], "/nonexistent/frame.png"),
+        (["cloud", "--source", "images:/nonexistent/dir/"], "/nonexistent/dir"),
+        (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--leaf", "-1"], "leaf_m"),
+        (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "0"], "--frames"),
+        (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--intrinsics", "1,2"],
+         "fx,fy,cx,cy"),
+        (["record", "--source", "sim_fixtures/frames/room_vga.png", "--out", "/nonexistent/x.oni"],
+         "/nonexistent"),
+    ],
+)
+def test_bad_input_is_a_clear_error_with_exit_status_2(args, message):
+    result = run(*args)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_a_corrupt_oni_is_refused_before_the_native_library_sees_it(tmp_path):
+    good = tmp_path / "good.oni"
+    write_oni(good, [np.full((48, 64), 900, np.uint16)])
+    bad = tmp_path / "bad.oni"
+    bad.write_bytes(good.read_bytes()[:100])
+    result = run("cloud", "--source", str(bad))
+    assert result.returncode == 2
+    assert "bad.oni" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_demo_frame_is_a_vga_depth_image():
+    depth = read_png(REPO / "sim_fixtures" / "frames" / "room_vga.png")
+    assert depth.shape == (480, 640) and depth.dtype == np.uint16
