@@ -16,16 +16,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.mixture import CRITERIA, benchmark_em, fit_mixture  # noqa: E402
+from robot_change.benchmark import benchmark_em, median_ms  # noqa: E402
+from robot_change.mixture import CRITERIA, fit_mixture  # noqa: E402
 
 
 def _grid(origin, u, v, spacing):
@@ -68,16 +67,6 @@ def synthetic_room(spacing: float = 0.02, noise: float = 0.003, seed: int = 0) -
     return pts + rng.normal(0.0, noise, pts.shape)
 
 
-def _median_ms(function, runs, warmup=2):
-    for _ in range(warmup):
-        function()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
-
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -91,7 +80,7 @@ def main(argv=None) -> int:
     per = {}
     for crit in CRITERIA:
         fit = fit_mixture(room, crit)
-        ms = _median_ms(lambda: fit_mixture(room, crit), args.runs, warmup=1)
+        ms = median_ms(lambda: fit_mixture(room, crit), args.runs, warmup=1)
         per[crit] = {"k": fit.n_components, "ms": ms, "em_runs": len(fit.record.steps),
                      "em_iter": fit.record.n_iter, "stop": fit.record.stop_reason}
     out["per_criterion"] = per
@@ -99,13 +88,13 @@ def main(argv=None) -> int:
         from sklearn.mixture import GaussianMixture
         k = out["fit_k"]
         gm = GaussianMixture(k, covariance_type="full", random_state=0)
-        out["sklearn_fit_ms_at_fit_k"] = _median_ms(lambda: gm.fit(room), 3, warmup=1)
+        out["sklearn_fit_ms_at_fit_k"] = median_ms(lambda: gm.fit(room), 3, warmup=1)
         gm8 = GaussianMixture(8, covariance_type="full", max_iter=1, tol=0, random_state=0)
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             gm8.fit(room)
-            out["sklearn_em_iter_ms"] = _median_ms(lambda: (gm8._m_step(room, gm8._e_step(room)[1])),
+            out["sklearn_em_iter_ms"] = median_ms(lambda: (gm8._m_step(room, gm8._e_step(room)[1])),
                                                    args.runs)
     if args.json:
         print(json.dumps(out, indent=2))

@@ -15,7 +15,9 @@ from typing import Any, Callable
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change import em
 from robot_change.cloud import CloudParams, clean_cloud
+from robot_change.mixture import fit_mixture
 
 #: Keys of ``robot-change bench --json`` that come from the preprocessing chain (milliseconds).
 PREPROCESS_STAGES = ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms")
@@ -55,6 +57,52 @@ def bench_preprocess(
     result["n_points_in"] = int(np.count_nonzero(depth))
     result["n_points_out"] = int(len(cloud.points))
     return result
+
+
+def benchmark_em(points, n_components: int = 8, runs: int = 7, warmup: int = 2,
+                 criterion: str = "mdl", iter_points: int = 18000,
+                 **fit_options) -> dict[str, float | int]:
+    """Times for ``robot-change bench --json``: one EM iteration and the whole fit.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+        A room-sized cloud (15k-20k points).
+    n_components : int
+        K of the single-iteration timing (components seeded from an 8-way split of the data
+        along x, deterministic).
+    iter_points : int
+        The single-iteration timing uses at most this many points (evenly spaced in the input order).
+
+    Returns
+    -------
+    dict
+        ``em_iter_ms`` (median of one fused EM iteration at K = n_components), ``fit_ms``
+        (median of the whole split-EM fit), ``fit_k`` (K chosen), ``n_points``.
+    """
+    x_all = np.ascontiguousarray(points, dtype=np.float64)
+    if len(x_all) > iter_points:
+        x = x_all[np.linspace(0, len(x_all) - 1, iter_points).astype(np.int64)]
+    else:
+        x = x_all
+    order = np.argsort(x[:, 0], kind="stable")
+    chunks = np.array_split(order, n_components)
+    w = np.array([len(c) for c in chunks], dtype=np.float64) / len(x)
+    mu = np.stack([x[c].mean(axis=0) for c in chunks])
+    cov = np.stack([np.cov(x[c], rowvar=False) + 1e-4 * np.eye(3) for c in chunks])
+    prec, log_det, _ = em.precision_cholesky(cov)
+
+    def one_iter():
+        em.em_step(x, w, mu, prec, log_det, 1e-4)
+
+    def one_fit():
+        return fit_mixture(x_all, criterion, **fit_options)
+
+    iter_ms = median_ms(one_iter, runs * 5, warmup)
+    fit_ms = median_ms(one_fit, runs, warmup)
+    return {"em_iter_ms": iter_ms, "fit_ms": fit_ms,
+            "fit_k": one_fit().n_components, "n_points": int(len(x_all)),
+            "iter_points": int(len(x))}
 
 
 def machine_info() -> dict[str, Any]:

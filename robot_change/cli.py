@@ -158,12 +158,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
-    from robot_change.benchmark import bench_preprocess, machine_info
+    from robot_change.benchmark import bench_preprocess, benchmark_em, machine_info
+    from robot_change.cloud import clean_cloud
 
     source = args.source or _bundled(DEMO_FRAME)
     depth, camera, _ = _read_depth(source, 1, None)
+    params = _cloud_params(args)
     result: dict[str, Any] = {"frame": source, "runs": args.runs}
-    result.update(bench_preprocess(depth, camera, _cloud_params(args), runs=args.runs))
+    result.update(bench_preprocess(depth, camera, params, runs=args.runs))
+    # the mixture on this frame's clean cloud: one EM iteration at K = 8, the whole MDL fit
+    cloud = clean_cloud(depth, camera, params)
+    mixture = benchmark_em(cloud.points, runs=max(3, args.runs // 4), leaf=params.leaf_m)
+    result.update({
+        "em_iter_ms": round(mixture["em_iter_ms"], 3),
+        "em_iter_points": mixture["iter_points"],
+        "fit_ms": round(mixture["fit_ms"], 2),
+        "fit_k": mixture["fit_k"],
+        "fit_points": mixture["n_points"],
+    })
     result["machine"] = machine_info()
     if args.json:
         _print_json(result)

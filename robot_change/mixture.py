@@ -36,7 +36,6 @@ __all__ = [
     "FitRecord",
     "FitStep",
     "Mixture",
-    "benchmark_em",
     "criterion_value",
     "fit_mixture",
     "gaussianity_deficiency",
@@ -771,63 +770,3 @@ def _split_order(x, labels, cur: _State, min_points, entropy_k, subsample, blur,
         scored.append((-cur.weights[k] * cur.j[k], int(k)))
     scored.sort()
     return [k for _, k in scored]
-
-
-# --------------------------------------------------------------------------- benchmark
-
-
-def benchmark_em(points, n_components: int = 8, runs: int = 7, warmup: int = 2,
-                 criterion: str = "mdl", iter_points: int = 18000,
-                 **fit_options) -> dict[str, float | int]:
-    """Times for ``robot-change bench --json``: one EM iteration and the whole fit.
-
-    Parameters
-    ----------
-    points : array, shape (N, 3)
-        A room-sized cloud (15k-20k points).
-    n_components : int
-        K of the single-iteration timing (components seeded from an 8-way split of the data
-        along x, deterministic).
-    iter_points : int
-        The single-iteration timing uses at most this many points (evenly spaced in the input order).
-
-    Returns
-    -------
-    dict
-        ``em_iter_ms`` (median of one fused EM iteration at K = n_components), ``fit_ms``
-        (median of the whole split-EM fit), ``fit_k`` (K chosen), ``n_points``.
-    """
-    x_all = _check_points(points)
-    if len(x_all) > iter_points:
-        x = x_all[np.linspace(0, len(x_all) - 1, iter_points).astype(np.int64)]
-    else:
-        x = x_all
-    order = np.argsort(x[:, 0], kind="stable")
-    chunks = np.array_split(order, n_components)
-    w = np.array([len(c) for c in chunks], dtype=np.float64) / len(x)
-    mu = np.stack([x[c].mean(axis=0) for c in chunks])
-    cov = np.stack([np.cov(x[c], rowvar=False) + 1e-4 * np.eye(3) for c in chunks])
-    prec, log_det, _ = em.precision_cholesky(cov)
-
-    def one_iter():
-        em.em_step(x, w, mu, prec, log_det, 1e-4)
-
-    def one_fit():
-        return fit_mixture(x_all, criterion, **fit_options)
-
-    iter_ms = _median_ms(one_iter, runs * 5, warmup)
-    fit_ms = _median_ms(one_fit, runs, warmup)
-    return {"em_iter_ms": iter_ms, "fit_ms": fit_ms,
-            "fit_k": one_fit().n_components, "n_points": int(len(x_all)),
-            "iter_points": int(len(x))}
-
-
-def _median_ms(function, runs: int, warmup: int) -> float:
-    for _ in range(warmup):
-        function()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(times))

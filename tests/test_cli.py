@@ -54,10 +54,11 @@ def test_bench_json_has_the_promised_keys():
     assert result.returncode == 0, result.stderr
     figures = json.loads(result.stdout)
     for key in ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms",
-                "n_points_in", "n_points_out", "machine"):
+                "n_points_in", "n_points_out", "em_iter_ms", "fit_ms", "fit_k", "machine"):
         assert key in figures
     assert figures["n_points_in"] > figures["n_points_out"] > 0
     assert figures["preprocess_ms"] > 0
+    assert figures["fit_points"] == figures["n_points_out"] and figures["fit_k"] >= 1
 
 
 def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):
