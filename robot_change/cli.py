@@ -213,6 +213,21 @@ def cmd_list_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_base_sim(args: argparse.Namespace) -> int:
+    """A simulated base controller on a serial port: interactive, or driven by a script."""
+    from robot_change.basesim import run_base_sim
+
+    return run_base_sim(args.port, args.script, baudrate=args.baud, verbose=args.verbose)
+
+
+def cmd_link_bench(args: argparse.Namespace) -> int:
+    """PAUSE round trips over a pty pair through a noisy, baud-paced relay."""
+    from robot_change.linkbench import run_link_bench
+
+    result = run_link_bench(args.corrupt, args.count, args.baud, args.json, seed=args.seed)
+    return 0 if result["delivered"] == result["sent"] else 1
+
+
 # ---------------------------------------------------------------------------------------------
 # parser
 
@@ -255,6 +270,28 @@ def build_parser() -> argparse.ArgumentParser:
     devices = commands.add_parser("list-devices", help="list the OpenNI2 cameras connected now")
     devices.add_argument("--json", action="store_true", help="print one JSON object")
     devices.set_defaults(func=cmd_list_devices)
+
+    base_sim = commands.add_parser("base-sim", help="a simulated base controller on a serial port "
+                                   "(interactive, or --script)")
+    base_sim.add_argument("--port", required=True,
+                          help="serial port: /dev/ttyUSB0, a pty path, loop://, socket://HOST:PORT")
+    base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
+                          "too); exit 1 when one fails")
+    base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
+    base_sim.add_argument("-v", "--verbose", action="store_true",
+                          help="print every heartbeat and ack")
+    base_sim.set_defaults(func=cmd_base_sim)
+
+    link_bench = commands.add_parser("link-bench", help="PAUSE round trips over a pty pair "
+                                     "through a noisy, baud-paced relay")
+    link_bench.add_argument("--corrupt", type=float, default=0.1,
+                            help="probability that a byte is corrupted (default 0.1)")
+    link_bench.add_argument("--count", type=int, default=200, help="round trips (default 200)")
+    link_bench.add_argument("--baud", type=int, default=115200,
+                            help="line speed the relay paces (default 115200)")
+    link_bench.add_argument("--seed", type=int, help="random seed of the noise")
+    link_bench.add_argument("--json", action="store_true", help="print one JSON object")
+    link_bench.set_defaults(func=cmd_link_bench)
     return parser
 
 

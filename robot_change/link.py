@@ -1,0 +1,569 @@
+"""The session over a byte port: sequence numbers, acks, retries, duplicates, heartbeats.
+
+:class:`Link` is a state machine without threads or I/O: feed it received bytes with
+:meth:`Link.receive`, let time pass with :meth:`Link.poll`, take the bytes to write from
+:meth:`Link.outgoing` and what happened from :meth:`Link.events`.  Time comes from an injectable
+``clock`` (or the ``now`` argument), so tests step it deterministically.  :class:`LinkRunner`
+pumps a Link over a real port (pyserial object or anything with ``read``/``write``).
+
+The rules (docs/protocol.md, "Session"): every sequenced message is acknowledged by seq; the
+sender retries every 100 ms, 5 tries in all, then fails the message and declares the link FAULTY;
+the receiver acks duplicates again but delivers them once; urgent messages (PAUSE, RESUME) and
+their ACKs go out as bursts of URGENT_COPIES; heartbeats flow both ways whatever the state.
+"""
+
+from __future__ import annotations
+
+import random
+import select
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any, Callable
+
+from robot_change.errors import LinkError
+from robot_change.protocol import (
+    FLAG_RETRY,
+    FLAG_URGENT,
+    URGENT_COPIES,
+    VERSION,
+    Ack,
+    BaseHeartbeat,
+    DecodeError,
+    Frame,
+    FrameDecoder,
+    Heartbeat,
+    Hello,
+    Message,
+    MsgType,
+    Nak,
+    NakReason,
+    Role,
+    encode,
+    may_send,
+)
+
+
+class LinkState(str, Enum):
+    """CONNECTING until our first HELLO is acked; FAULTY after a failed message or peer silence."""
+
+    CONNECTING = "connecting"
+    UP = "up"
+    FAULTY = "faulty"
+    INCOMPATIBLE = "incompatible"
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Timing and sizes of the session; the defaults are the protocol's (docs/protocol.md)."""
+
+    retry_interval: float = 0.1
+    max_tries: int = 5
+    window: int = 4
+    heartbeat_interval: float = 0.1
+    silence_timeout: float = 1.0
+    hello_interval: float = 0.5
+    urgent_copies: int = URGENT_COPIES
+    ack_holdoff: float = 0.05
+    dedup_memory: int = 128
+    max_queue: int = 256
+
+    @classmethod
+    def for_baud(cls, baud: int, **overrides: Any) -> "LinkConfig":
+        """The defaults, slowed for slow lines (docs/protocol.md 7.4): a retry never comes before
+        an urgent burst and its ACK burst have crossed the line (2.5x their air time), and the
+        ACK holdoff covers a whole burst (1.5x).  At 115200 baud and above: the plain defaults.
+        """
+        byte_time = 10 / baud  # 8N1
+        burst = cls.urgent_copies * 10 * byte_time  # PAUSE / RESUME copies, 10 bytes each
+        acks = cls.urgent_copies * 9 * byte_time  # the ACK burst, 9 bytes a copy
+        values: dict[str, Any] = {"retry_interval": max(cls.retry_interval, 2.5 * (burst + acks)),
+                                  "ack_holdoff": max(cls.ack_holdoff, 1.5 * burst)}
+        values.update(overrides)
+        return cls(**values)
+
+
+# events ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Received:
+    """A message from the peer, delivered once (heartbeats: every one)."""
+
+    message: Message
+    seq: int
+
+
+@dataclass(frozen=True)
+class Delivered:
+    """The peer acknowledged our message after ``tries`` transmissions, ``rtt`` s after the first."""
+
+    message: Message
+    seq: int
+    rtt: float
+    tries: int
+
+
+@dataclass(frozen=True)
+class SendFailed:
+    """Our message was not delivered: no ACK after every try, a NAK, or the queue overflowed."""
+
+    message: Message
+    seq: int
+    reason: str
+    nak: NakReason | None = None
+
+
+@dataclass(frozen=True)
+class StateChanged:
+    """The link changed state; ``why`` says what happened in words an operator can act on."""
+
+    old: LinkState
+    new: LinkState
+    why: str
+
+
+@dataclass(frozen=True)
+class PortProblem:
+    """The runner's port failed or came back (``up``); ``detail`` says what to do."""
+
+    up: bool
+    detail: str
+
+
+Event = Received | Delivered | SendFailed | StateChanged | PortProblem
+
+
+@dataclass
+class LinkStats:
+    """Counters since the link was made."""
+
+    bytes_in: int = 0
+    bytes_out: int = 0
+    frames_in: int = 0
+    sent: int = 0
+    retransmissions: int = 0
+    delivered: int = 0
+    failed: int = 0
+    duplicates: int = 0
+    naks_sent: int = 0
+    naks_received: int = 0
+    stray_acks: int = 0  # ACKs for nothing in flight: extra copies of an urgent ACK burst
+    heartbeats_sent: int = 0
+    heartbeats_received: int = 0
+
+
+@dataclass
+class _Pending:
+    seq: int
+    message: Message
+    urgent: bool
+    tries: int = 0
+    first_at: float = 0.0
+    next_at: float = 0.0
+
+
+_HEARTBEAT_OF = {Role.MODULE: Heartbeat, Role.BASE: BaseHeartbeat}
+
+
+class Link:
+    """One end of the module <-> base session (``role`` says which end), sans-IO.
+
+    ``clock`` is a callable returning seconds (monotonic); every method that takes ``now`` uses
+    ``clock()`` when it is None.
+    """
+
+    def __init__(self, role: Role, *, clock: Callable[[], float] = time.monotonic,
+                 config: LinkConfig | None = None, boot_id: int | None = None,
+                 software: str = "robot-change") -> None:
+        self.role = Role(role)
+        self.peer_role = Role.BASE if self.role == Role.MODULE else Role.MODULE
+        self.clock = clock
+        self.config = config or LinkConfig()
+        self.boot_id = random.getrandbits(32) if boot_id is None else boot_id
+        self.software = software
+        self.decoder = FrameDecoder()
+        self.stats = LinkStats()
+        self.state = LinkState.CONNECTING
+        self.peer: Hello | None = None
+        self._next_seq = 1
+        self._urgent_q: deque[_Pending] = deque()
+        self._normal_q: deque[_Pending] = deque()
+        self._inflight: dict[int, _Pending] = {}
+        self._hello_seq: int | None = None
+        self._greeted = False
+        self._seen: set[int] = set()
+        self._seen_order: deque[int] = deque()
+        self._ack_burst_at: dict[int, float] = {}
+        self._out = bytearray()
+        self._events: list[Event] = []
+        self._heartbeat: Message | None = None
+        self._next_heartbeat = 0.0
+        now = clock()
+        self._last_rx = now
+        self._next_hello = now
+
+    # -- the application's side ---------------------------------------------------------------
+
+    def send(self, message: Message, now: float | None = None) -> int:
+        """Queue a sequenced message; return its seq.  Urgent ones go out at once, ahead of all."""
+        if not isinstance(message, Message):
+            raise LinkError(f"send() wants a protocol message, got {type(message).__name__}")
+        name = message.TYPE.name
+        if isinstance(message, Hello) or not message.SEQUENCED:
+            hint = "use set_heartbeat()" if "HEARTBEAT" in name else "the link sends it itself"
+            raise LinkError(f"{name} is not sent with send(): {hint}")
+        if not may_send(self.role, type(message)):
+            raise LinkError(f"{name} is sent by the {message.SENDER.name.lower()}, "  # type: ignore[union-attr]
+                            f"not by the {self.role.name.lower()}")
+        pending = _Pending(self._take_seq(), message, message.URGENT)
+        queue = self._urgent_q if pending.urgent else self._normal_q
+        queue.append(pending)
+        if len(queue) > self.config.max_queue:
+            dropped = queue.popleft()
+            self._fail(dropped, f"send queue full ({self.config.max_queue} messages): the link is "
+                       f"{self.state.value}; check the cable and that the base is running")
+        self._promote(self._now(now))
+        return pending.seq
+
+    def set_heartbeat(self, message: Message, now: float | None = None) -> None:
+        """Install the heartbeat repeated every heartbeat_interval; a changed one goes out at once."""
+        expected = _HEARTBEAT_OF[self.role]
+        if type(message) is not expected:
+            raise LinkError(f"the {self.role.name.lower()} sends {expected.TYPE.name}, "
+                            f"not {type(message).__name__}")
+        if message != self._heartbeat:
+            self._next_heartbeat = self._now(now)
+        self._heartbeat = message
+
+    def events(self) -> list[Event]:
+        """What happened since the last call (and forget it)."""
+        events, self._events = self._events, []
+        return events
+
+    def outgoing(self) -> bytes:
+        """The bytes to write to the port now (and forget them)."""
+        data = bytes(self._out)
+        self._out.clear()
+        self.stats.bytes_out += len(data)
+        return data
+
+    @property
+    def last_heard(self) -> float:
+        """Clock time of the last valid frame from the peer (link creation time before any)."""
+        return self._last_rx
+
+    @property
+    def in_flight(self) -> int:
+        """Sequenced messages sent and not yet acknowledged (HELLO included)."""
+        return len(self._inflight)
+
+    @property
+    def queued(self) -> int:
+        """Sequenced messages waiting for the window (or for the first HELLO to be acked)."""
+        return len(self._urgent_q) + len(self._normal_q)
+
+    def next_deadline(self) -> float:
+        """When :meth:`poll` next has something to do (clock seconds)."""
+        times = [p.next_at for p in self._inflight.values()]
+        if self._heartbeat is not None:
+            times.append(self._next_heartbeat)
+        if self.state == LinkState.UP:
+            times.append(self._last_rx + self.config.silence_timeout)
+        elif self._hello_seq is None and self.state != LinkState.INCOMPATIBLE:
+            times.append(self._next_hello)
+        return min(times, default=float("inf"))
+
+    def counters(self) -> dict[str, Any]:
+        """Every counter, decode errors by reason included, as a flat dict."""
+        out: dict[str, Any] = dict(vars(self.stats))
+        out["frames_good"] = self.decoder.frames
+        out.update({f"decode_{reason.value}": n for reason, n in self.decoder.counts.items()})
+        return out
+
+    # -- time -----------------------------------------------------------------------------------
+
+    def poll(self, now: float | None = None) -> None:
+        """Run the timers: HELLO probes, queued messages, retries, heartbeats, peer silence."""
+        now = self._now(now)
+        cfg = self.config
+        if (self.state in (LinkState.CONNECTING, LinkState.FAULTY) and self._hello_seq is None
+                and now >= self._next_hello):
+            self._start_hello(now)
+        self._promote(now)
+        for pending in [p for p in self._inflight.values() if p.next_at <= now]:
+            if pending.tries >= cfg.max_tries:
+                self._give_up(pending, now)
+            else:
+                self._transmit(pending, now)
+        if self._heartbeat is not None and now >= self._next_heartbeat:
+            self._out += encode(self._heartbeat)
+            self.stats.heartbeats_sent += 1
+            self._next_heartbeat = now + cfg.heartbeat_interval
+        if self.state == LinkState.UP and now - self._last_rx > cfg.silence_timeout:
+            self._set_state(LinkState.FAULTY, f"nothing heard from the {self.peer_role.name.lower()} "
+                            f"for {now - self._last_rx:.2f} s: check the cable and that it is powered", now)
+
+    # -- bytes in ------------------------------------------------------------------------------
+
+    def receive(self, data: bytes, now: float | None = None) -> None:
+        """Consume bytes read from the port: ack, NAK, deliver, as the protocol says."""
+        now = self._now(now)
+        self.stats.bytes_in += len(data)
+        for item in self.decoder.feed(data):
+            if type(item) is DecodeError:
+                if item.nak is not None and item.msg_type not in (MsgType.ACK, MsgType.NAK):
+                    self._nak(item.seq or 0, item.nak, item.msg_type or 0)
+                continue
+            self._on_frame(item, now)  # type: ignore[arg-type]
+
+    def _on_frame(self, frame: Frame, now: float) -> None:
+        self._last_rx = now
+        self.stats.frames_in += 1
+        message, seq = frame.message, frame.seq
+        kind = message.TYPE
+        if kind == MsgType.ACK:
+            self._on_ack(seq, now)
+        elif kind == MsgType.NAK:
+            self._on_nak(seq, message)  # type: ignore[arg-type]
+        elif not may_send(self.peer_role, type(message)) or (
+                isinstance(message, Hello) and message.role != self.peer_role):
+            self._nak(seq, NakReason.WRONG_DIRECTION, kind)
+        elif not message.SEQUENCED:
+            self.stats.heartbeats_received += 1
+            self._events.append(Received(message, seq))
+        else:
+            self._on_sequenced(frame, now)
+
+    def _on_sequenced(self, frame: Frame, now: float) -> None:
+        message, seq = frame.message, frame.seq
+        new_peer = isinstance(message, Hello) and (self.peer is None or
+                                                   message.boot_id != self.peer.boot_id)
+        if new_peer:  # the peer (re)started: its sequence numbers start afresh
+            self._seen.clear()
+            self._seen_order.clear()
+            self._ack_burst_at.clear()
+        self._ack(frame, now)
+        if seq in self._seen:
+            self.stats.duplicates += 1
+            return
+        self._seen.add(seq)
+        self._seen_order.append(seq)
+        if len(self._seen_order) > self.config.dedup_memory:
+            self._seen.discard(self._seen_order.popleft())
+        if isinstance(message, Hello):
+            self._on_hello(message, new_peer, now)
+        self._events.append(Received(message, seq))
+
+    def _on_hello(self, hello: Hello, new_peer: bool, now: float) -> None:
+        self.peer = hello
+        if not hello.proto_min <= VERSION <= hello.proto_max:
+            self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} speaks "
+                            f"protocol {hello.proto_min}..{hello.proto_max}, this end {VERSION}: "
+                            "update the older side")
+        elif new_peer and self._greeted and self._hello_seq is None:
+            self._start_hello(now)  # it restarted and does not know us yet
+
+    def _on_ack(self, seq: int, now: float) -> None:
+        pending = self._inflight.pop(seq, None)
+        if pending is None:
+            self.stats.stray_acks += 1
+            return
+        if seq == self._hello_seq:
+            self._hello_seq = None
+            self._greeted = True
+            if self.state != LinkState.INCOMPATIBLE:
+                self._set_state(LinkState.UP, "HELLO acknowledged")
+            self._promote(now)
+            return
+        self.stats.delivered += 1
+        self._events.append(Delivered(pending.message, seq, now - pending.first_at, pending.tries))
+        self._promote(now)
+
+    def _on_nak(self, seq: int, nak: Nak) -> None:
+        self.stats.naks_received += 1
+        pending = self._inflight.pop(seq, None)
+        if pending is None:
+            return
+        if seq == self._hello_seq:
+            self._hello_seq = None
+            self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} refused our "
+                            f"HELLO ({nak.reason.name}): update the older side")
+            return
+        self._fail(pending, f"NAK {nak.reason.name}", nak.reason)
+
+    # -- bytes out -----------------------------------------------------------------------------
+
+    def _ack(self, frame: Frame, now: float) -> None:
+        ack = encode(Ack(), frame.seq)
+        if not frame.flags & FLAG_URGENT:
+            self._out += ack
+            return
+        last = self._ack_burst_at.get(frame.seq)
+        if last is not None and now - last < self.config.ack_holdoff:
+            return  # another copy of a burst already answered with a burst
+        if len(self._ack_burst_at) > 64:
+            self._ack_burst_at = {s: t for s, t in self._ack_burst_at.items() if now - t < 1.0}
+        self._ack_burst_at[frame.seq] = now
+        self._out += ack * self.config.urgent_copies
+
+    def _nak(self, seq: int, reason: NakReason, refused_type: int) -> None:
+        self._out += encode(Nak(reason, refused_type), seq)
+        self.stats.naks_sent += 1
+
+    def _take_seq(self) -> int:
+        seq = self._next_seq
+        self._next_seq = seq % 0xFFFF + 1  # 1..65535; 0 marks unsequenced frames
+        return seq
+
+    def _start_hello(self, now: float) -> None:
+        hello = Hello(self.role, self.boot_id, self.software)
+        pending = _Pending(self._take_seq(), hello, False)
+        self._hello_seq = pending.seq
+        self._inflight[pending.seq] = pending
+        self._transmit(pending, now)
+
+    def _promote(self, now: float) -> None:
+        if not self._greeted:
+            return  # nothing but HELLO until the peer has reset its duplicate memory for us
+        while self._urgent_q:
+            pending = self._urgent_q.popleft()
+            self._inflight[pending.seq] = pending
+            self._transmit(pending, now)
+        normal = sum(1 for p in self._inflight.values() if not p.urgent)
+        while self._normal_q and normal < self.config.window:
+            pending = self._normal_q.popleft()
+            self._inflight[pending.seq] = pending
+            self._transmit(pending, now)
+            normal += 1
+
+    def _transmit(self, pending: _Pending, now: float) -> None:
+        flags = (FLAG_URGENT if pending.urgent else 0) | (FLAG_RETRY if pending.tries else 0)
+        frame = encode(pending.message, pending.seq, flags)
+        self._out += frame * self.config.urgent_copies if pending.urgent else frame
+        if pending.tries:
+            self.stats.retransmissions += 1
+        else:
+            pending.first_at = now
+            self.stats.sent += 1
+        pending.tries += 1
+        pending.next_at = now + self.config.retry_interval
+
+    def _give_up(self, pending: _Pending, now: float) -> None:
+        del self._inflight[pending.seq]
+        why = (f"no ACK from the {self.peer_role.name.lower()} after {pending.tries} tries "
+               f"{self.config.retry_interval * 1000:.0f} ms apart")
+        if pending.seq == self._hello_seq:
+            self._hello_seq = None
+            self._next_hello = now + self.config.hello_interval
+            if self.state == LinkState.UP:  # a re-greeting after the peer restarted went unanswered
+                self._set_state(LinkState.FAULTY, f"HELLO: {why}", now)
+            return
+        self._fail(pending, why)
+        if self.state != LinkState.INCOMPATIBLE:
+            self._set_state(LinkState.FAULTY, f"{pending.message.TYPE.name} seq {pending.seq}: {why}; "
+                            "check the cable, the baud rate and that the base is running", now)
+
+    def _fail(self, pending: _Pending, reason: str, nak: NakReason | None = None) -> None:
+        self.stats.failed += 1
+        self._events.append(SendFailed(pending.message, pending.seq, reason, nak))
+
+    def _set_state(self, new: LinkState, why: str, now: float | None = None) -> None:
+        if new != self.state:
+            old, self.state = self.state, new
+            if new == LinkState.FAULTY:
+                self._next_hello = self._now(now)  # probe with HELLO at once
+            self._events.append(StateChanged(old, new, why))
+
+    def _now(self, now: float | None) -> float:
+        return self.clock() if now is None else now
+
+
+# ---------------------------------------------------------------------------------------------
+# the runner: a Link over a real port
+
+
+class LinkRunner:
+    """Pumps a :class:`Link` over a byte port: ``step()`` writes, waits (select or the port's read
+    timeout), reads, and returns the link's events.  ``send``/``set_heartbeat`` may be called from
+    another thread; the Link itself is only touched under a lock.
+
+    ``port`` is a pyserial port (``hw.serial_port.open_port``), a ``hw.serial_port.ReopeningPort``,
+    or anything with ``read(n)``, ``write(b)`` and ``in_waiting``.
+    """
+
+    def __init__(self, link: Link, port: Any, *, max_wait: float = 0.01) -> None:
+        self.link = link
+        self.port = port
+        self.max_wait = max_wait
+        self._lock = threading.Lock()
+        self._port_up = True
+
+    def send(self, message: Message) -> int:
+        """Thread-safe :meth:`Link.send`."""
+        with self._lock:
+            return self.link.send(message)
+
+    def set_heartbeat(self, message: Message) -> None:
+        """Thread-safe :meth:`Link.set_heartbeat`."""
+        with self._lock:
+            self.link.set_heartbeat(message)
+
+    def step(self, max_wait: float | None = None) -> list[Event]:
+        """One turn: timers, write, wait for bytes (at most ``max_wait`` s), read, events."""
+        max_wait = self.max_wait if max_wait is None else max_wait
+        with self._lock:
+            self.link.poll()
+            out = self.link.outgoing()
+            wait = min(max_wait, max(0.0, self.link.next_deadline() - self.link.clock()))
+        problems: list[Event] = []
+        self._io(self._write, out, problems)
+        data = self._io(self._read, wait, problems) or b""
+        with self._lock:
+            if data:
+                self.link.receive(data)
+            self.link.poll()
+            out = self.link.outgoing()
+            events: list[Event] = self.link.events()
+        self._io(self._write, out, problems)
+        return problems + events
+
+    def run(self, stop: threading.Event, handle: Callable[[Event], None]) -> None:
+        """Step until ``stop`` is set, handing every event to ``handle``."""
+        while not stop.is_set():
+            for event in self.step():
+                handle(event)
+
+    def _io(self, fn: Callable[[Any], Any], arg: Any, problems: list[Event]) -> Any:
+        try:
+            result = fn(arg)
+        except OSError as exc:  # serial.SerialException and hw.errors.PortError are OSErrors
+            self._port_state(False, str(exc), problems)
+            time.sleep(self.max_wait)
+            return None
+        connected = getattr(self.port, "connected", True)  # hw.serial_port.ReopeningPort has it
+        detail = str(getattr(self.port, "last_error", "") or "") if not connected else "port open"
+        self._port_state(bool(connected), detail, problems)
+        return result
+
+    def _port_state(self, up: bool, detail: str, problems: list[Event]) -> None:
+        if up != self._port_up:
+            self._port_up = up
+            problems.append(PortProblem(up, detail))
+
+    def _write(self, data: bytes) -> None:
+        if data:
+            self.port.write(data)
+
+    def _read(self, wait: float) -> bytes:
+        try:
+            fd = self.port.fileno()
+        except (AttributeError, OSError, ValueError):
+            fd = None
+        if fd is not None:
+            ready, _, _ = select.select([fd], [], [], wait)
+            if not ready:
+                return b""
+        return self.port.read(max(1, self.port.in_waiting))

@@ -1,0 +1,480 @@
+"""robot_change.link: the session, stepped with a fake clock; then over a real pty pair."""
+
+from __future__ import annotations
+
+import os
+import random
+import time
+import tty
+
+import pytest
+
+from robot_change import protocol as p
+from robot_change.errors import LinkError
+from robot_change.link import (
+    Delivered,
+    Link,
+    LinkConfig,
+    LinkRunner,
+    LinkState,
+    Received,
+    SendFailed,
+    StateChanged,
+)
+from tests.test_protocol import raw_frame
+
+
+class Clock:
+    """A clock that moves only when told."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def frames(data: bytes) -> list[p.Frame]:
+    return [x for x in p.FrameDecoder().feed(data) if isinstance(x, p.Frame)]
+
+
+class Wire:
+    """Two links joined by an in-memory line; ``noise`` corrupts each byte with that probability."""
+
+    def __init__(self, noise: float = 0.0, seed: int = 1) -> None:
+        self.clock = Clock()
+        self.module = Link(p.Role.MODULE, clock=self.clock, boot_id=0xAAAA)
+        self.base = Link(p.Role.BASE, clock=self.clock, boot_id=0xBBBB)
+        self.noise = noise
+        self.rng = random.Random(seed)
+        self.cut = False  # True: the base hears nothing and says nothing
+        self.module_events: list = []
+        self.base_events: list = []
+
+    def corrupt(self, data: bytes) -> bytes:
+        if not self.noise:
+            return data
+        out = bytearray(data)
+        for i in range(len(out)):
+            if self.rng.random() < self.noise:
+                out[i] ^= self.rng.randrange(1, 256)
+        return bytes(out)
+
+    def step(self, dt: float = 0.0) -> None:
+        self.clock.t += dt
+        for _ in range(3):
+            self.module.poll()
+            self.base.poll()
+            to_base, to_module = self.module.outgoing(), self.base.outgoing()
+            if not self.cut:
+                self.base.receive(self.corrupt(to_base))
+                self.module.receive(self.corrupt(to_module))
+        self.module_events += self.module.events()
+        self.base_events += self.base.events()
+
+    def run(self, seconds: float, dt: float = 0.01) -> None:
+        for _ in range(round(seconds / dt)):
+            self.step(dt)
+
+    def connect(self) -> "Wire":
+        self.step()
+        assert self.module.state == self.base.state == LinkState.UP
+        self.module_events.clear()
+        self.base_events.clear()
+        return self
+
+
+def received(events, cls=None):
+    return [e.message for e in events if isinstance(e, Received)
+            and (cls is None or isinstance(e.message, cls))]
+
+
+# -- handshake -------------------------------------------------------------------------------
+
+
+def test_hello_exchange_brings_both_ends_up():
+    wire = Wire()
+    wire.step()
+    assert wire.module.state == wire.base.state == LinkState.UP
+    (hello,) = received(wire.base_events, p.Hello)
+    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, 1)
+    assert wire.module.peer.boot_id == 0xBBBB
+    assert any(isinstance(e, StateChanged) and e.new == LinkState.UP for e in wire.module_events)
+
+
+def test_nothing_but_hello_and_heartbeats_before_the_first_hello_is_acked():
+    clock = Clock()
+    link = Link(p.Role.MODULE, clock=clock)
+    link.set_heartbeat(p.Heartbeat(p.ModuleState.IDLE))
+    link.send(p.Clear("kitchen"))
+    link.send(p.Pause(p.PauseCause.CHANGE_CHECK))
+    link.poll()
+    kinds = {f.message.TYPE for f in frames(link.outgoing())}
+    assert kinds == {p.MsgType.HELLO, p.MsgType.HEARTBEAT}
+    assert link.queued == 2
+
+
+def test_hello_is_retried_then_probed_every_hello_interval():
+    clock = Clock()
+    link = Link(p.Role.MODULE, clock=clock)
+    sent_at = []
+    for _ in range(150):  # 1.5 s, nobody answers
+        link.poll()
+        if any(f.message.TYPE == p.MsgType.HELLO for f in frames(link.outgoing())):
+            sent_at.append(round(clock.t - 100.0, 2))
+        clock.t += 0.01
+    assert sent_at[:5] == [0.0, 0.1, 0.2, 0.3, 0.4]
+    assert sent_at[5] == pytest.approx(1.0)  # 5 tries, give up at 0.5, next attempt 0.5 s later
+    assert link.state == LinkState.CONNECTING
+    assert not [e for e in link.events() if isinstance(e, SendFailed)]  # HELLO is the link's own
+
+
+# -- acks, retries, FAULTY -----------------------------------------------------------------------
+
+
+def test_message_is_delivered_once_and_acked():
+    wire = Wire().connect()
+    seq = wire.module.send(p.Clear("kitchen"))
+    wire.step()
+    assert received(wire.base_events) == [p.Clear("kitchen")]
+    (done,) = [e for e in wire.module_events if isinstance(e, Delivered)]
+    assert (done.seq, done.tries, done.message) == (seq, 1, p.Clear("kitchen"))
+
+
+def test_five_unanswered_tries_100ms_apart_then_faulty():
+    wire = Wire().connect()
+    wire.cut = True
+    seq = wire.module.send(p.Clear("kitchen"))
+    tries = []
+    for _ in range(70):
+        wire.module.poll()
+        if any(f.seq == seq and f.message.TYPE == p.MsgType.CLEAR for f in frames(wire.module.outgoing())):
+            tries.append(round(wire.clock.t - 100.0, 2))
+        wire.clock.t += 0.01
+    events = wire.module.events()
+    assert tries == [0.0, 0.1, 0.2, 0.3, 0.4]
+    (failed,) = [e for e in events if isinstance(e, SendFailed)]
+    assert failed.seq == seq and "5 tries" in failed.reason and failed.nak is None
+    (change,) = [e for e in events if isinstance(e, StateChanged)]
+    assert change.new == LinkState.FAULTY and "base is running" in change.why
+
+
+def test_retransmissions_carry_the_retry_flag_and_recovery_goes_back_up():
+    wire = Wire().connect()
+    wire.cut = True
+    wire.module.send(p.Clear("kitchen"))
+    flags = []
+    for _ in range(6):
+        wire.module.poll()
+        flags += [f.flags for f in frames(wire.module.outgoing()) if f.message.TYPE == p.MsgType.CLEAR]
+        wire.clock.t += 0.1
+    assert flags == [0] + [p.FLAG_RETRY] * 4
+    assert wire.module.state == LinkState.FAULTY
+    wire.cut = False
+    wire.run(0.6)
+    assert wire.module.state == LinkState.UP
+    seq = wire.module.send(p.Clear("hall"))
+    wire.step()
+    assert any(isinstance(e, Delivered) and e.seq == seq for e in wire.module_events)
+
+
+def test_peer_silence_makes_the_link_faulty():
+    wire = Wire().connect()
+    wire.module.set_heartbeat(p.Heartbeat(p.ModuleState.IDLE))
+    wire.cut = True
+    wire.run(0.95)
+    assert wire.module.state == LinkState.UP
+    wire.run(0.1)
+    assert wire.module.state == LinkState.FAULTY
+    (change,) = [e for e in wire.module_events if isinstance(e, StateChanged)]
+    assert "nothing heard from the base" in change.why
+
+
+def test_window_limits_messages_in_flight():
+    wire = Wire().connect()
+    wire.cut = True
+    for i in range(10):
+        wire.module.send(p.Clear(f"s{i}"))
+    wire.module.poll()
+    assert len(frames(wire.module.outgoing())) == 4
+    assert wire.module.in_flight == 4 and wire.module.queued == 6
+    wire.cut = False
+    wire.run(0.6)
+    assert sorted(m.station for m in received(wire.base_events, p.Clear)) == [f"s{i}" for i in range(10)]
+
+
+def test_queue_is_bounded():
+    clock = Clock()
+    link = Link(p.Role.MODULE, clock=clock, config=LinkConfig(max_queue=3))
+    for i in range(5):
+        link.send(p.Clear(f"s{i}"))
+    failed = [e for e in link.events() if isinstance(e, SendFailed)]
+    assert [e.message.station for e in failed] == ["s0", "s1"]
+    assert "queue full" in failed[0].reason
+
+
+# -- duplicates ---------------------------------------------------------------------------------
+
+
+def test_duplicates_are_acked_again_but_delivered_once():
+    wire = Wire().connect()
+    wire.module.send(p.Clear("kitchen"))
+    data = wire.module.outgoing()
+    for _ in range(3):
+        wire.base.receive(data)
+    acks = [f for f in frames(wire.base.outgoing()) if f.message.TYPE == p.MsgType.ACK]
+    assert len(acks) == 3 and len({f.seq for f in acks}) == 1
+    assert received(wire.base.events()) == [p.Clear("kitchen")]
+    assert wire.base.stats.duplicates == 2
+
+
+def test_a_restarted_peer_is_not_mistaken_for_duplicates():
+    wire = Wire().connect()
+    wire.module.send(p.Clear("a"))
+    wire.step()
+    # the module restarts: new boot id, seqs start again at 1
+    wire.module = Link(p.Role.MODULE, clock=wire.clock, boot_id=0xCCCC)
+    wire.base_events.clear()
+    wire.step()
+    wire.module.send(p.Clear("b"))
+    wire.step()
+    assert received(wire.base_events, p.Clear) == [p.Clear("b")]
+
+
+def test_urgent_messages_go_out_as_bursts_and_are_answered_by_one_ack_burst():
+    wire = Wire().connect()
+    seq = wire.module.send(p.Pause(p.PauseCause.CHANGE_WATCH))
+    out = frames(wire.module.outgoing())  # send() transmits at once
+    assert len(out) == p.URGENT_COPIES
+    assert all(f.seq == seq and f.flags == p.FLAG_URGENT for f in out)
+    wire.base.receive(b"".join(p.encode(f.message, f.seq, f.flags) for f in out))
+    acks = frames(wire.base.outgoing())
+    assert len(acks) == p.URGENT_COPIES and {f.seq for f in acks} == {seq}
+    wire.clock.t += 0.1  # the next try is answered with a fresh burst
+    wire.base.receive(p.encode(out[0].message, seq, p.FLAG_URGENT | p.FLAG_RETRY))
+    assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES
+    assert received(wire.base.events(), p.Pause) == [p.Pause(p.PauseCause.CHANGE_WATCH)]
+
+
+def test_urgent_messages_skip_the_window():
+    wire = Wire().connect()
+    wire.cut = True
+    for i in range(6):
+        wire.module.send(p.Clear(f"s{i}"))
+    wire.module.outgoing()
+    wire.module.send(p.Pause(p.PauseCause.CHANGE_CHECK))
+    assert {f.message.TYPE for f in frames(wire.module.outgoing())} == {p.MsgType.PAUSE}
+
+
+# -- NAK --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bad,reason", [
+    (raw_frame(1, 0x7F, 33), p.NakReason.UNKNOWN_TYPE),
+    (raw_frame(1, p.MsgType.CHECK, 33, payload=b"\x03../"), p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.SET_PARAM, 33, payload=b"\x01" + (99).to_bytes(4, "little")), p.NakReason.OUT_OF_RANGE),
+    (raw_frame(1, p.MsgType.GET_PARAM, 33, payload=b"\xee"), p.NakReason.UNKNOWN_PARAM),
+    (raw_frame(3, p.MsgType.CHECK, 33, payload=b"\x01k"), p.NakReason.BAD_VERSION),
+    (p.encode(p.Pause(p.PauseCause.CHANGE_CHECK), 33), p.NakReason.WRONG_DIRECTION),
+    (p.encode(p.Hello(p.Role.MODULE, 5), 33), p.NakReason.WRONG_DIRECTION),
+])
+def test_refused_frames_get_a_nak_with_reason_seq_and_type(bad, reason):
+    clock = Clock()
+    module = Link(p.Role.MODULE, clock=clock)
+    module.outgoing()
+    module.receive(bad)
+    (nak,) = frames(module.outgoing())
+    assert nak.message.TYPE == p.MsgType.NAK and nak.seq == 33
+    assert nak.message.reason == reason
+    assert nak.message.refused_type == p.cobs_decode(bad[:-1])[1]  # the type byte of the refused frame
+    assert not received(module.events(), p.Check)
+
+
+@pytest.mark.parametrize("bad", [
+    b"\x05\x01\x00",                                        # bad COBS
+    p.encode(p.Check("k"), 4)[:-3] + b"\x99\x99\x00",       # bad CRC: header not trusted
+    raw_frame(1, p.MsgType.ACK, 4, payload=b"\x01"),        # a bad ACK is never NAKed
+    raw_frame(1, p.MsgType.NAK, 4, payload=b"\x01"),        # nor a bad NAK
+])
+def test_no_nak_where_none_is_due(bad):
+    module = Link(p.Role.MODULE, clock=Clock())
+    module.outgoing()
+    module.receive(bad)
+    assert module.outgoing() == b""
+
+
+def test_a_nak_fails_the_message_without_faulting_the_link():
+    wire = Wire().connect()
+    seq = wire.base.send(p.SetParam(1, 3))
+    data = wire.base.outgoing()
+    assert frames(data)[0].seq == seq
+    wire.base.receive(p.encode(p.Nak(p.NakReason.OUT_OF_RANGE, p.MsgType.SET_PARAM), seq))
+    (failed,) = [e for e in wire.base.events() if isinstance(e, SendFailed)]
+    assert failed.nak == p.NakReason.OUT_OF_RANGE and failed.seq == seq
+    assert wire.base.state == LinkState.UP and wire.base.in_flight == 0
+
+
+def test_incompatible_versions_are_reported():
+    module = Link(p.Role.MODULE, clock=Clock())
+    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", proto_min=2, proto_max=3), 1))
+    (change,) = [e for e in module.events() if isinstance(e, StateChanged)]
+    assert change.new == LinkState.INCOMPATIBLE and "2..3" in change.why
+
+
+def test_garbage_into_the_link_never_crashes():
+    rng = random.Random(8)
+    module = Link(p.Role.MODULE, clock=Clock())
+    for _ in range(300):
+        module.receive(bytes(rng.randrange(256) for _ in range(rng.randint(0, 60))))
+        module.poll()
+    module.outgoing()
+    counters = module.counters()
+    assert module.decoder.errors > 0
+    assert sum(v for k, v in counters.items() if k.startswith("decode_")) == module.decoder.errors
+
+
+# -- roles ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("role,message,needle", [
+    (p.Role.MODULE, p.Check("k"), "sent by the base"),
+    (p.Role.BASE, p.Pause(1), "sent by the module"),
+    (p.Role.MODULE, p.Heartbeat(p.ModuleState.IDLE), "set_heartbeat"),
+    (p.Role.MODULE, p.Ack(), "the link sends it itself"),
+    (p.Role.MODULE, p.Hello(p.Role.MODULE, 1), "the link sends it itself"),
+])
+def test_misuse_raises_link_error(role, message, needle):
+    with pytest.raises(LinkError, match=needle):
+        Link(role, clock=Clock()).send(message)
+    with pytest.raises(LinkError, match="sends BASE_HEARTBEAT"):
+        Link(p.Role.BASE, clock=Clock()).set_heartbeat(p.Heartbeat(p.ModuleState.IDLE))
+
+
+# -- heartbeats -----------------------------------------------------------------------------
+
+
+def test_heartbeats_every_100ms_and_at_once_when_they_change():
+    clock = Clock()
+    link = Link(p.Role.MODULE, clock=clock)
+    link.set_heartbeat(p.Heartbeat(p.ModuleState.WATCHING))
+    times = []
+    for i in range(100):  # 1 s in 10 ms steps
+        if i == 55:
+            link.set_heartbeat(p.Heartbeat(p.ModuleState.WATCHING, paused=True))
+        link.poll()
+        times += [round(clock.t - 100, 2) for f in frames(link.outgoing())
+                  if f.message.TYPE == p.MsgType.HEARTBEAT]
+        clock.t += 0.01
+    assert times == [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.55, 0.65, 0.75, 0.85, 0.95]
+
+
+def test_the_pause_latch_reaches_the_base_in_heartbeats_even_when_pause_fails():
+    wire = Wire().connect()
+    wire.module.set_heartbeat(p.Heartbeat(p.ModuleState.WATCHING, paused=True))
+    wire.run(0.3)
+    beats = received(wire.base_events, p.Heartbeat)
+    assert len(beats) in (3, 4) and all(b.paused for b in beats)
+
+
+# -- noise ------------------------------------------------------------------------------------
+
+
+def test_pause_gets_through_10_percent_byte_corruption_by_retries():
+    wire = Wire(seed=4).connect()  # a 35-byte HELLO rarely survives 10%: connect first
+    wire.noise = 0.10
+    delivered, sent = 0, 40
+    for _ in range(sent):
+        seq = wire.module.send(p.Pause(p.PauseCause.CHANGE_WATCH))
+        for _ in range(60):
+            wire.step(0.01)
+            if any(isinstance(e, (Delivered, SendFailed)) and e.seq == seq for e in wire.module_events):
+                break
+        delivered += any(isinstance(e, Delivered) and e.seq == seq for e in wire.module_events)
+    assert delivered == sent
+    assert len(received(wire.base_events, p.Pause)) == sent  # each exactly once at the base
+    assert wire.module.stats.retransmissions > 0  # the noise did bite
+    assert wire.base.decoder.errors > 0
+
+
+# -- over a real pty pair -----------------------------------------------------------------------
+
+
+class FdPort:
+    """The master side of a pty as a minimal port (read/write/in_waiting/fileno)."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        os.set_blocking(fd, False)
+
+    def fileno(self) -> int:
+        return self.fd
+
+    @property
+    def in_waiting(self) -> int:
+        return 4096
+
+    def read(self, n: int) -> bytes:
+        try:
+            return os.read(self.fd, n)
+        except BlockingIOError:
+            return b""
+
+    def write(self, data: bytes) -> int:
+        return os.write(self.fd, data)
+
+
+def test_runner_over_a_pty_pair_delivers_pause_and_heartbeats():
+    from hw.serial_port import open_port
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = open_port(os.ttyname(slave), timeout=0.01)
+    os.close(slave)
+    try:
+        module = LinkRunner(Link(p.Role.MODULE), port)
+        base = LinkRunner(Link(p.Role.BASE), FdPort(master))
+        module.set_heartbeat(p.Heartbeat(p.ModuleState.WATCHING, paused=True))
+        base.set_heartbeat(p.BaseHeartbeat(p.Motion.PARKED))
+        got_module, got_base = [], []
+        deadline = time.monotonic() + 3.0
+        sent = None
+        while time.monotonic() < deadline:
+            got_module += module.step(0.005)
+            got_base += base.step(0.005)
+            if sent is None and module.link.state == LinkState.UP:
+                sent = module.send(p.Pause(p.PauseCause.CHANGE_CHECK))
+            if any(isinstance(e, Delivered) and e.seq == sent for e in got_module):
+                break
+        assert sent is not None, "the link never came up over the pty"
+        assert any(isinstance(e, Delivered) and e.seq == sent for e in got_module)
+        assert received(got_base, p.Pause) == [p.Pause(p.PauseCause.CHANGE_CHECK)]
+        assert any(b.paused for b in received(got_base, p.Heartbeat))
+        assert module.link.decoder.errors == base.link.decoder.errors == 0
+    finally:
+        port.close()
+        os.close(master)
+
+
+def test_link_bench_small_run_reports_every_figure():
+    import io
+    import json
+
+    from robot_change.linkbench import run_link_bench
+
+    out = io.StringIO()
+    result = run_link_bench(0.05, 5, 115200, json=True, seed=3, out=out)
+    assert json.loads(out.getvalue()) == result
+    assert result["sent"] == result["delivered"] == result["received_by_base"] == 5
+    assert result["corrupted_bytes"] > 0 and result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
+    with pytest.raises(Exception, match="--corrupt"):
+        run_link_bench(1.5, 5)
+
+
+def test_config_for_slow_lines_keeps_retries_behind_the_bursts():
+    fast = LinkConfig.for_baud(115200)
+    assert (fast.retry_interval, fast.ack_holdoff) == (0.1, 0.05)  # the protocol's defaults
+    slow = LinkConfig.for_baud(9600)
+    air = 10 / 9600 * p.URGENT_COPIES * (10 + 9)  # a PAUSE burst and its ACK burst
+    assert slow.retry_interval == pytest.approx(2.5 * air) and slow.retry_interval > 0.39
+    assert slow.ack_holdoff == pytest.approx(1.5 * 10 / 9600 * p.URGENT_COPIES * 10)
+    assert LinkConfig.for_baud(9600, max_tries=3).max_tries == 3
