@@ -1,10 +1,16 @@
 """Errors raised by robot_change.
 
 RobotChangeError
- +-- InputError      arrays or parameters a function cannot work with (wrong dtype or shape,
- |                   non-finite values where they are not allowed, a leaf size <= 0)
- +-- ConfigError     a configuration file or value is wrong; names the key, value and what is allowed
- +-- ProtocolError   bytes from the base controller that do not form a valid message
+ +-- InputError         arrays or parameters a function cannot work with (wrong dtype or shape,
+ |                      non-finite values where they are not allowed, a leaf size <= 0)
+ +-- ConfigError        a configuration file or value is wrong; names the key, value and what
+ |                      is allowed
+ +-- MixtureFileError   a saved mixture that is truncated, foreign, newer or tampered with
+ +-- ProtocolError      the serial protocol to the base controller
+      +-- MessageError  a message with invalid fields or payload bytes (carries the NAK reason)
+      +-- LinkError     the link used in a way the protocol does not allow
+
+ConvergenceWarning (a warning, not an error): an iterative fit stopped at its bound.
 
 Every message says what is wrong and what to change.
 """
@@ -57,7 +63,7 @@ class MessageError(ProtocolError, ValueError):
 
     Raised when a message is built with a bad value (``SetParam(param=1, value=99)``: watch_m
     allows 1..10) and when received payload bytes do not decode.  ``reason`` is the NAK reason
-    code (docs/protocol.md, "NAK reasons") a receiver answers with: 2 bad payload, 4 unknown
+    code (docs/protocol.md, section "NAK") a receiver answers with: 2 bad payload, 4 unknown
     parameter, 5 value out of range.
     """
 
