@@ -18,14 +18,19 @@ A depth recording made here holds one depth node (id 1)::
     SeekTable        (N + 1) x (timestamp u64, configuration id u32, record position u64)
     End
 
-OpenNI2's player needs ``xnCropping``: without it it silently drops every frame.  Two codecs:
-``"none"`` (raw little-endian uint16, 614 KB per VGA frame) and ``"16z"`` (OpenNI's lossless
+OpenNI2's player needs ``xnCropping``: without it it silently drops every frame.  Three codecs:
+``"none"`` (raw little-endian uint16, 614 KB per VGA frame), ``"16z"`` (OpenNI's lossless
 ``16zP`` depth coding: differences between neighbouring pixels in nibbles, runs of equal pixels
-collapsed; typically 5-10x smaller on depth images).  ``16z`` stores values up to 32767 mm.
+collapsed; values up to 32767 mm) and ``"16zt"`` (OpenNI's ``16zT``: the frame's distinct
+values in a table, then ``16zP`` over table indices; any uint16 value, at most 32768 distinct
+values per frame).  Kinect depth is quantised, so neighbouring pixels are mostly 0 or 1 table
+step apart and ``16zt`` is the smallest: 156 KB vs 374 KB (16z) per VGA Kinect-noise frame.
 
 :func:`read_oni_header` checks a file's structure (cheaply, by walking the record headers) so a
 missing, truncated or foreign file gives :class:`hw.errors.DepthFileError` before the native
-player sees it.
+player sees it.  :func:`read_oni_frames` decodes a recording's depth frames (all three codecs)
+without the native library -- for fixtures and tests; cameras and players go through
+``hw.openni2``.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from pathlib import Path
 from typing import BinaryIO, Iterable
 
 import numpy as np
+from numba import njit
 
 from hw.depth import DepthFrame, Intrinsics
 from hw.atomic import AtomicFile
@@ -80,10 +86,12 @@ DEPTH_NODE_ID = 1
 PLAYER_MAX_FRAME_BYTES = 1600 * 1200 * 3
 
 #: codec name -> the four-character id stored in the NodeAdded record
-CODECS: dict[str, bytes] = {"none": b"NONE", "16z": b"16zP"}
+CODECS: dict[str, bytes] = {"none": b"NONE", "16z": b"16zP", "16zt": b"16zT"}
 _CODEC_NAMES = {value: key for key, value in CODECS.items()}
 #: Largest depth value (mm) the 16z codec can store.
 MAX_16Z_VALUE = 0x7FFF
+#: Most distinct depth values one 16zt frame can hold (its indices are 16z-coded, so < 0x8000).
+MAX_16ZT_VALUES = MAX_16Z_VALUE + 1
 
 
 # --- 16z depth coding ---------------------------------------------------------------------------
@@ -126,6 +134,33 @@ def encode_16z(depth: np.ndarray) -> bytes:
         else:
             parts.append(bytes([0xFF, new >> 8, new & 0xFF]))
     return b"".join(parts)
+
+
+def encode_16zt(depth: np.ndarray) -> bytes:
+    """OpenNI's lossless ``16zT`` coding ("16z with embedded table") of a depth image.
+
+    ``depth``: (H, W) or flat uint16 (mm, any value 0..65535) with at most
+    :data:`MAX_16ZT_VALUES` distinct values.  Layout (little-endian): the table length ``n``
+    (uint16), the ``n`` distinct values in increasing order (uint16 each), then the
+    :func:`encode_16z` stream of the image of table indices (first index as uint16, then
+    tokens).  A VGA Kinect frame has a few hundred distinct values, so the table costs ~1 KB and
+    neighbouring indices differ by 0 or 1 where raw millimetres jump by a quantisation step.
+    Raises :class:`FrameError` for more distinct values than the index stream can address.
+    """
+    values = np.ascontiguousarray(depth, dtype=np.uint16).ravel()
+    if values.size == 0:
+        return b""
+    present = np.zeros(0x10000, dtype=bool)
+    present[values] = True
+    table = np.flatnonzero(present).astype("<u2")
+    if table.size > MAX_16ZT_VALUES:
+        raise FrameError(
+            f"the frame has {table.size} distinct depth values; the 16zt codec holds at most "
+            f"{MAX_16ZT_VALUES} per frame (real depth has a few thousand at most): write it "
+            "with codec='16z' (values <= 32767 mm) or codec='none'"
+        )
+    lookup = (np.cumsum(present) - 1).astype(np.uint16)  # value -> its index in the table
+    return struct.pack("<H", table.size) + table.tobytes() + encode_16z(lookup[values])
 
 
 def _encode_pairs(d: np.ndarray, new: np.ndarray) -> bytes:
@@ -193,8 +228,9 @@ class OniWriter:
     """Write depth frames to an OpenNI2 ``.oni`` recording, atomically.
 
     ``OniWriter(path, width, height, fps=30, codec="none", intrinsics=None)`` -- frames are
-    (height, width) uint16 depth in millimetres; ``codec`` is ``"none"`` (raw) or ``"16z"``
-    (lossless, about 5-10x smaller, values <= 32767 mm); ``intrinsics`` (default
+    (height, width) uint16 depth in millimetres; ``codec`` is ``"none"`` (raw), ``"16z"``
+    (lossless, values <= 32767 mm) or ``"16zt"`` (lossless, the smallest on quantised depth,
+    <= 32768 distinct values per frame); ``intrinsics`` (default
     :meth:`Intrinsics.openni_default`) are stored as the stream's field of view.  The file
     appears at ``path`` only when the writer is closed without an error (temp file, fsync,
     rename)::
@@ -280,6 +316,8 @@ class OniWriter:
             )
         if self.codec == "16z":
             payload = encode_16z(depth)
+        elif self.codec == "16zt":
+            payload = encode_16zt(depth)
         else:
             payload = np.ascontiguousarray(depth).astype("<u2", copy=False).tobytes()
         frame_id = self.frames + 1
@@ -435,7 +473,7 @@ class OniInfo:
     ``width``/``height`` pixels, ``fps``, ``codec`` (the four-character id, e.g. ``"NONE"``,
     ``"16zP"``, ``"16zT"``), ``frames`` (NewData records of the depth node), ``first_timestamp_us``
     / ``last_timestamp_us``, ``hfov``/``vfov`` in radians (``None`` when not recorded),
-    ``version`` of the file format.
+    ``version`` of the file format, ``node_id`` of the depth node.
     """
 
     width: int
@@ -448,6 +486,7 @@ class OniInfo:
     hfov: float | None
     vfov: float | None
     version: tuple[int, int, int, int]
+    node_id: int = DEPTH_NODE_ID
 
     def intrinsics(self) -> Intrinsics:
         """Intrinsics from the recorded field of view, else OpenNI's defaults for the size."""
@@ -580,4 +619,143 @@ def _walk_records(f: BinaryIO, p: Path, size: int, header_size: int,
     codec = bytes(info["codec"]).decode("ascii", "replace")  # type: ignore[arg-type]
     return OniInfo(int(w), int(h), int(fps), codec, int(info["frames"]),  # type: ignore[call-overload]
                    int(info["first"]), int(info["last"]),  # type: ignore[call-overload]
-                   fov[0], fov[1], version)  # type: ignore[index]
+                   fov[0], fov[1], version, node_id)  # type: ignore[index]
+
+
+# --- decoding ---------------------------------------------------------------------------------
+def read_oni_frames(path: str | os.PathLike[str]) -> list[DepthFrame]:
+    """Every depth frame of an ``.oni`` recording, decoded here (no native library).
+
+    Returns :class:`DepthFrame` objects: (H, W) uint16 mm, the recorded timestamps (us) and
+    frame ids, intrinsics from the recorded field of view.  Plays codecs ``NONE``, ``16zP`` and
+    ``16zT`` (what :class:`OniWriter` and OpenNI's recorder write for depth).  Raises
+    :class:`DepthFileError` for a file :func:`read_oni_header` rejects, another codec, or a
+    frame that does not decode to exactly H x W pixels.
+    """
+    p = Path(path)
+    info = read_oni_header(p)
+    codec = info.codec.encode("ascii", "replace")
+    if codec not in _CODEC_NAMES:
+        raise DepthFileError(f"recording {p} uses depth codec {info.codec!r}; this reader plays "
+                             f"{', '.join(c.decode() for c in _CODEC_NAMES)} (play it through "
+                             "hw.openni2 instead)")
+    name = _CODEC_NAMES[codec]
+    header_size = _RECORD_HEADER.size if info.version >= FIRST_64BIT_VERSION else 24
+    intrinsics = info.intrinsics()
+    shape = (info.height, info.width)
+    frames: list[DepthFrame] = []
+    with open(p, "rb") as f:
+        data = f.read()
+    pos = _FILE_HEADER.size
+    while pos + header_size <= len(data):
+        if header_size == _RECORD_HEADER.size:
+            _magic, kind, node, fields_size, payload, _undo = _RECORD_HEADER.unpack_from(data, pos)
+        else:
+            _magic, kind, node, fields_size, payload, _undo = struct.unpack_from("<IIIIII", data, pos)
+        if kind == REC_END:
+            break
+        if kind == REC_NEW_DATA and node == info.node_id:
+            stamp, frame_id = struct.unpack_from("<QI", data, pos + header_size)
+            start = pos + fields_size
+            raw = np.frombuffer(data, dtype=np.uint8, count=payload, offset=start)
+            try:
+                depth = decode_frame(raw, shape, name)
+            except FrameError as exc:
+                raise DepthFileError(f"recording {p} is corrupt: frame {frame_id} (byte {pos}): "
+                                     f"{exc}") from None
+            frames.append(DepthFrame(depth, int(stamp), int(frame_id), intrinsics))
+        pos += fields_size + payload
+    return frames
+
+
+def decode_frame(payload: np.ndarray | bytes, shape: tuple[int, int], codec: str) -> np.ndarray:
+    """One frame's payload (uint8 array or bytes) coded with ``codec`` ("none", "16z", "16zt")
+    -> (H, W) uint16 mm.  Raises :class:`FrameError` when it does not decode to exactly
+    ``shape``."""
+    raw = np.frombuffer(payload, dtype=np.uint8) if isinstance(payload, bytes) else payload
+    height, width = shape
+    count = height * width
+    if codec == "none":
+        if raw.size != 2 * count:
+            raise FrameError(f"{raw.size} bytes of raw depth, expected {2 * count} for {width}x{height}")
+        return raw.view("<u2").astype(np.uint16).reshape(shape)
+    if codec == "16z":
+        return _decode_16z_checked(raw, count).reshape(shape)
+    if codec == "16zt":
+        if raw.size < 2:
+            raise FrameError("a 16zT frame shorter than its table length")
+        n = int(raw[0]) | int(raw[1]) << 8
+        if raw.size < 2 + 2 * n:
+            raise FrameError(f"a 16zT frame of {raw.size} bytes cannot hold its {n}-entry table")
+        table = raw[2: 2 + 2 * n].view("<u2").astype(np.uint16)
+        indices = _decode_16z_checked(raw[2 + 2 * n:], count)
+        if n == 0 or int(indices.max()) >= n:
+            raise FrameError(f"a 16zT frame indexes past the end of its {n}-entry table")
+        return table[indices].reshape(shape)
+    raise FrameError(f"codec {codec!r}: choose one of {sorted(CODECS)}")
+
+
+def _decode_16z_checked(raw: np.ndarray, count: int) -> np.ndarray:
+    out = np.empty(count, dtype=np.uint16)
+    got = _decode_16z(np.ascontiguousarray(raw), out)
+    if got != count:
+        what = "more" if got < 0 else str(got)
+        raise FrameError(f"the 16z stream decodes to {what} pixels, expected {count}")
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _decode_16z(data, out):  # pragma: no cover - compiled
+    """Decode a 16zP stream ``data`` (N,) uint8 into ``out`` (M,) uint16; returns the number of
+    pixels written, or -1 if the stream is truncated or holds more than M pixels."""
+    n_in = data.size
+    n_out = out.size
+    if n_in < 2 or n_out < 1:
+        return -1
+    last = np.int64(data[0]) | (np.int64(data[1]) << 8)
+    out[0] = last
+    o = 1
+    i = 2
+    while i < n_in:
+        c = np.int64(data[i])
+        i += 1
+        if c >= 0xE0 and c != 0xFF:  # 0xE0 + n: n pairs equal to the last pixel
+            run = 2 * (c - 0xE0)
+            if o + run > n_out:
+                return -1
+            for _ in range(run):
+                out[o] = last
+                o += 1
+            continue
+        big = c == 0xFF
+        if not big:  # high nibble: a step of 6 - nibble
+            if o >= n_out:
+                return -1
+            last = (last - ((c >> 4) - 6)) & 0xFFFF
+            out[o] = last
+            o += 1
+            low = c & 0x0F
+            if low == 0x0D:  # a lone step
+                continue
+            if low != 0x0F:  # a second small step
+                if o >= n_out:
+                    return -1
+                last = (last - (low - 6)) & 0xFFFF
+                out[o] = last
+                o += 1
+                continue
+        # a large step: d + 192 (one byte, top bit set) or the new value big-endian (two bytes)
+        if i >= n_in or o >= n_out:
+            return -1
+        b = np.int64(data[i])
+        i += 1
+        if b & 0x80:
+            last = (last - (b - 192)) & 0xFFFF
+        else:
+            if i >= n_in:
+                return -1
+            last = (b << 8) | np.int64(data[i])
+            i += 1
+        out[o] = last
+        o += 1
+    return o

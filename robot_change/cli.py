@@ -263,8 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
     record.add_argument("--out", required=True, help="the .oni file to write")
     record.add_argument("--frames", type=int, help="stop after N frames (default: to the end, or Ctrl-C)")
-    record.add_argument("--codec", choices=("16z", "none"), default="16z",
-                        help="16z: lossless, ~3x smaller (default); none: raw uint16")
+    record.add_argument("--codec", choices=("16zt", "16z", "none"), default="16zt",
+                        help="16zt: lossless, ~4x smaller than raw on Kinect depth (default); "
+                        "16z: lossless, for unquantised depth; none: raw uint16")
     record.set_defaults(func=cmd_record)
 
     devices = commands.add_parser("list-devices", help="list the OpenNI2 cameras connected now")

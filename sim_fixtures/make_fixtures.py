@@ -2,8 +2,9 @@
 
 For each scene of :data:`sim_fixtures.scenes.SCENES` a folder ``scenes/<name>/``::
 
-    reference/000.png ...    (H, W) uint16 depth, millimetres, 0 = no reading (16-bit PNG)
-    current/000.png ...
+    reference.oni            the reference frames: OpenNI2 recording, (H, W) uint16 depth in
+                             millimetres, 0 = no reading, 30 fps, the smallest lossless codec
+    current.oni              the current frames, likewise
     truth_appeared.png       uint8 mask of the current image, 255 = new or moved-to object
     truth_disappeared.png    uint8 mask of the reference image, 255 = removed or moved-from
     ids_reference.png        uint8 object ids of the ideal reference render (0 = nothing)
@@ -14,10 +15,12 @@ and ``frames/room_vga.png`` (+ ``room_vga.json``): one VGA frame of a furnished 
 noise, the demo/benchmark frame.
 
 Frame k of epoch e (0 reference, 1 current) draws its noise from
-``numpy.random.default_rng([seed, e, k])``, so any frame can be regenerated alone.  Recording
-formats are plug-ins: :data:`RECORDING_WRITERS` maps a name to a function
-``(epoch_folder, frames, spec) -> [relative file names]``; ``png`` is always written, ``oni``
-(``--oni``) adds ``<epoch>.oni`` through ``hw.oni.write_oni``.
+``numpy.random.default_rng([seed, e, k])``, so any frame can be regenerated alone, and the
+files are byte-identical on every run (the .oni writer stores frame-count timestamps, no clock).
+Recording formats are plug-ins: :data:`RECORDING_WRITERS` maps a name to a function
+``(epoch_folder, frames, spec) -> [relative file names]``; ``oni`` is always written, ``png``
+(``--png``) adds ``<epoch>/000.png ...`` (16-bit PNG per frame, ~0.85x the .oni size; not
+stored by default to keep the folder small).
 """
 
 from __future__ import annotations
@@ -48,7 +51,10 @@ ROOT = Path(__file__).resolve().parent
 SCENES_DIR = ROOT / "scenes"
 FRAMES_DIR = ROOT / "frames"
 EPOCHS = ("reference", "current")
-FORMAT_VERSION = 1
+#: 2: frames in ``<epoch>.oni`` (1: per-frame PNGs only)
+FORMAT_VERSION = 2
+#: Codecs tried for a recording, in order of preference on equal size.
+ONI_CODECS = ("16zt", "16z", "none")
 DEMO_SEED = 7
 FPS = 30
 
@@ -78,19 +84,38 @@ def write_png_recording(folder: Path, frames: Sequence[np.ndarray], spec: SceneS
     return names
 
 
+def best_codec(frames: Sequence[np.ndarray]) -> str:
+    """The codec of :data:`ONI_CODECS` that stores ``frames`` ((H, W) uint16 mm) in the fewest
+    bytes: ``16zt`` for quantised Kinect depth, ``16z`` or ``none`` for the paper's unquantised
+    Gaussian noise (at sigma 0.1 m 16z is larger than raw)."""
+    from hw.errors import FrameError
+    from hw.oni import encode_16z, encode_16zt
+
+    encoders = {"none": lambda f: f.nbytes, "16z": lambda f: len(encode_16z(f)),
+                "16zt": lambda f: len(encode_16zt(f))}
+    sizes = {}
+    for codec in ONI_CODECS:
+        try:
+            sizes[codec] = sum(encoders[codec](f) for f in frames)
+        except FrameError:  # values the codec cannot hold (16z > 32767 mm, 16zt > 32768 values)
+            continue
+    return min(sizes, key=lambda c: (sizes[c], ONI_CODECS.index(c)))
+
+
 def write_oni_recording(folder: Path, frames: Sequence[np.ndarray], spec: SceneSpec) -> list[str]:
-    """``<scene>/<epoch>.oni`` beside the epoch folder (16z-compressed), via ``hw.oni``."""
+    """``<scene>/<epoch>.oni`` beside the epoch folder, in the smallest codec
+    (:func:`best_codec`), via ``hw.oni``; returns its name relative to the scene folder."""
     from hw.oni import write_oni
 
     path = folder.parent / f"{folder.name}.oni"
-    write_oni(path, frames, fps=FPS, codec="16z", intrinsics=spec.intrinsics)
+    write_oni(path, frames, fps=FPS, codec=best_codec(frames), intrinsics=spec.intrinsics)
     return [path.name]
 
 
 #: Recording formats: name -> writer(epoch_folder, frames, spec) -> relative file names.
 RECORDING_WRITERS: dict[str, Callable[[Path, Sequence[np.ndarray], SceneSpec], list[str]]] = {
-    "png": write_png_recording,
     "oni": write_oni_recording,
+    "png": write_png_recording,
 }
 
 
@@ -139,9 +164,16 @@ def scene_metadata(spec: SceneSpec, ref: Render, cur: Render) -> dict:
     }
 
 
-def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str] = ("png",)
+def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str] = ("oni",)
                 ) -> dict:
-    """Render, add noise and write one scene folder (replacing an old one); returns scene.json."""
+    """Render, add noise and write one scene folder (replacing an old one); returns scene.json.
+
+    ``formats``: recording formats of :data:`RECORDING_WRITERS`; ``oni`` is always written.
+    scene.json's ``files`` gets ``reference`` / ``current`` (the .oni names), ``recordings``
+    their codec and frame count, and with ``png`` also ``reference_png`` / ``current_png``."""
+    from hw.oni import read_oni_header
+
+    formats = ["oni"] + [f for f in formats if f != "oni"]
     ref, cur = render_pair(spec)
     appeared, disappeared = truth_masks(spec, ref, cur)
     folder = root / spec.name
@@ -151,11 +183,18 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
     tmp.mkdir(parents=True)
     meta = scene_metadata(spec, ref, cur)
     files: dict[str, object] = {}
+    recordings: dict[str, dict] = {}
     for epoch, (name, r) in enumerate(zip(EPOCHS, (ref, cur))):
         frames = noisy_frames(spec, r, epoch, spec.frames[epoch])
         for fmt in formats:
-            key = name if fmt == "png" else f"{name}_{fmt}"
-            files[key] = RECORDING_WRITERS[fmt](tmp / name, frames, spec)
+            names = RECORDING_WRITERS[fmt](tmp / name, frames, spec)
+            if fmt == "oni":
+                files[name] = names[0]
+                info = read_oni_header(tmp / names[0])
+                recordings[name] = {"file": names[0], "codec": info.codec,
+                                    "frames": info.frames, "fps": info.fps}
+            else:
+                files[f"{name}_{fmt}"] = names
     for key, image in (("truth_appeared", appeared.astype(np.uint8) * 255),
                        ("truth_disappeared", disappeared.astype(np.uint8) * 255),
                        ("ids_reference", ref.ids.astype(np.uint8)),
@@ -163,6 +202,7 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
         write_image(tmp / f"{key}.png", image)
         files[key] = f"{key}.png"
     meta["files"] = files
+    meta["recordings"] = recordings
     meta["bytes"] = {str(p.relative_to(tmp)): p.stat().st_size
                      for p in sorted(tmp.rglob("*")) if p.is_file()}
     (tmp / "scene.json").write_text(json.dumps(meta, indent=1) + "\n")
@@ -208,20 +248,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("names", nargs="*", help="scenes to write (default: all)")
     parser.add_argument("--out", type=Path, default=SCENES_DIR, help="scenes folder")
-    parser.add_argument("--oni", action="store_true", help="also write reference.oni and "
-                        "current.oni per scene (hw.oni)")
+    parser.add_argument("--png", action="store_true", help="also write every frame as a 16-bit "
+                        "PNG (<epoch>/NNN.png; the .oni recordings are always written)")
     parser.add_argument("--no-demo", action="store_true", help="skip frames/room_vga.png")
     args = parser.parse_args(argv)
     unknown = [n for n in args.names if n not in SCENES]
     if unknown:
         parser.error(f"unknown scene(s) {unknown}; known: {', '.join(SCENES)}")
-    formats = ("png", "oni") if args.oni else ("png",)
+    formats = ("oni", "png") if args.png else ("oni",)
     total = time.perf_counter()
     for name in args.names or list(SCENES):
         start = time.perf_counter()
         meta = write_scene(SCENES[name], args.out, formats)
         size = sum(meta["bytes"].values())
-        print(f"{name:28s} {meta['split']:8s} {meta['change']:12s} "
+        codecs = "/".join(sorted({r["codec"] for r in meta["recordings"].values()}))
+        print(f"{name:28s} {meta['split']:8s} {meta['change']:12s} {codecs:9s} "
               f"{size / 1e6:6.2f} MB  {time.perf_counter() - start:5.1f} s", flush=True)
     if not args.no_demo and not args.names:
         meta = write_demo_frame()

@@ -124,7 +124,8 @@ class TabletopPair:
     docstring).  ``footprint_reference``/``footprint_current``: (480, 640) bool, the frame's
     cropped region (valid pixels plus enclosed dropout holes).  ``margin_mm`` /
     ``min_region_px``: the truth rule's parameters.  ``reference_paths`` /
-    ``current_paths``: the depth PNG, as a 1-tuple (the shape of :class:`sim_fixtures.Scene`).
+    ``current_paths``: the depth PNG, as a 1-tuple.  Like :class:`sim_fixtures.Scene`, it offers
+    ``reference_frames()`` / ``current_frames()``.
     """
 
     name: str

@@ -1,5 +1,6 @@
-"""hw.oni: the .oni writer, the 16z codec and the header check -- played back through the real
-libOpenNI2 (OniFile driver), so every pixel and timestamp is checked by the native player."""
+"""hw.oni: the .oni writer, the 16z / 16zT codecs, the header check and the pure-Python reader --
+played back through the real libOpenNI2 (OniFile driver), so every pixel and timestamp is checked
+by the native player (and :func:`read_oni_frames` must agree with it on every file)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,17 @@ import pytest
 
 from hw.depth import Intrinsics
 from hw.errors import DepthFileError, FrameError
-from hw.oni import MAX_16Z_VALUE, OniWriter, encode_16z, read_oni_header, write_oni
+from hw.oni import (
+    MAX_16Z_VALUE,
+    MAX_16ZT_VALUES,
+    OniWriter,
+    decode_frame,
+    encode_16z,
+    encode_16zt,
+    read_oni_frames,
+    read_oni_header,
+    write_oni,
+)
 from hw.openni2 import open_recording
 
 
@@ -29,8 +40,20 @@ def room_depth(height: int, width: int, seed: int) -> np.ndarray:
     return out
 
 
+def kinect_depth(height: int, width: int, seed: int) -> np.ndarray:
+    """:func:`room_depth` quantised like a Kinect (disparity steps: ~2.6 mm at 1 m, ~24 mm at
+    3 m), so a frame holds a few hundred distinct values."""
+    z = room_depth(height, width, seed).astype(np.float64) / 1000.0
+    c = 0.00285  # step = c z^2 (m)
+    levels = np.round(1.0 / (c * np.maximum(z, 0.3)))
+    out = np.round(1000.0 / (c * levels)).astype(np.uint16)
+    out[z == 0] = 0
+    return out
+
+
 def play(path: Path, timeout: float = 5.0) -> list:
-    """Every frame of a recording, through the real OpenNI2 player."""
+    """Every frame of a recording, through the real OpenNI2 player; checks that
+    :func:`read_oni_frames` decodes exactly the same frames without it."""
     frames = []
     with open_recording(str(path)) as source:
         while True:
@@ -39,12 +62,18 @@ def play(path: Path, timeout: float = 5.0) -> list:
                 break
             frames.append(frame)
         assert source.read(0.1) is None  # stays ended
+    ours = read_oni_frames(path)
+    assert len(ours) == len(frames)
+    for mine, theirs in zip(ours, frames):
+        np.testing.assert_array_equal(mine.depth, theirs.depth)
+        assert (mine.timestamp_us, mine.index) == (theirs.timestamp_us, theirs.index)
     return frames
 
 
-@pytest.mark.parametrize("codec", ["none", "16z"])
+@pytest.mark.parametrize("codec", ["none", "16z", "16zt"])
 def test_write_then_play_back_exact_pixels_timestamps_and_count(tmp_path: Path, codec: str) -> None:
-    images = [room_depth(480, 640, seed) for seed in range(4)]
+    images = [room_depth(480, 640, 0), kinect_depth(480, 640, 1), room_depth(480, 640, 2),
+              kinect_depth(480, 640, 3)]
     stamps = [0, 33_000, 70_123, 100_000]
     path = tmp_path / f"room-{codec}.oni"
     with OniWriter(path, 640, 480, codec=codec) as writer:
@@ -58,7 +87,7 @@ def test_write_then_play_back_exact_pixels_timestamps_and_count(tmp_path: Path, 
         assert frame.timestamp_us == stamp
         assert frame.index == index
     info = read_oni_header(path)
-    expected_codec = "NONE" if codec == "none" else "16zP"
+    expected_codec = {"none": "NONE", "16z": "16zP", "16zt": "16zT"}[codec]
     assert (info.width, info.height, info.frames, info.codec) == (640, 480, 4, expected_codec)
     assert (info.first_timestamp_us, info.last_timestamp_us) == (0, 100_000)
 
@@ -109,6 +138,83 @@ def test_16z_rejects_values_it_cannot_store(tmp_path: Path) -> None:
     assert not (tmp_path / "big.oni").exists()
     write_oni(tmp_path / "big.oni", [image], codec="none")  # raw keeps full uint16
     np.testing.assert_array_equal(play(tmp_path / "big.oni")[0].depth, image)
+
+
+def test_16zt_byte_layout() -> None:
+    # table length, the sorted distinct values, then 16z over the indices [1, 1, 2, 0]:
+    # first index 1, a pair of steps (0, -1) -> 0x65, a lone step +2 -> 0x8D
+    payload = encode_16zt(np.array([[1000, 1000], [2000, 0]], dtype=np.uint16))
+    assert payload == bytes.fromhex("0300" "0000 e803 d007" "0100" "65" "8d")
+    shape = (2, 2)
+    np.testing.assert_array_equal(decode_frame(payload, shape, "16zt"), [[1000, 1000], [2000, 0]])
+
+
+def test_16zt_is_much_smaller_than_16z_on_quantised_depth() -> None:
+    image = kinect_depth(480, 640, 5)
+    assert 100 < np.unique(image).size < 2000
+    zt, z = len(encode_16zt(image)), len(encode_16z(image))
+    assert zt < 0.7 * z, (zt, z)  # ~0.65 here; ~0.42 on the sim_fixtures Kinect frames
+
+
+@pytest.mark.parametrize("case", ["zeros", "one_value", "full_range", "many_values", "max_values"])
+def test_16zt_edge_cases_play_back_exactly(tmp_path: Path, case: str) -> None:
+    rng = np.random.default_rng(3)
+    if case == "zeros":
+        image = np.zeros((480, 640), dtype=np.uint16)
+    elif case == "one_value":  # beyond what 16z can hold
+        image = np.full((48, 64), 65535, dtype=np.uint16)
+    elif case == "full_range":  # 0 and 65535 next to each other: index jumps, not value jumps
+        image = rng.choice(np.array([0, 1, 40000, 65535], dtype=np.uint16), (48, 64))
+    elif case == "many_values":  # > 255 values, mostly large index jumps, odd pixel count
+        image = rng.integers(0, 65536, (99, 101)).astype(np.uint16)
+        assert np.unique(image).size > 5000
+    else:  # exactly the table's limit: every odd value once, shuffled, 65535 included
+        image = rng.permutation(np.arange(1, 65536, 2, dtype=np.uint16)).reshape(128, 256)
+        assert np.unique(image).size == MAX_16ZT_VALUES
+    path = tmp_path / f"{case}.oni"
+    write_oni(path, [image, image[::-1].copy()], codec="16zt")
+    assert read_oni_header(path).codec == "16zT"
+    frames = play(path)
+    assert len(frames) == 2
+    np.testing.assert_array_equal(frames[0].depth, image)
+    np.testing.assert_array_equal(frames[1].depth, image[::-1])
+
+
+def test_16zt_rejects_more_distinct_values_than_its_table_holds(tmp_path: Path) -> None:
+    values = np.concatenate([np.arange(0, 65536, 2), [1]]).astype(np.uint16)  # 32769 values
+    image = np.zeros(129 * 256, dtype=np.uint16)
+    image[: values.size] = values
+    image = image.reshape(129, 256)
+    assert np.unique(image).size == MAX_16ZT_VALUES + 1
+    with pytest.raises(FrameError, match=r"32769 distinct.*codec='16z'"):
+        write_oni(tmp_path / "many.oni", [image], codec="16zt")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_reader_rejects_frames_that_do_not_decode_to_the_image_size(tmp_path: Path) -> None:
+    image = kinect_depth(24, 32, 0)
+    good = encode_16z(image)
+    with pytest.raises(FrameError, match="decodes to"):
+        decode_frame(good[:-3], (24, 32), "16z")  # truncated
+    with pytest.raises(FrameError, match="decodes to"):
+        decode_frame(good + b"\x66", (24, 32), "16z")  # two pixels too many
+    table_payload = encode_16zt(image)
+    with pytest.raises(FrameError, match="past the end"):  # a table one entry short
+        n = int.from_bytes(table_payload[:2], "little")
+        short = (n - 1).to_bytes(2, "little") + table_payload[2: 2 * n] + table_payload[2 + 2 * n:]
+        decode_frame(short, (24, 32), "16zt")
+    with pytest.raises(FrameError, match="bytes of raw depth"):
+        decode_frame(image.tobytes()[:-2], (24, 32), "none")
+    # in a file: the reader names the frame
+    path = tmp_path / "t.oni"
+    write_oni(path, [image, image], codec="16zt")
+    data = bytearray(path.read_bytes())
+    at = data.rindex(table_payload)
+    data[at: at + 2] = (0).to_bytes(2, "little")  # the second frame's table is empty
+    bad = tmp_path / "bad.oni"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(DepthFileError, match="corrupt: frame 2"):
+        read_oni_frames(bad)
 
 
 def test_intrinsics_round_trip_through_the_field_of_view(tmp_path: Path) -> None:

@@ -297,4 +297,4 @@ def test_record_a_live_camera_for_n_frames(tmp_path: Path) -> None:
         assert record(source, out, frames=5) == 5
     info = read_oni_header(out)
     assert (info.width, info.height, info.frames, info.first_timestamp_us) == (320, 240, 5, 0)
-    assert info.codec == "16zP"
+    assert info.codec == "16zT"  # record() defaults to 16zt

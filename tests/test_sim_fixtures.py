@@ -14,7 +14,15 @@ from hw.depth import Intrinsics, open_depth
 from hw.png import read_png
 from sim_fixtures import DEMO_FRAME, SCENES_DIR, UnknownScene, load_scene, scene_names
 from sim_fixtures import render as render_mod
-from sim_fixtures.make_fixtures import noisy_frames, write_oni_recording
+from hw.oni import read_oni_frames, read_oni_header
+from sim_fixtures import FORMAT_VERSION as LOADER_FORMAT_VERSION
+from sim_fixtures import ROOT as FIXTURES_ROOT
+from sim_fixtures.make_fixtures import (
+    FORMAT_VERSION,
+    best_codec,
+    noisy_frames,
+    write_oni_recording,
+)
 from sim_fixtures.noise import (
     PAPER_SIGMAS_M,
     GaussianNoise,
@@ -324,10 +332,18 @@ def test_catalogue_matches_stored_scenes():
 
 def test_stored_files_match_scene_json():
     total = 0
+    assert FORMAT_VERSION == LOADER_FORMAT_VERSION
     for scene in all_scenes():
         meta = scene.meta
-        assert len(scene.reference_paths) == meta["frame_counts"]["reference"] >= 2
-        assert len(scene.current_paths) == meta["frame_counts"]["current"] >= 2
+        stored = {str(p.relative_to(scene.folder)) for p in scene.folder.rglob("*") if p.is_file()}
+        assert stored == set(meta["bytes"]) | {"scene.json"}  # nothing unlisted, nothing missing
+        for epoch in ("reference", "current"):
+            info = read_oni_header(scene.recording(epoch))
+            rec = meta["recordings"][epoch]
+            assert scene.recording(epoch).name == rec["file"] == meta["files"][epoch]
+            assert info.frames == rec["frames"] == meta["frame_counts"][epoch] >= 2
+            assert info.codec == rec["codec"] and (info.width, info.height) == (640, 480)
+            assert info.intrinsics() == Intrinsics.openni_default()
         for rel, size in meta["bytes"].items():
             assert (scene.folder / rel).stat().st_size == size, rel
             total += size
@@ -343,6 +359,16 @@ def test_stored_files_match_scene_json():
         assert meta["truth"]["disappeared_pixels"] == scene.truth_disappeared.sum()
         assert meta["noise"]["model"] in ("kinect", "gaussian") and isinstance(meta["seed"], int)
     assert total < 25e6  # the budget is 40 MB for the whole folder; keep well below
+    folder = sum(p.stat().st_size for p in FIXTURES_ROOT.rglob("*") if p.is_file()
+                 and "__pycache__" not in p.parts)
+    assert folder < 30e6
+
+
+def test_kinect_scenes_are_stored_in_16zt():
+    codecs = {(s.meta["noise"]["model"], s.meta["recordings"][e]["codec"])
+              for s in all_scenes() for e in ("reference", "current")}
+    assert {c for m, c in codecs if m == "kinect"} == {"16zT"}  # quantised: the table pays
+    assert {c for m, c in codecs if m == "gaussian"} <= {"16zP", "NONE", "16zT"}
 
 
 def test_stored_truth_is_consistent_with_object_ids():
@@ -375,15 +401,19 @@ def test_stored_truth_is_consistent_with_object_ids():
             assert 0.2 < abs(ref["yaw_deg"] - cur["yaw_deg"]) <= 0.6
 
 
-def test_regenerating_a_scene_reproduces_the_stored_frames():
+def test_regenerating_a_scene_reproduces_the_stored_files(tmp_path):
     name = "lab_crate_moved"
     spec, scene = SCENES[name], load_scene(name)
     ref, cur = render_pair(spec)
-    for epoch, (r, paths) in enumerate(((ref, scene.reference_paths),
-                                        (cur, scene.current_paths))):
-        frames = noisy_frames(spec, r, epoch, len(paths))
-        for frame, path in zip(frames, paths):
-            np.testing.assert_array_equal(frame, read_png(path))
+    for epoch, (r, label) in enumerate(((ref, "reference"), (cur, "current"))):
+        stored = scene.frames(label)
+        frames = noisy_frames(spec, r, epoch, len(stored))
+        for frame, again in zip(frames, stored):
+            np.testing.assert_array_equal(frame, again)
+        # the writer is deterministic: the same frames give a byte-identical file
+        (tmp_path / label).mkdir()
+        assert write_oni_recording(tmp_path / label, frames, spec) == [f"{label}.oni"]
+        assert (tmp_path / f"{label}.oni").read_bytes() == scene.recording(label).read_bytes()
     appeared, disappeared = truth_masks(spec, ref, cur)
     np.testing.assert_array_equal(appeared, scene.truth_appeared)
     np.testing.assert_array_equal(disappeared, scene.truth_disappeared)
@@ -399,10 +429,43 @@ def test_loader_errors_and_uri():
     with pytest.raises(ValueError):
         scene_names("train")
     scene = load_scene("office_no_change")
-    with open_depth(scene.uri("current")) as source:
-        first = source.read()
-    np.testing.assert_array_equal(first.depth, scene.current_frames()[0])
+    with pytest.raises(ValueError, match="epoch"):
+        scene.uri("later")
+    with pytest.raises(ValueError, match="kind"):
+        scene.uri("current", "tiff")
+    assert scene.uri("current") == f"oni:{SCENES_DIR / 'office_no_change' / 'current.oni'}"
     assert SCENES_DIR.is_dir()
+
+
+def read_all(uri):
+    frames = []
+    with open_depth(uri) as source:
+        while (frame := source.read(5.0)) is not None:
+            frames.append(frame)
+    return frames
+
+
+@pytest.mark.parametrize("name", ["office_box_added", "paper_sigma_100mm"])
+def test_stored_recordings_play_through_openni2_and_as_images(name, tmp_path, monkeypatch):
+    import sim_fixtures
+
+    monkeypatch.setattr(sim_fixtures, "IMAGE_CACHE", tmp_path / "cache")
+    scene = load_scene(name)
+    for epoch in ("reference", "current"):
+        expected = scene.frames(epoch)
+        played = read_all(scene.uri(epoch))  # the real libOpenNI2 player
+        assert [f.index for f in played] == list(range(1, len(expected) + 1))
+        assert [f.timestamp_us for f in played] == [round(k * 1e6 / 30) for k in range(len(expected))]
+        as_images = read_all(scene.uri(epoch, "images"))  # PNG copies in the cache
+        assert len(played) == len(as_images) == len(expected) == 3
+        for a, b, c in zip(played, as_images, expected):
+            np.testing.assert_array_equal(a.depth, c)
+            np.testing.assert_array_equal(b.depth, c)
+        assert played[0].intrinsics == scene.intrinsics
+    copies = sorted((tmp_path / "cache").iterdir())
+    assert len(copies) == 2 and all(len(list(c.glob("*.png"))) == 3 for c in copies)
+    scene.uri("current", "images")  # reused, not written again
+    assert sorted((tmp_path / "cache").iterdir()) == copies
 
 
 def test_demo_frame_is_a_mostly_valid_room():
@@ -416,12 +479,21 @@ def test_demo_frame_is_a_mostly_valid_room():
     assert meta["valid_fraction"] == pytest.approx(valid.mean(), abs=1e-4)
 
 
-def test_oni_writer_hook(tmp_path):
-    oni = pytest.importorskip("hw.oni")
+def test_oni_writer_picks_the_smallest_codec(tmp_path):
     spec = SCENES["paper_sigma_1mm"]
-    frames = [np.full((480, 640), 1000 + k, dtype=np.uint16) for k in range(2)]
-    (tmp_path / "reference").mkdir()
-    names = write_oni_recording(tmp_path / "reference", frames, spec)
-    assert names == ["reference.oni"]
-    info = oni.read_oni_header(tmp_path / "reference.oni")
-    assert (info.width, info.height, info.frames) == (640, 480, 2)
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:480, 0:640]
+    ramp = 1000 + 4 * yy + xx  # smooth, every step small in mm: 16z
+    kinect = (ramp // 25) * 25  # quantised: large steps in mm, index steps 0/1: 16zt
+    noise = rng.integers(0, 30000, (480, 640))  # incompressible: raw
+    big = ramp + 40000  # beyond 16z, few values: 16zt
+    for frames, codec, four_cc in ((ramp, "16z", "16zP"), (kinect, "16zt", "16zT"),
+                                   (noise, "none", "NONE"), (big, "16zt", "16zT")):
+        frames = [frames.astype(np.uint16), frames[::-1].astype(np.uint16)]
+        assert best_codec(frames) == codec
+        (tmp_path / "reference").mkdir(exist_ok=True)
+        assert write_oni_recording(tmp_path / "reference", frames, spec) == ["reference.oni"]
+        info = read_oni_header(tmp_path / "reference.oni")
+        assert (info.width, info.height, info.frames, info.codec) == (640, 480, 2, four_cc)
+        for got, want in zip(read_oni_frames(tmp_path / "reference.oni"), frames):
+            np.testing.assert_array_equal(got.depth, want)
