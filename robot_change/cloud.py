@@ -69,12 +69,13 @@ class CloudParams:
     The defaults are for a Kinect-class VGA camera (OpenNI: fx = 525) looking into a room.
     """
 
-    # 2 cm: a VGA view of a room (surfaces 1.5-5 m away, ~10-20 m^2 seen) gives ~25-35k
-    # occupied voxels before filtering (measured: TUM office frame 29.9k at 2 cm, 20.5k at
-    # 2.5 cm, 81k at 1 cm), 22k after all stages: in the 10k-30k the paper worked with.  A 10 cm box
-    # still covers 5 x 5 voxels per face, and 2 cm is about the Kinect's depth noise at 3 m
-    # (sigma_z ~ 1.5 mm * z^2 / m), so voxels hide little real detail.
-    leaf_m: float = 0.02
+    # 3 cm: a room-sized VGA view (surfaces 1.5-5 m away) lands at 11k-30k points after all
+    # stages (measured on single frames: TUM office 11.0k; our five synthetic rooms 19k-30k;
+    # at 2 cm they give 22k-54k, at 2.5 cm 15k-40k): the 10k-30k the paper's clouds had, which
+    # keeps the mixture fit and the change step within their budgets.  It is about the Kinect's
+    # depth noise at 4 m (sigma_z ~ 3 cm), so voxels hide little the sensor resolves there; a
+    # 10 cm object still covers ~3 x 3 voxels per face.  Table-top work wants ~1 cm.
+    leaf_m: float = 0.03
     # Kinect-class sensors read nothing useful nearer than ~0.4 m; beyond 5 m the depth
     # quantization step of the disparity (~7 cm at 5 m) exceeds three voxels.
     min_depth_m: float = 0.4
@@ -85,11 +86,11 @@ class CloudParams:
     outlier_k: int = 4
     outlier_alpha: float = 2.0
     outlier_cap_leaves: float = 2.0
-    # Dominant plane: inliers within 2 cm (one leaf; centroids of a floor seen at 3-4 m
-    # scatter by about that much).  Up to 1000 triples with the adaptive stop at 99.9 %
+    # Dominant plane: inliers within 2 cm (centroids of a floor seen at 3-4 m scatter by about
+    # that much).  Up to 1000 triples with the adaptive stop at 99.9 %
     # confidence: a plane holding 30 % of the points stops it after ~250 triples, one holding
     # 20 % after ~860; a smaller plane is rarely "the floor".  A plane needs 500 inliers, i.e.
-    # 0.2 m^2 at a 2 cm leaf, so a wall fragment in a cluttered view does not count.
+    # 0.45 m^2 at a 3 cm leaf, so a wall fragment in a cluttered view does not count.
     # up/max_tilt (camera frame, y down) restrict which planes count when the camera's
     # mounting is known, e.g. up = (0, -1, 0) and 15 degrees for a level camera; off by default
     # (a table top seen from above is tilted by the camera's pitch, 34-44 degrees in the OSD

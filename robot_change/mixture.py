@@ -48,8 +48,9 @@ FILE_FORMAT = "robot_change.mixture"
 FILE_VERSION = 1
 #: Free parameters of one full-covariance 3-D Gaussian (3 for the mean, 6 for the covariance).
 N_PARAMS_COMPONENT = 9
-#: Default voxel leaf (m) the covariance floor is tied to when neither is given.
-DEFAULT_LEAF = 0.02
+#: Default voxel leaf (m) the covariance floor is tied to when neither is given (the default
+#: leaf of robot_change.cloud.CloudParams).
+DEFAULT_LEAF = 0.03
 
 
 def reg_covar_for_leaf(leaf: float) -> float:

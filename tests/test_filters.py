@@ -12,12 +12,18 @@ from robot_change.errors import InputError
 from robot_change.filters import (
     KEY_MAX_INDEX,
     KEY_MIN_INDEX,
+    RANSAC_SAMPLE,
+    VOXEL_BAND,
     Plane,
+    _inlier_scatter,
+    _plane_inliers,
     _ransac_kernel,
+    _voxel_kernel,
     fit_plane_ransac,
     fuse_depth,
     knn_mean_distance,
     pack_keys,
+    ransac_sample,
     ransac_triples,
     remove_plane,
     statistical_outliers,
@@ -33,23 +39,43 @@ RNG = np.random.default_rng(7)
 # voxel grid
 
 
-def twin_voxel_grid(points, leaf):
-    """np.unique(return_inverse) + bincount, same float64 arithmetic."""
+def twin_voxel_grid(points, leaf, band=VOXEL_BAND):
+    """np.unique(return_inverse) + bincount, same float64 arithmetic and summation order: per
+    band of ``band`` rows a partial sum per voxel (points in order), then per voxel the sum of
+    its partials in band order."""
     p64 = points.astype(np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
         idx = np.floor(p64 * (1.0 / leaf))
     ok = np.all((idx >= KEY_MIN_INDEX) & (idx <= KEY_MAX_INDEX), axis=1)
-    keys_all = pack_keys(idx[ok].astype(np.int64))
-    keys, inv = np.unique(keys_all, return_inverse=True)
-    inv = inv.ravel()
-    counts = np.bincount(inv, minlength=len(keys))
+    keys_all = np.full(len(points), -1, dtype=np.int64)
+    keys_all[ok] = pack_keys(idx[ok].astype(np.int64))
+    part_keys, part_sums, part_counts = [], [], []
+    for start in range(0, len(points), band):
+        sel = np.flatnonzero(ok[start:start + band]) + start
+        keys, inv = np.unique(keys_all[sel], return_inverse=True)
+        inv = inv.ravel()
+        part_keys.append(keys)
+        part_counts.append(np.bincount(inv, minlength=len(keys)).astype(np.float64))
+        part_sums.append(np.stack(
+            [np.bincount(inv, weights=p64[sel, j], minlength=len(keys)) for j in range(3)], axis=1
+        ))
+    if part_keys:
+        part_keys = np.concatenate(part_keys)
+        part_sums = np.concatenate(part_sums)
+        part_counts = np.concatenate(part_counts)
+    else:
+        part_keys, part_sums, part_counts = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    keys, pinv = np.unique(part_keys, return_inverse=True)
+    pinv = pinv.ravel()
+    counts = np.bincount(pinv, weights=part_counts, minlength=len(keys))
     sums = np.stack(
-        [np.bincount(inv, weights=p64[ok, j], minlength=len(keys)) for j in range(3)], axis=1
+        [np.bincount(pinv, weights=part_sums[:, j], minlength=len(keys)) for j in range(3)], axis=1
     )
     centroids = (sums / counts[:, None]).astype(np.float32)
+    lookup = np.searchsorted(keys, keys_all[ok])
     inverse = np.full(len(points), -1, dtype=np.int64)
-    inverse[ok] = inv
-    return centroids, counts, keys, inverse
+    inverse[ok] = lookup
+    return centroids, counts.astype(np.int64), keys, inverse
 
 
 def assert_grid_matches_twin(points, leaf):
@@ -65,8 +91,9 @@ def assert_grid_matches_twin(points, leaf):
     return grid
 
 
-def depth_scene_points():
+def depth_scene_points(rng=None):
     """A structured cloud: a VGA frame of a tilted floor with a box, plus Kinect-like noise."""
+    rng = RNG if rng is None else rng
     intr = Intrinsics.openni_default()
     v, u = np.mgrid[0:480, 0:640].astype(np.float64)
     ray_y = (v - intr.cy) / intr.fy
@@ -74,9 +101,9 @@ def depth_scene_points():
         z = np.where(ray_y > 0.05, 1.2 / ray_y, 4.5)  # floor 1.2 m below the camera, wall
     box = (np.abs(u - 300) < 60) & (np.abs(v - 300) < 40)
     z = np.where(box, 2.0, z)
-    z = np.minimum(z, 4.5) + RNG.normal(0, 0.004, z.shape)
+    z = np.minimum(z, 4.5) + rng.normal(0, 0.004, z.shape)
     depth = np.round(z * 1000).astype(np.uint16)
-    depth[RNG.random(depth.shape) < 0.1] = 0
+    depth[rng.random(depth.shape) < 0.1] = 0
     return depth_to_points(depth, intr, min_depth_m=0.4, max_depth_m=5.0)[0]
 
 
@@ -92,6 +119,19 @@ def test_voxel_grid_matches_twin_on_random_points(n, spread):
     # the last case has ~200k distinct voxels: the hash table grows many times
     points = (RNG.normal(size=(n, 3)) * spread).astype(np.float32)
     assert_grid_matches_twin(points, 0.02)
+
+
+@pytest.mark.parametrize("band", [1, 7, 64])
+def test_voxel_kernel_small_bands_match_twin(band):
+    """Many bands: voxels split over bands, stale hash slots of earlier bands reused."""
+    points = depth_scene_points(np.random.default_rng(11))[::37]
+    points = np.concatenate([points, points[::-3], [[np.nan, 0, 1]]]).astype(np.float32)
+    centroids, counts, keys, inverse = _voxel_kernel(points, 1.0 / 0.05, band)
+    want = twin_voxel_grid(points, 0.05, band)
+    np.testing.assert_array_equal(keys, want[2])
+    np.testing.assert_array_equal(counts, want[1])
+    np.testing.assert_array_equal(inverse, want[3])
+    np.testing.assert_array_equal(centroids, want[0])
 
 
 def test_voxel_grid_duplicates_and_negative_coordinates():
@@ -314,18 +354,20 @@ def test_statistical_outliers_rejects_mismatched_keys():
 # RANSAC plane
 
 
-def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0):
-    """Plain NumPy loop over the same triples; first strictly best wins; the classic adaptive
-    stop once t + 1 >= log(1 - confidence) / log(1 - w**3)."""
-    p = points.astype(np.float64)
+def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0, sample=None):
+    """Plain NumPy loop over the same triples, each scored on the sample rows (all rows when
+    None); first strictly best wins; the classic adaptive stop once
+    t + 1 >= log(1 - confidence) / log(1 - w**3), w = best count / sample size."""
+    full = points.astype(np.float64)
+    p = full if sample is None else full[sample]
     use_up = bool(np.any(up != 0))
     best = (-1, 0, np.zeros(3), 0.0)
     needed = math.inf
     tried = 0
     for t, (a, b, c) in enumerate(triples):
         tried = t + 1
-        u = p[b] - p[a]
-        v = p[c] - p[a]
+        u = full[b] - full[a]
+        v = full[c] - full[a]
         n = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
                       u[0] * v[1] - u[1] * v[0]])
         norm = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
@@ -333,7 +375,7 @@ def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0):
         ok = norm >= 1e-12 and not (
             use_up and abs(n[0] * up[0] + n[1] * up[1] + n[2] * up[2]) < cos_min)
         if ok:
-            d = -(n[0] * p[a, 0] + n[1] * p[a, 1] + n[2] * p[a, 2])
+            d = -(n[0] * full[a, 0] + n[1] * full[a, 1] + n[2] * full[a, 2])
             r = n[0] * p[:, 0] + n[1] * p[:, 1] + n[2] * p[:, 2] + d
             count = int(np.count_nonzero(np.abs(r) <= distance))
             if count > best[1]:
@@ -348,28 +390,40 @@ def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0):
     return best + (tried,)
 
 
-def plane_scene(n_plane=3000, n_clutter=1500, normal=(0.1, -0.9, -0.4), offset=1.0, noise=0.003):
+def plane_scene(n_plane=3000, n_clutter=1500, normal=(0.1, -0.9, -0.4), offset=1.0, noise=0.003,
+                rng=None):
+    rng = RNG if rng is None else rng
     normal = np.asarray(normal, float) / np.linalg.norm(normal)
     basis = np.linalg.svd(normal[None, :])[2][1:]
-    coords = RNG.uniform(-1.5, 1.5, size=(n_plane, 2))
-    on = coords @ basis - offset * normal + RNG.normal(0, noise, (n_plane, 1)) * normal
-    clutter = RNG.uniform(-1.5, 1.5, size=(n_clutter, 3)) + [0, 0, 3]
+    coords = rng.uniform(-1.5, 1.5, size=(n_plane, 2))
+    on = coords @ basis - offset * normal + rng.normal(0, noise, (n_plane, 1)) * normal
+    clutter = rng.uniform(-1.5, 1.5, size=(n_clutter, 3)) + [0, 0, 3]
     points = np.concatenate([on, clutter]).astype(np.float32)
     truth = np.zeros(len(points), bool)
     truth[:n_plane] = True
     return points, truth, normal
 
 
+@pytest.mark.parametrize("sample_size", [None, 1000])
 @pytest.mark.parametrize("use_up", [False, True])
 @pytest.mark.parametrize("confidence", [1.0, 0.999, 0.5])
-def test_ransac_kernel_matches_twin(use_up, confidence):
-    points, _, _ = plane_scene(1500, 3000)
+def test_ransac_kernel_matches_twin(use_up, confidence, sample_size):
+    # the subsample cases draw from their own generator: the module RNG's sequence, which the
+    # later tests' data depend on, stays as it was
+    points, _, _ = plane_scene(1500, 3000, rng=np.random.default_rng(3) if sample_size else None)
     triples = np.random.default_rng(5).integers(0, len(points), size=(300, 3))
     triples[:3] = [[0, 0, 1], [4, 4, 4], [0, 1, 2]]  # degenerate ones are skipped
     up = np.array([0.0, -1.0, 0.0]) if use_up else np.zeros(3)
     cos_min = math.cos(math.radians(30)) if use_up else 0.0
-    t, count, n, d, tried = _ransac_kernel(points, triples, 0.01, up, cos_min, confidence)
-    wt, wcount, wn, wd, wtried = twin_ransac(points, triples, 0.01, up, cos_min, confidence)
+    sample = ransac_sample(len(points), sample_size or len(points))
+    if sample_size:
+        assert len(sample) == sample_size and len(np.unique(sample)) == sample_size
+    else:
+        np.testing.assert_array_equal(sample, np.arange(len(points)))
+    t, count, n, d, tried = _ransac_kernel(points, sample, triples, 0.01, up, cos_min,
+                                           confidence)
+    wt, wcount, wn, wd, wtried = twin_ransac(points, triples, 0.01, up, cos_min, confidence,
+                                             sample)
     assert (t, count, tried) == (wt, wcount, wtried) and t >= 0
     np.testing.assert_array_equal(n, wn)
     assert d == wd
@@ -405,6 +459,35 @@ def test_fit_plane_uses_the_triples_drawn_from_the_seed():
     assert t >= 0 and plane.iterations == tried
     # the refit may only gain inliers over the best triple's plane
     assert plane.n_inliers >= count
+
+
+def test_fit_plane_scores_on_the_subsample():
+    """A cloud larger than RANSAC_SAMPLE: triples scored on ransac_sample, the winner counted
+    on every point (twins of the inlier and scatter kernels included)."""
+    points, truth, normal = plane_scene(9000, 6000, rng=np.random.default_rng(12))
+    assert len(points) > RANSAC_SAMPLE
+    sample = ransac_sample(len(points))
+    assert len(sample) == RANSAC_SAMPLE and np.all(np.diff(sample) > 0)
+    plane = fit_plane_ransac(points, 0.01, 200, seed=2, min_inliers=100)
+    triples = ransac_triples(len(points), 200, 2)
+    t, count, n, d, tried = twin_ransac(points, triples, 0.01, np.zeros(3), 0.0, 0.999, sample)
+    assert t >= 0 and plane.iterations == tried
+    p = points.astype(np.float64)
+    want = np.abs(n[0] * p[:, 0] + n[1] * p[:, 1] + n[2] * p[:, 2] + d) <= 0.01
+    got, got_count = _plane_inliers(points, n, d, 0.01)
+    np.testing.assert_array_equal(got, want)
+    assert got_count == want.sum() and plane.n_inliers >= got_count
+    # scatter kernel: sequential sums (cumsum is sequential), centred products
+    centroid, scatter = _inlier_scatter(points, want, int(want.sum()))
+    on = p[want]
+    want_centroid = np.array([np.cumsum(on[:, j])[-1] for j in range(3)]) / len(on)
+    np.testing.assert_array_equal(centroid, want_centroid)
+    c = on - want_centroid
+    want_scatter = np.array([[np.cumsum(c[:, i] * c[:, j])[-1] for j in range(3)]
+                             for i in range(3)])
+    np.testing.assert_array_equal(scatter, want_scatter)
+    assert plane.inliers[truth].mean() > 0.99 and plane.inliers[~truth].mean() < 0.05
+    assert abs(abs(plane.normal @ normal) - 1) < 1e-4
 
 
 def test_up_constraint_picks_the_floor_over_a_bigger_wall():
