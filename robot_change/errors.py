@@ -2,10 +2,14 @@
 
 RobotChangeError
  +-- InputError         arrays or parameters a function cannot work with (wrong dtype or shape,
- |                      non-finite values where they are not allowed, a leaf size <= 0)
+ |    |                 non-finite values where they are not allowed, a leaf size <= 0)
+ |    +-- EmptySceneError     nothing left of a scene after filtering (camera covered? ...)
+ |    +-- SceneMismatchError  reference and current made with other intrinsics or parameters
  +-- ConfigError        a configuration file or value is wrong; names the key, value and what
  |                      is allowed
  +-- MixtureFileError   a saved mixture that is truncated, foreign, newer or tampered with
+ +-- SceneFileError     a saved scene (station reference) that is truncated, foreign, newer or
+ |                      tampered with
  +-- ProtocolError      the serial protocol to the base controller
       +-- MessageError  a message with invalid fields or payload bytes (carries the NAK reason)
       +-- LinkError     the link used in a way the protocol does not allow
@@ -78,3 +82,62 @@ class LinkError(ProtocolError):
     Examples: the module tries to send a base-only message (CHECK); a heartbeat of the wrong
     direction is installed.  The message names the message type and who may send it.
     """
+
+
+class SceneFileError(RobotChangeError):
+    """A saved scene model (a station's reference) that cannot be read back.
+
+    Examples: the file is truncated or not an .npz; its header names another format, or a newer
+    format version than this robot_change reads; the checksum over its header and arrays does
+    not match (changed or damaged after it was written); arrays are missing or malformed; its
+    parameters do not validate.  The message names the file and what to do (capture and save
+    the reference again, or upgrade robot_change).
+    """
+
+
+class EmptySceneError(InputError):
+    """Depth frames that leave (almost) no points after filtering, so no scene can be built.
+
+    The message says which stage emptied the cloud and what to check: camera covered or
+    pointed at nothing, everything beyond the maximum depth, only the floor in view.
+    """
+
+
+class SceneMismatchError(InputError):
+    """A reference and a current view that cannot be compared: other image size or
+    intrinsics, or other cloud parameters (leaf, depth range, outlier or plane settings).
+
+    The message lists every difference and the fix (recapture the reference with the current
+    settings, or pass the reference's intrinsics / parameters).
+    """
+
+
+class StoreError(RobotChangeError):
+    """The reference store cannot do what was asked.
+
+    Examples: the state folder cannot be written (disk full, owned by another user); a file
+    cannot be read for lack of permissions.  The message names the station, the path and what
+    to check.
+    """
+
+
+class StationNameError(StoreError, ValueError):
+    """A station name that is not a plain name (it comes from the serial line).
+
+    Examples: ``""``, ``"../etc"``, ``"a/b"``, ``"dock.prev"``, a name of 33 characters.  The
+    message says what a name may hold: 1..32 ASCII letters, digits, '_' or '-'.
+    """
+
+
+class ReferenceMissing(StoreError, LookupError):
+    """A station has no usable reference.
+
+    Examples: none was ever captured; its file failed verification (truncated, foreign, newer,
+    tampered) and was moved to quarantine.  ``station`` names it; ``quarantined`` is the path
+    the bad file was moved to (None when there was no file).  The fix: CAPTURE_REFERENCE again.
+    """
+
+    def __init__(self, message: str, station: str = "", quarantined=None) -> None:
+        super().__init__(message)
+        self.station = station
+        self.quarantined = quarantined

@@ -1,0 +1,757 @@
+"""A scene model: what the camera saw at one epoch, kept so that another epoch can be compared.
+
+    frames (N x (H, W) uint16 mm)
+      -> fused depth   :func:`robot_change.filters.fuse_depth` (per-pixel median)
+      -> clean cloud   :func:`robot_change.cloud.clean_cloud` (voxels, outliers, plane)
+      -> mixture       :func:`robot_change.mixture.fit_mixture` (split-EM, MDL / BIC / AIC)
+
+A :class:`SceneModel` keeps all three, with the intrinsics (the free-space check of
+ALGORITHM.md section 3 needs the fused depth image, not only the cloud and the mixture) and how
+it was made.  :meth:`SceneModel.save` / :meth:`SceneModel.load` store it as one verified file;
+:func:`check_compatible` refuses to compare scenes seen with other intrinsics or parameters.
+
+No device is opened here: :func:`build_scene_from_source` is handed an open
+:class:`hw.depth.DepthSource`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import io
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import robot_change
+from hw.atomic import write_atomically
+from hw.depth import DepthFrame, DepthSource, Intrinsics
+from hw.errors import FrameError
+from robot_change.cloud import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
+from robot_change.errors import (
+    EmptySceneError,
+    InputError,
+    SceneFileError,
+    SceneMismatchError,
+)
+from robot_change.filters import Plane, fuse_depth
+from robot_change.mixture import CRITERIA, FitRecord, FitStep, Mixture, fit_mixture
+
+__all__ = [
+    "FILE_FORMAT",
+    "FILE_VERSION",
+    "INTRINSICS_TOLERANCE_PX",
+    "MIN_SCENE_POINTS",
+    "SceneModel",
+    "SceneParams",
+    "build_scene",
+    "build_scene_from_source",
+    "check_compatible",
+    "scene_differences",
+]
+
+FILE_FORMAT = "robot_change.scene"
+FILE_VERSION = 1
+#: Intrinsics closer than this (pixels) count as the same camera.
+INTRINSICS_TOLERANCE_PX = 1e-3
+#: Fewest clean points a scene may hold: fewer is no view of a room (and cannot be fitted:
+#: fit_mixture's smallest component is 10 points).
+MIN_SCENE_POINTS = 10
+#: CloudParams fields that change what a point or a voxel means; two scenes compared must
+#: agree on them.  plane_iterations / plane_seed only set the RANSAC search effort.
+COMPARED_CLOUD_FIELDS = (
+    "leaf_m", "min_depth_m", "max_depth_m",
+    "remove_outliers", "outlier_k", "outlier_alpha", "outlier_cap_leaves",
+    "remove_plane", "plane_distance_m", "plane_min_inliers", "plane_up", "plane_max_tilt_deg",
+)
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+def _bad(name: str, value: Any, allowed: str) -> InputError:
+    return InputError(f"SceneParams.{name}={value!r}: must be {allowed}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneParams:
+    """How a scene is built, validated on construction (:class:`InputError` naming the field,
+    its value and what is allowed).
+
+    ``cloud``: the clean-cloud chain (its ``leaf_m`` also sets the mixture's covariance floor).
+    ``criterion``, ``max_components``, ``tol``, ``max_iter``, ``seed``, ``search_points``: passed
+    to :func:`robot_change.mixture.fit_mixture`.  ``min_valid_fraction``: in temporal fusion a
+    pixel needs readings in at least ``ceil(fraction * N)`` of the N frames (0.5: flicker at
+    object edges stays out).
+    """
+
+    cloud: CloudParams = dataclasses.field(default_factory=CloudParams)
+    criterion: str = "mdl"
+    # fit_mixture's default bound.  On 2 cm room clouds MDL keeps falling past K = 16
+    # (ALGORITHM.md section 3), so the bound decides K; it keeps a fit near 0.1 s.
+    max_components: int = 16
+    tol: float = 1e-3
+    max_iter: int = 100
+    seed: int = 0
+    search_points: int | None = 2000
+    min_valid_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.cloud, CloudParams):
+            raise _bad("cloud", self.cloud, "a robot_change.cloud.CloudParams")
+        if self.criterion not in CRITERIA:
+            raise _bad("criterion", self.criterion, f"one of {', '.join(CRITERIA)}")
+        if not _is_int(self.max_components) or not 1 <= self.max_components <= 1000:
+            raise _bad("max_components", self.max_components, "a whole number in 1..1000")
+        if (not isinstance(self.tol, (int, float)) or isinstance(self.tol, bool)
+                or not math.isfinite(self.tol) or self.tol < 0):
+            raise _bad("tol", self.tol, "a finite number >= 0 (change of mean log-likelihood "
+                       "per point)")
+        if not _is_int(self.max_iter) or not 1 <= self.max_iter <= 100_000:
+            raise _bad("max_iter", self.max_iter, "a whole number in 1..100000")
+        if not _is_int(self.seed) or not 0 <= self.seed <= 2**63 - 1:
+            raise _bad("seed", self.seed, "a whole number in 0..2**63-1")
+        if self.search_points is not None and (not _is_int(self.search_points)
+                                               or self.search_points < 100):
+            raise _bad("search_points", self.search_points,
+                       "None (search on every point) or a whole number >= 100")
+        f = self.min_valid_fraction
+        if (not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f)
+                or not 0 < f <= 1):
+            raise _bad("min_valid_fraction", f, "a number with 0 < fraction <= 1 (0.5: a pixel "
+                       "needs a reading in half of the frames)")
+
+    def min_valid(self, n_frames: int) -> int:
+        """Readings a pixel needs among ``n_frames`` frames: ``ceil(fraction * N)``, >= 1."""
+        # round first: 0.3 * 10 is 3.0000000000000004 in floating point
+        return max(1, min(n_frames, math.ceil(round(self.min_valid_fraction * n_frames, 9))))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (``cloud`` nested; ``plane_up`` a list or None)."""
+        d = dataclasses.asdict(self)
+        up = d["cloud"]["plane_up"]
+        d["cloud"]["plane_up"] = None if up is None else list(up)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SceneParams:
+        """Inverse of :meth:`to_dict`; missing fields take their defaults, unknown ones and
+        invalid values raise :class:`InputError`."""
+        if not isinstance(d, dict) or not isinstance(d.get("cloud", {}), dict):
+            raise InputError(f"scene parameters must be a JSON object with a 'cloud' object, "
+                             f"got {d!r}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        cloud_known = {f.name for f in dataclasses.fields(CloudParams)}
+        cloud = dict(d.get("cloud", {}))
+        unknown = sorted(set(d) - known) + [f"cloud.{k}" for k in sorted(set(cloud) - cloud_known)]
+        if unknown:
+            raise InputError(f"unknown scene parameters {unknown}; known: {sorted(known)} and "
+                             f"cloud.{{{', '.join(sorted(cloud_known))}}}")
+        if cloud.get("plane_up") is not None:
+            cloud["plane_up"] = tuple(cloud["plane_up"])
+        rest = {k: v for k, v in d.items() if k != "cloud"}
+        return cls(cloud=CloudParams(**cloud), **rest)
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SceneModel:
+    """What the camera saw at one epoch, and how the model was made.
+
+    ``depth``: (H, W) uint16 mm, the fused image (0 = no reading), read-only.
+    ``intrinsics``: of ``depth``.  ``cloud``: the :class:`robot_change.cloud.CleanCloud` --
+    ``cloud.points`` (M, 3) float32 metres (camera optical frame), ``cloud.pixel_voxel``
+    (H, W) int32 (row of ``points`` each pixel went into, -1 none), ``cloud.pixel_stage``,
+    ``cloud.keys``, ``cloud.counts``, ``cloud.plane``, ``cloud.stage_counts``.
+    ``mixture``: fitted to ``cloud.points`` (``mixture.record``: the fit; kept in the file).
+    Provenance: ``params``; ``n_frames`` fused; ``first_timestamp_us`` / ``last_timestamp_us``
+    and ``first_index`` / ``last_index`` of those frames (None for bare arrays); ``seconds``
+    per stage (``fusion``, ``points``, ``voxel``, ``outliers``, ``plane``, ``cloud`` (all four),
+    ``fit``, ``total``; ``read`` when built from a source); ``created`` (UTC, ISO 8601);
+    ``version`` (robot_change's); ``source`` (e.g. the depth URI).
+    """
+
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    cloud: CleanCloud
+    mixture: Mixture
+    params: SceneParams
+    n_frames: int
+    first_timestamp_us: int | None
+    last_timestamp_us: int | None
+    first_index: int | None
+    last_index: int | None
+    seconds: dict[str, float]
+    created: str
+    version: str
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        d = self.depth
+        if not isinstance(d, np.ndarray) or d.dtype != np.uint16 or d.ndim != 2:
+            raise InputError("SceneModel.depth must be an (H, W) uint16 array in millimetres")
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise InputError("SceneModel.intrinsics must be an hw.depth.Intrinsics")
+        if d.shape != (self.intrinsics.height, self.intrinsics.width):
+            raise InputError(f"SceneModel.depth is {d.shape[1]}x{d.shape[0]} but the intrinsics "
+                             f"are for {self.intrinsics.width}x{self.intrinsics.height}")
+        if not isinstance(self.cloud, CleanCloud):
+            raise InputError("SceneModel.cloud must be a robot_change.cloud.CleanCloud")
+        if self.cloud.pixel_voxel.shape != d.shape:
+            raise InputError(f"SceneModel.cloud.pixel_voxel has shape "
+                             f"{self.cloud.pixel_voxel.shape}, the depth image {d.shape}")
+        if not isinstance(self.mixture, Mixture) or not isinstance(self.params, SceneParams):
+            raise InputError("SceneModel.mixture must be a Mixture and params a SceneParams")
+        if d.flags.writeable:
+            d = d.copy()
+            d.setflags(write=False)
+            object.__setattr__(self, "depth", d)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(M, 3) float32 clean cloud, metres (``cloud.points``)."""
+        return self.cloud.points
+
+    @property
+    def pixel_voxel(self) -> np.ndarray:
+        """(H, W) int32 row of :attr:`points` per pixel, -1 none (``cloud.pixel_voxel``)."""
+        return self.cloud.pixel_voxel
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the depth image."""
+        return self.depth.shape  # type: ignore[return-value]
+
+    def __len__(self) -> int:
+        return len(self.cloud)
+
+    def __repr__(self) -> str:
+        return (f"SceneModel({self.shape[1]}x{self.shape[0]}, {len(self)} points, "
+                f"K={self.mixture.n_components}, {self.n_frames} frames, source={self.source!r}, "
+                f"created={self.created!r})")
+
+    # ----------------------------------------------------------------------- files
+
+    def save(self, path) -> None:
+        """Write to ``path`` as one compressed .npz, atomically (temp file, fsync, rename).
+
+        Arrays: ``depth``, ``points``, ``keys``, ``counts``, ``pixel_voxel``, ``pixel_stage``,
+        ``plane_normal``, ``plane_inliers``, ``weights``, ``means``, ``covariances``; plus
+        ``header``, a JSON string: format name and version, library version, intrinsics,
+        params, provenance, the cloud's counts and timings, the fit record, the arrays' dtypes
+        and shapes, and a SHA-256 over the header and the arrays (checked by :meth:`load`).
+        """
+        arrays = _arrays_of(self)
+        header = _header_of(self, arrays)
+        header["sha256"] = _checksum(header, arrays)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, header=np.array(json.dumps(header, sort_keys=True)), **arrays)
+        write_atomically(Path(path), buf.getvalue())
+
+    @classmethod
+    def load(cls, path) -> SceneModel:
+        """Read a scene written by :meth:`save`, verifying everything (no pickled data is ever
+        loaded).
+
+        Raises
+        ------
+        SceneFileError
+            Unreadable, truncated or not an .npz; another format; a newer format version;
+            checksum mismatch; missing or malformed arrays; parameters that do not validate.
+        FileNotFoundError
+            ``path`` does not exist.
+        """
+        return _load(cls, Path(path))
+
+
+# --------------------------------------------------------------------------- building
+
+
+def _to_stack(frames, intrinsics: Intrinsics | None):
+    """(N, H, W) uint16 stack, intrinsics, and (first/last timestamp, first/last index)."""
+    if isinstance(frames, DepthFrame):
+        frames = [frames]
+    if isinstance(frames, np.ndarray):
+        if frames.dtype != np.uint16 or frames.ndim not in (2, 3):
+            raise InputError(f"frames must be (N, H, W) or (H, W) uint16 millimetres, got "
+                             f"{frames.dtype} {frames.shape}; or a sequence of DepthFrames")
+        stack = frames[None] if frames.ndim == 2 else frames
+        stamps = (None, None, None, None)
+        camera = None
+    else:
+        try:
+            items = list(frames)
+        except TypeError:
+            raise InputError(f"frames must be a sequence of hw.depth.DepthFrame or a uint16 "
+                             f"array, got {type(frames).__name__}") from None
+        if not items:
+            raise InputError("frames is empty: build a scene from at least one depth frame")
+        if all(isinstance(f, DepthFrame) for f in items):
+            camera = items[0].intrinsics
+            for i, f in enumerate(items[1:], 1):
+                if f.shape != items[0].shape:
+                    raise InputError(f"frame {i} (index {f.index}) is {f.shape[1]}x{f.shape[0]},"
+                                     f" frame 0 is {items[0].shape[1]}x{items[0].shape[0]}: "
+                                     "fuse frames of one camera mode only")
+                diff = _intrinsics_differences(camera, f.intrinsics)
+                if diff:
+                    raise InputError(f"frame {i} (index {f.index}) has other intrinsics than "
+                                     f"frame 0 ({'; '.join(diff)}): fuse frames of one camera "
+                                     "only")
+            arrays = [f.depth for f in items]
+            stamps = (int(items[0].timestamp_us), int(items[-1].timestamp_us),
+                      int(items[0].index), int(items[-1].index))
+        else:
+            for i, f in enumerate(items):
+                if isinstance(f, DepthFrame):
+                    raise InputError(f"frames mixes DepthFrames and arrays (item {i}); pass one "
+                                     "kind")
+                if not isinstance(f, np.ndarray) or f.dtype != np.uint16 or f.ndim != 2:
+                    got = (f"{f.dtype} {f.shape}" if isinstance(f, np.ndarray)
+                           else type(f).__name__)
+                    raise InputError(f"frame {i} must be an (H, W) uint16 array in millimetres "
+                                     f"or a DepthFrame, got {got}")
+                if f.shape != items[0].shape:
+                    raise InputError(f"frame {i} is {f.shape[1]}x{f.shape[0]}, frame 0 is "
+                                     f"{items[0].shape[1]}x{items[0].shape[0]}: all frames must "
+                                     "have one size")
+            arrays = items
+            stamps = (None, None, None, None)
+            camera = None
+        stack = np.stack(arrays)
+    if stack.shape[0] == 0:
+        raise InputError("frames holds no frame: build a scene from at least one depth frame")
+    height, width = stack.shape[1:]
+    if intrinsics is not None:
+        if not isinstance(intrinsics, Intrinsics):
+            raise InputError(f"intrinsics must be an hw.depth.Intrinsics, got "
+                             f"{type(intrinsics).__name__}")
+        camera = intrinsics
+    if camera is None:
+        raise InputError(f"bare depth arrays need intrinsics=...: e.g. "
+                         f"Intrinsics.openni_default({width}, {height}) for a Kinect-class "
+                         "camera, or the camera's calibration")
+    if (camera.width, camera.height) != (width, height):
+        raise InputError(f"the frames are {width}x{height} but the intrinsics are for "
+                         f"{camera.width}x{camera.height}; pass intrinsics for this resolution "
+                         "(Intrinsics.scaled)")
+    return stack, camera, stamps
+
+
+def _empty_message(n: int, counts: dict[str, int], params: SceneParams, stack: np.ndarray,
+                   fused: np.ndarray) -> str:
+    cp = params.cloud
+    n_frames = stack.shape[0]
+    head = (f"the scene holds {n} points after filtering (at least {MIN_SCENE_POINTS} needed; "
+            f"stage counts {counts}): ")
+    if counts["pixels"] == 0 and n_frames > 1 and stack.any():
+        why = (f"no pixel has a reading in {params.min_valid(n_frames)} of the {n_frames} "
+               "frames, though single frames have some: did the camera move while the frames "
+               "were taken? Keep it still, or lower min_valid_fraction")
+    elif counts["pixels"] == 0:
+        why = ("no pixel has a depth reading. Is the camera covered, or not streaming depth "
+               "(IR projector off, wrong mode)? Check that it looks at something in range")
+    elif counts["points"] < MIN_SCENE_POINTS:
+        far = int(np.count_nonzero(fused > cp.max_depth_m * 1000.0))
+        near = counts["pixels"] - far
+        why = (f"of {counts['pixels']} readings, {far} are beyond max_depth_m = "
+               f"{cp.max_depth_m} m and {near} nearer than min_depth_m = {cp.min_depth_m} m. "
+               + ("Is everything beyond the maximum depth (an open space, a far wall)? "
+                  if far >= near else
+                  "Is the camera facing a surface right in front of it, or covered? ")
+               + "Point the camera at the scene, or widen min_depth_m / max_depth_m")
+    elif counts["after_outliers"] < MIN_SCENE_POINTS:
+        why = ("outlier removal dropped almost every voxel: the readings are scattered noise. "
+               "Check the camera and the view, or set remove_outliers=False")
+    else:
+        why = (f"the dominant plane took {counts['plane_inliers']} of {counts['after_outliers']} "
+               "voxels: only the floor (or a table, or a wall) is in view. Point the camera at "
+               "the objects to watch, or set remove_plane=False")
+    return head + why
+
+
+def build_scene(
+    frames,
+    params: SceneParams | None = None,
+    *,
+    intrinsics: Intrinsics | None = None,
+    source: str = "",
+) -> SceneModel:
+    """Fuse frames, clean the cloud, fit the mixture: a :class:`SceneModel`.
+
+    Parameters
+    ----------
+    frames : sequence of hw.depth.DepthFrame, or (N, H, W) / (H, W) uint16 array, or a
+        sequence of (H, W) uint16 arrays
+        Depth in millimetres, 0 = no reading, taken while the camera stood still.  DepthFrames
+        must share shape and intrinsics (their timestamps and indices are recorded).
+    params : SceneParams, optional
+        Defaults to ``SceneParams()``.
+    intrinsics : hw.depth.Intrinsics, optional
+        Required for arrays; for DepthFrames it overrides theirs (``--intrinsics``).
+    source : str
+        Where the frames came from (recorded, e.g. the depth URI).
+
+    Raises
+    ------
+    InputError
+        Bad frames (dtype, shape, frames of different sizes or intrinsics, no intrinsics).
+    EmptySceneError
+        Fewer than ``MIN_SCENE_POINTS`` points survive filtering; the message says what to
+        check.
+    """
+    t0 = time.perf_counter()
+    params = SceneParams() if params is None else params
+    if not isinstance(params, SceneParams):
+        raise InputError(f"params must be a SceneParams, got {type(params).__name__}")
+    if not isinstance(source, str):
+        raise InputError(f"source must be a string (e.g. the depth URI), got {source!r}")
+    stack, camera, (ts0, ts1, i0, i1) = _to_stack(frames, intrinsics)
+    n_frames = int(stack.shape[0])
+    fused = fuse_depth(np.ascontiguousarray(stack), params.min_valid(n_frames))
+    t1 = time.perf_counter()
+    cloud = clean_cloud(fused, camera, params.cloud)
+    t2 = time.perf_counter()
+    if len(cloud) < MIN_SCENE_POINTS:
+        raise EmptySceneError(_empty_message(len(cloud), cloud.stage_counts, params, stack,
+                                             fused))
+    mixture = fit_mixture(cloud.points, params.criterion, leaf=params.cloud.leaf_m,
+                          max_components=params.max_components, tol=params.tol,
+                          max_iter=params.max_iter, seed=params.seed,
+                          search_points=params.search_points)
+    t3 = time.perf_counter()
+    ms = cloud.timings_ms
+    seconds = {
+        "fusion": t1 - t0,  # includes checking and stacking the frames
+        "points": ms["points_ms"] / 1e3,
+        "voxel": ms["voxel_ms"] / 1e3,
+        "outliers": ms["outlier_ms"] / 1e3,
+        "plane": ms["plane_ms"] / 1e3,
+        "cloud": t2 - t1,
+        "fit": t3 - t2,
+        "total": t3 - t0,
+    }
+    for a in (cloud.points, cloud.keys, cloud.counts, cloud.pixel_voxel, cloud.pixel_stage):
+        a.setflags(write=False)
+    return SceneModel(
+        depth=fused, intrinsics=camera, cloud=cloud, mixture=mixture, params=params,
+        n_frames=n_frames, first_timestamp_us=ts0, last_timestamp_us=ts1, first_index=i0,
+        last_index=i1, seconds=seconds,
+        created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds"),
+        version=robot_change.__version__, source=source,
+    )
+
+
+def build_scene_from_source(
+    source: DepthSource,
+    n_frames: int = 5,
+    params: SceneParams | None = None,
+    timeout: float | None = 2.0,
+    *,
+    intrinsics: Intrinsics | None = None,
+) -> SceneModel:
+    """Read ``n_frames`` frames from ``source`` and :func:`build_scene` them.
+
+    ``source`` is opened if it is not yet (``open()`` on an open source does nothing); its owner
+    closes it.  Each read waits at most ``timeout`` seconds (a camera raises
+    :class:`hw.errors.FrameTimeout`); a recording that ends early gives fewer frames (the
+    model's ``n_frames`` says how many).  ``intrinsics`` overrides the source's.  The model's
+    ``source`` is the source's URI and ``seconds["read"]`` the time spent reading.
+
+    Raises :class:`InputError` when ``n_frames`` < 1 or the source delivers no frame, and
+    whatever :func:`build_scene` raises.
+    """
+    if not _is_int(n_frames) or n_frames < 1:
+        raise InputError(f"n_frames={n_frames!r}: read at least one frame")
+    if not isinstance(source, DepthSource):
+        raise InputError(f"source must be an hw.depth.DepthSource (from hw.depth.open_depth), "
+                         f"got {type(source).__name__}")
+    t0 = time.perf_counter()
+    source.open()
+    frames: list[DepthFrame] = []
+    while len(frames) < n_frames:
+        frame = source.read(timeout=timeout)
+        if frame is None:
+            break
+        frames.append(frame)
+    t_read = time.perf_counter() - t0
+    uri = getattr(source, "uri", "") or ""
+    if not frames:
+        raise InputError(f"depth source {uri!r} delivered no frame (a recording that is "
+                         "empty or already played to its end?)")
+    model = build_scene(frames, params, intrinsics=intrinsics, source=uri)
+    model.seconds["read"] = t_read
+    return model
+
+
+# --------------------------------------------------------------------------- compatibility
+
+
+def _intrinsics_differences(ref: Intrinsics, cur: Intrinsics,
+                            tol: float = INTRINSICS_TOLERANCE_PX) -> list[str]:
+    if (ref.width, ref.height) != (cur.width, cur.height):
+        return [f"image size {ref.width}x{ref.height} vs {cur.width}x{cur.height}"]
+    return [f"{name} {getattr(ref, name):.6g} vs {getattr(cur, name):.6g} px"
+            for name in ("fx", "fy", "cx", "cy")
+            if not abs(float(getattr(ref, name)) - float(getattr(cur, name))) <= tol]
+
+
+def scene_differences(reference: SceneModel, current) -> tuple[list[str], list[str]]:
+    """What keeps ``current`` from being compared with ``reference``.
+
+    ``current``: a SceneModel, or ``(intrinsics, params)`` with params a SceneParams or a
+    CloudParams.  Returns (intrinsics differences, cloud parameter differences), each a list of
+    ``"name reference vs current"`` strings; both empty when compatible.  Intrinsics agree
+    within :data:`INTRINSICS_TOLERANCE_PX`; the cloud parameters compared are
+    :data:`COMPARED_CLOUD_FIELDS` (mixture fit options are not: a current view may be fitted
+    differently).
+    """
+    if not isinstance(reference, SceneModel):
+        raise InputError(f"reference must be a SceneModel, got {type(reference).__name__}")
+    if isinstance(current, SceneModel):
+        cam, cloud = current.intrinsics, current.params.cloud
+    else:
+        try:
+            cam, params = current
+        except (TypeError, ValueError):
+            raise InputError("current must be a SceneModel or an (Intrinsics, SceneParams) "
+                             "pair") from None
+        cloud = params.cloud if isinstance(params, SceneParams) else params
+        if not isinstance(cam, Intrinsics) or not isinstance(cloud, CloudParams):
+            raise InputError(f"current must be a SceneModel or an (Intrinsics, SceneParams) "
+                             f"pair, got ({type(cam).__name__}, {type(params).__name__})")
+    ref_cloud = reference.params.cloud
+    params_diff = [f"{name} {getattr(ref_cloud, name)!r} vs {getattr(cloud, name)!r}"
+                   for name in COMPARED_CLOUD_FIELDS
+                   if getattr(ref_cloud, name) != getattr(cloud, name)]
+    return _intrinsics_differences(reference.intrinsics, cam), params_diff
+
+
+def check_compatible(reference: SceneModel, current) -> None:
+    """Raise :class:`SceneMismatchError` unless ``current`` (a SceneModel or an
+    ``(intrinsics, params)`` pair) can be compared with ``reference``: same image size,
+    intrinsics within :data:`INTRINSICS_TOLERANCE_PX` pixels, same cloud parameters
+    (:data:`COMPARED_CLOUD_FIELDS`).  The message lists every difference (reference vs
+    current) and the fix."""
+    cam_diff, params_diff = scene_differences(reference, current)
+    parts = []
+    if cam_diff:
+        r = reference.intrinsics
+        parts.append(
+            f"intrinsics differ ({'; '.join(cam_diff)}): recapture the reference with this "
+            f"camera and mode, or pass --intrinsics {r.fx:g},{r.fy:g},{r.cx:g},{r.cy:g} if "
+            f"it is the reference's camera (a {r.width}x{r.height} image)")
+    if params_diff:
+        parts.append(
+            f"cloud parameters differ ({'; '.join(params_diff)}): recapture the reference with "
+            "the current parameters, or run with the reference's (reference.params.cloud)")
+    if parts:
+        where = f" ({reference.source})" if reference.source else ""
+        raise SceneMismatchError(f"the reference{where} cannot be compared with the current "
+                                 "view: " + "; ".join(parts))
+
+
+# --------------------------------------------------------------------------- file format
+
+#: name -> (dtype, number of dimensions) of every array in a scene file.
+_ARRAYS = {
+    "depth": ("<u2", 2),
+    "points": ("<f4", 2),
+    "keys": ("<i8", 1),
+    "counts": ("<i4", 1),
+    "pixel_voxel": ("<i4", 2),
+    "pixel_stage": ("|u1", 2),
+    "plane_normal": ("<f8", 1),
+    "plane_inliers": ("|b1", 1),
+    "weights": ("<f8", 1),
+    "means": ("<f8", 2),
+    "covariances": ("<f8", 3),
+}
+
+
+def _arrays_of(model: SceneModel) -> dict[str, np.ndarray]:
+    c, m = model.cloud, model.mixture
+    raw = {
+        "depth": model.depth, "points": c.points, "keys": c.keys, "counts": c.counts,
+        "pixel_voxel": c.pixel_voxel, "pixel_stage": c.pixel_stage,
+        "plane_normal": c.plane.normal, "plane_inliers": c.plane.inliers,
+        "weights": m.weights, "means": m.means, "covariances": m.covariances,
+    }
+    return {k: np.ascontiguousarray(raw[k], dtype=np.dtype(dt)) for k, (dt, _) in _ARRAYS.items()}
+
+
+def _record_to_dict(record: FitRecord | None) -> dict | None:
+    if record is None:
+        return None
+    d = dataclasses.asdict(record)
+    d["steps"] = [dataclasses.asdict(s) for s in record.steps]
+    return d
+
+
+def _record_from_dict(d: dict | None) -> FitRecord | None:
+    if d is None:
+        return None
+    d = dict(d)
+    d["steps"] = tuple(FitStep(**s) for s in d["steps"])
+    return FitRecord(**d)
+
+
+def _header_of(model: SceneModel, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    c = model.cloud
+    return {
+        "format": FILE_FORMAT,
+        "version": FILE_VERSION,
+        "library_version": model.version,
+        "saved_by": robot_change.__version__,
+        "created": model.created,
+        "source": model.source,
+        "n_frames": model.n_frames,
+        "first_timestamp_us": model.first_timestamp_us,
+        "last_timestamp_us": model.last_timestamp_us,
+        "first_index": model.first_index,
+        "last_index": model.last_index,
+        "seconds": dict(model.seconds),
+        "intrinsics": dataclasses.asdict(model.intrinsics),
+        "params": model.params.to_dict(),
+        "cloud": {
+            "stage_counts": dict(c.stage_counts),
+            "timings_ms": dict(c.timings_ms),
+            "plane_offset": c.plane.offset,
+            "plane_n_inliers": c.plane.n_inliers,
+            "plane_iterations": c.plane.iterations,
+        },
+        "fit": _record_to_dict(model.mixture.record),
+        "arrays": {k: [a.dtype.str, list(a.shape)] for k, a in arrays.items()},
+    }
+
+
+def _checksum(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 over the header (without its ``sha256``, canonical JSON) and every array
+    (name, dtype, shape, little-endian bytes) in name order."""
+    h = hashlib.sha256()
+    body = {k: v for k, v in header.items() if k != "sha256"}
+    h.update(json.dumps(body, sort_keys=True).encode())
+    for name in sorted(arrays):
+        a = arrays[name]
+        h.update(f"\n{name} {a.dtype.str} {a.shape}\n".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _load(cls, path: Path) -> SceneModel:
+    redo = "build and save the reference again"
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise SceneFileError(f"{path}: a single .npy array, not a scene file (.npz); "
+                                 "is this the right file?")
+        with loaded as data:
+            names = set(data.files)
+            if "header" not in names:
+                raise SceneFileError(f"{path}: no header, not a scene file "
+                                     f"(arrays: {sorted(names)}); is this the right file?")
+            header = json.loads(str(data["header"][()]))
+            if not isinstance(header, dict):
+                raise SceneFileError(f"{path}: the header is not a JSON object; {redo}")
+            _check_format(path, header)
+            missing = sorted(set(_ARRAYS) - names)
+            if missing:
+                raise SceneFileError(f"{path}: arrays {missing} are missing; {redo}")
+            arrays = {k: np.array(data[k]) for k in _ARRAYS}
+    except (FileNotFoundError, SceneFileError):
+        raise
+    except Exception as exc:  # BadZipFile, zlib.error, EOFError, ValueError, KeyError, ...
+        raise SceneFileError(f"{path}: not a readable scene file, truncated or damaged "
+                             f"({type(exc).__name__}: {exc}); {redo}") from exc
+    if header.get("sha256") != _checksum(header, arrays):
+        raise SceneFileError(f"{path}: checksum mismatch, the file was changed or damaged after "
+                             f"it was written; {redo}")
+    try:
+        return _model_from(cls, header, arrays)
+    except SceneFileError:
+        raise
+    except (InputError, FrameError, KeyError, TypeError, ValueError) as exc:
+        raise SceneFileError(f"{path}: the file does not hold a valid scene "
+                             f"({type(exc).__name__}: {exc}); {redo}") from exc
+
+
+def _check_format(path: Path, header: dict[str, Any]) -> None:
+    if header.get("format") != FILE_FORMAT:
+        raise SceneFileError(f"{path}: format {header.get('format')!r} is not {FILE_FORMAT!r}; "
+                             "is this the right file? (a mixture alone is read by "
+                             "Mixture.load)")
+    version = header.get("version")
+    if not _is_int(version) or version < 1:
+        raise SceneFileError(f"{path}: bad format version {version!r}; build and save the "
+                             "reference again")
+    if version > FILE_VERSION:
+        raise SceneFileError(
+            f"{path}: scene format version {version}, made by robot_change "
+            f"{header.get('library_version', '?')}; this robot_change "
+            f"{robot_change.__version__} reads up to version {FILE_VERSION}: upgrade "
+            "robot_change (or rebuild the reference with this version)")
+
+
+def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> SceneModel:
+    for name, (dtype, ndim) in _ARRAYS.items():
+        a = arrays[name]
+        if a.dtype != np.dtype(dtype) or a.ndim != ndim:
+            raise SceneFileError(f"array {name!r} is {a.dtype} with {a.ndim} dimensions, "
+                                 f"expected {np.dtype(dtype)} with {ndim}")
+    params = SceneParams.from_dict(header["params"])
+    camera = Intrinsics(**header["intrinsics"])
+    m = arrays["points"].shape[0]
+    shape = arrays["depth"].shape
+    checks = [
+        (arrays["points"].shape == (m, 3), "points is not (M, 3)"),
+        (arrays["keys"].shape == (m,) and arrays["counts"].shape == (m,),
+         "keys / counts do not match points"),
+        (arrays["pixel_voxel"].shape == shape and arrays["pixel_stage"].shape == shape,
+         "pixel_voxel / pixel_stage do not match the depth image"),
+        (m == 0 or (arrays["pixel_voxel"].min() >= -1 and arrays["pixel_voxel"].max() < m),
+         "pixel_voxel points outside the cloud"),
+        (arrays["pixel_stage"].max(initial=0) <= PIXEL_KEPT, "pixel_stage has unknown codes"),
+        (arrays["plane_normal"].shape == (3,), "plane_normal is not a 3-vector"),
+    ]
+    for ok, what in checks:
+        if not ok:
+            raise SceneFileError(what)
+    for a in arrays.values():
+        a.setflags(write=False)
+    ch = header["cloud"]
+    plane = Plane(normal=arrays["plane_normal"], offset=float(ch["plane_offset"]),
+                  inliers=arrays["plane_inliers"], n_inliers=int(ch["plane_n_inliers"]),
+                  iterations=int(ch["plane_iterations"]))
+    cloud = CleanCloud(
+        points=arrays["points"], keys=arrays["keys"], counts=arrays["counts"],
+        pixel_voxel=arrays["pixel_voxel"], pixel_stage=arrays["pixel_stage"], plane=plane,
+        stage_counts={k: int(v) for k, v in ch["stage_counts"].items()},
+        timings_ms={k: float(v) for k, v in ch["timings_ms"].items()}, params=params.cloud,
+    )
+    mixture = Mixture(arrays["weights"], arrays["means"], arrays["covariances"],
+                      _record_from_dict(header["fit"]))
+
+    def opt_int(key):
+        v = header[key]
+        return None if v is None else int(v)
+
+    return cls(
+        depth=arrays["depth"], intrinsics=camera, cloud=cloud, mixture=mixture, params=params,
+        n_frames=int(header["n_frames"]), first_timestamp_us=opt_int("first_timestamp_us"),
+        last_timestamp_us=opt_int("last_timestamp_us"), first_index=opt_int("first_index"),
+        last_index=opt_int("last_index"),
+        seconds={k: float(v) for k, v in header["seconds"].items()},
+        created=str(header["created"]), version=str(header["library_version"]),
+        source=str(header["source"]),
+    )
