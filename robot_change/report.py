@@ -40,6 +40,39 @@ def _save(figure, path: Path) -> Path:
     return path
 
 
+def mixture_ellipses(
+    means: np.ndarray, covariances: np.ndarray, intrinsics: Intrinsics, n_sigma: float = 2.0,
+    n_vertices: int = 48,
+) -> list[np.ndarray]:
+    """The image outlines of 3-D Gaussians: for each component, an (n_vertices, 2) array of
+    (u, v) pixel coordinates of its ``n_sigma`` ellipse.
+
+    ``means`` (K, 3) m and ``covariances`` (K, 3, 3) m^2 in the camera optical frame.  The
+    projection is linearised at the mean (Jacobian of the pinhole model), so the outline is the
+    ellipse of the projected covariance.  Components behind the camera give an empty (0, 2)
+    array.
+    """
+    outlines = []
+    angles = np.linspace(0.0, 2.0 * np.pi, n_vertices)
+    circle = np.stack([np.cos(angles), np.sin(angles)])  # (2, V)
+    for mean, covariance in zip(np.asarray(means, float), np.asarray(covariances, float)):
+        x, y, z = mean
+        if not z > 1e-6:
+            outlines.append(np.zeros((0, 2)))
+            continue
+        jacobian = np.array([
+            [intrinsics.fx / z, 0.0, -intrinsics.fx * x / z**2],
+            [0.0, intrinsics.fy / z, -intrinsics.fy * y / z**2],
+        ])
+        projected = jacobian @ covariance @ jacobian.T
+        values, vectors = np.linalg.eigh(0.5 * (projected + projected.T))
+        axes = vectors * (n_sigma * np.sqrt(np.clip(values, 0.0, None)))
+        centre = np.array([intrinsics.fx * x / z + intrinsics.cx,
+                           intrinsics.fy * y / z + intrinsics.cy])
+        outlines.append((centre[:, None] + axes @ circle).T)
+    return outlines
+
+
 def draw_cloud(
     depth: np.ndarray, intrinsics: Intrinsics, cloud: CleanCloud, path: str | Path, title: str = ""
 ) -> Path:
