@@ -1,7 +1,8 @@
 """``robot-change``: the command line.  The one place that builds hardware and wires it up.
 
 Exit status: 0 success, 2 bad input (a file, URI, option or parameter the command cannot use; the
-message says what to change), 1 an internal error.
+message says what to change), 78 a configuration error (EX_CONFIG: systemd does not restart the
+service for it), 1 an internal error.
 """
 
 from __future__ import annotations
@@ -17,7 +18,11 @@ import numpy as np
 
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
-from robot_change.errors import InputError, RobotChangeError
+from robot_change.errors import ConfigError, InputError, RobotChangeError
+
+#: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
+#: RestartPreventExitStatus.  Kept equal to robot_change.config.EXIT_CONFIG (a test checks).
+EXIT_CONFIG = 78
 
 #: The source checkout's bundled fixtures (absent from a wheel install: pass --source there).
 SIM_FIXTURES = Path(__file__).resolve().parents[1] / "sim_fixtures"
@@ -213,6 +218,21 @@ def cmd_list_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """Read and check a configuration file; print the effective settings."""
+    from robot_change.config import load_config
+
+    config = load_config(args.file)
+    if args.json:
+        _print_json(config.as_dict())
+    else:
+        print(f"{args.file}: OK")
+        for section, table in config.as_dict().items():
+            for key, value in table.items():
+                print(f"{section}.{key} = {value!r}")
+    return 0
+
+
 def cmd_base_sim(args: argparse.Namespace) -> int:
     """A simulated base controller on a serial port: interactive, or driven by a script."""
     from robot_change.basesim import run_base_sim
@@ -272,6 +292,14 @@ def build_parser() -> argparse.ArgumentParser:
     devices.add_argument("--json", action="store_true", help="print one JSON object")
     devices.set_defaults(func=cmd_list_devices)
 
+    check = commands.add_parser("check-config", help="read and check a configuration file "
+                                "(exit 78 when it is wrong)")
+    check.add_argument("file", metavar="FILE",
+                       help="TOML file, e.g. /etc/robot-change/robot-change.toml")
+    check.add_argument("--json", action="store_true",
+                       help="print the effective configuration as one JSON object")
+    check.set_defaults(func=cmd_check_config)
+
     base_sim = commands.add_parser("base-sim", help="a simulated base controller on a serial port "
                                    "(interactive, or --script)")
     base_sim.add_argument("--port", required=True,
@@ -300,6 +328,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except ConfigError as exc:
+        # its own exit status, which systemd does not restart (RestartPreventExitStatus)
+        print(f"robot-change {args.command}: configuration error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
     except (HwError, RobotChangeError) as exc:
         print(f"robot-change {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,9 @@ RobotChangeError
  +-- MixtureFileError   a saved mixture that is truncated, foreign, newer or tampered with
  +-- SceneFileError     a saved scene (station reference) that is truncated, foreign, newer or
  |                      tampered with
+ +-- StoreError         the per-station reference store
+ |    +-- StationNameError  a station name that is not allowed (it comes from the serial line)
+ |    +-- ReferenceMissing  no usable reference for a station (none, or quarantined)
  +-- ProtocolError      the serial protocol to the base controller
       +-- MessageError  a message with invalid fields or payload bytes (carries the NAK reason)
       +-- LinkError     the link used in a way the protocol does not allow

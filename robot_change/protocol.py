@@ -174,7 +174,7 @@ PARAMS: tuple[Param, ...] = (
     Param(5, "pause_on_change", 0, 1, 1, "bool", "1: a change raises PAUSE; 0: report only"),
     Param(6, "fuse_frames", 1, 30, 5, "frames", "depth frames fused per capture or check"),
     Param(7, "min_region_extent_mm", 10, 5_000, 50, "mm", "smaller changed regions are ignored"),
-    Param(8, "max_depth_mm", 500, 10_000, 4_000, "mm", "depth beyond this is not used"),
+    Param(8, "max_depth_mm", 500, 10_000, 5_000, "mm", "depth beyond this is not used"),
 )
 PARAM_BY_ID = {p.id: p for p in PARAMS}
 PARAM_BY_NAME = {p.name: p for p in PARAMS}

@@ -118,3 +118,18 @@ def test_a_corrupt_oni_is_refused_before_the_native_library_sees_it(tmp_path):
 def test_the_demo_frame_is_a_vga_depth_image():
     depth = read_png(REPO / "sim_fixtures" / "frames" / "room_vga.png")
     assert depth.shape == (480, 640) and depth.dtype == np.uint16
+
+
+def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tmp_path):
+    from robot_change.cli import EXIT_CONFIG
+    from robot_change.config import EXIT_CONFIG as CONFIG_EXIT
+
+    assert EXIT_CONFIG == CONFIG_EXIT == 78
+    result = run("check-config", str(REPO / "systemd" / "robot-change.toml"))
+    assert result.returncode == 0, result.stderr
+    assert "cloud.leaf_m" in result.stdout
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[cloud]\nleaf_m = -1\n")
+    result = run("check-config", str(bad))
+    assert result.returncode == 78
+    assert "cloud.leaf_m = -1" in result.stderr and "Traceback" not in result.stderr

@@ -1,0 +1,568 @@
+"""The daemon's configuration: TOML (``tomllib``) into frozen, validated dataclasses.
+
+    config = load_config("/etc/robot-change/robot-change.toml")
+    config.watch.watch_m, config.cloud.params(), config.parameters()
+
+Sections: ``camera``, ``serial``, ``store``, ``cloud``, ``mixture``, ``change``, ``watch``,
+``service``; ``systemd/robot-change.toml`` documents every key with its default.  Keys that
+are also runtime parameters of the protocol (``robot_change.protocol.PARAMS``: ``watch_m``,
+``fuse_frames``, ``max_depth_mm`` ...) have the same names, ranges and defaults, and
+:meth:`Config.parameters` gives their values as the daemon's starting parameter table.
+
+Every error is a :class:`ConfigError` naming the file, the dotted key, the value and what is
+allowed; unknown sections and keys are errors too, with a did-you-mean suggestion.  A command
+that fails on its configuration exits with :data:`EXIT_CONFIG`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import re
+import tomllib
+import types
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Mapping
+
+from robot_change.cloud import CloudParams
+from robot_change.errors import ConfigError, InputError
+from robot_change.protocol import PARAM_BY_NAME, PARAMS
+from robot_change.scene import SceneParams
+
+#: The library's own defaults: the config file's defaults are these, not copies of them.
+_CLOUD = CloudParams()
+_SCENE = SceneParams()
+
+__all__ = [
+    "EXIT_CONFIG",
+    "CameraConfig",
+    "ChangeConfig",
+    "CloudConfig",
+    "Config",
+    "MixtureConfig",
+    "SerialConfig",
+    "ServiceConfig",
+    "StoreConfig",
+    "WatchConfig",
+    "load_config",
+]
+
+#: Exit status of a command stopped by a bad configuration (sysexits.h EX_CONFIG).  The systemd
+#: unit lists it in RestartPreventExitStatus=: restarting cannot fix a configuration file.
+EXIT_CONFIG = 78
+
+#: Baud rates a USB serial adapter and the base controller commonly agree on.
+BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000,
+              2000000)
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class _Bad(Exception):
+    """A value a checker refuses; ``allowed`` says what would be accepted."""
+
+    def __init__(self, allowed: str) -> None:
+        super().__init__(allowed)
+        self.allowed = allowed
+
+
+# ---------------------------------------------------------------------------------------------
+# checkers: value from TOML -> value kept (converted), or _Bad(what is allowed)
+
+Check = Callable[[Any], Any]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _int(lo: int, hi: int, unit: str = "") -> Check:
+    def check(value: Any) -> int:
+        if not _is_int(value) or not lo <= value <= hi:
+            raise _Bad(f"a whole number in {lo}..{hi}{unit}")
+        return value
+    return check
+
+
+def _float(lo: float, hi: float, unit: str = "", *, lo_open: bool = False) -> Check:
+    def check(value: Any) -> float:
+        ok = (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+        ok = ok and (value > lo if lo_open else value >= lo) and value <= hi
+        if not ok:
+            low = f"{lo} < x" if lo_open else f"{lo} <= x"
+            raise _Bad(f"a number with {low} <= {hi}{unit}")
+        return float(value)
+    return check
+
+
+def _bool(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise _Bad("true or false")
+    return value
+
+
+def _choice(options: tuple[Any, ...]) -> Check:
+    def check(value: Any) -> Any:
+        if isinstance(value, str):
+            value = value.lower()
+        if value not in options:
+            raise _Bad("one of " + ", ".join(repr(o) for o in options))
+        return value
+    return check
+
+
+def _text(value: Any) -> str:
+    if not isinstance(value, str) or not value.strip() or "\0" in value:
+        raise _Bad("a non-empty string")
+    return value
+
+
+def _depth_uri(value: Any) -> str:
+    from hw.depth import parse_uri
+    from hw.errors import UriError
+
+    text = _text(value)
+    try:
+        parse_uri(text)
+    except UriError as exc:
+        raise _Bad(f"a depth URI such as 'openni2://', 'openni2://SERIAL', 'oni:FILE.oni' or "
+                   f"'images:DIR/' ({exc})") from None
+    return text
+
+
+def _param(name: str) -> Check:
+    """The range of the protocol's runtime parameter ``name`` (same bounds on the wire)."""
+    p = PARAM_BY_NAME[name]
+    if p.unit == "bool":
+        return _bool
+    return _int(p.minimum, p.maximum, f" {p.unit}")
+
+
+def _cloud(name: str) -> Check:
+    """Checked by CloudParams itself, so the bounds live in one place (robot_change.cloud)."""
+    def check(value: Any) -> Any:
+        from robot_change.cloud import CloudParams
+
+        if name == "plane_up":
+            if (not isinstance(value, list) or len(value) != 3
+                    or not all(_is_int(v) or isinstance(v, float) for v in value)):
+                raise _Bad("an array of 3 numbers, e.g. [0, -1, 0] (camera frame, y down)")
+            value = tuple(float(v) for v in value)
+            trial = {"plane_up": value, "plane_max_tilt_deg": 10.0}
+        elif name == "plane_max_tilt_deg":
+            trial = {"plane_up": (0.0, -1.0, 0.0), "plane_max_tilt_deg": value}
+        else:
+            trial = {name: value}
+        if isinstance(value, bool) != isinstance(getattr(CloudParams(), name, None), bool):
+            raise _Bad("true or false" if isinstance(getattr(CloudParams(), name), bool)
+                       else "a number")
+        try:
+            CloudParams(**trial)
+        except InputError as exc:
+            raise _Bad(str(exc).split(": ", 1)[-1].removeprefix("must be ")) from None
+        return float(value) if isinstance(getattr(CloudParams(), name), float) else value
+    return check
+
+
+def _scene(name: str) -> Check:
+    """Checked by SceneParams itself (robot_change.scene holds the bounds)."""
+    def check(value: Any) -> Any:
+        from robot_change.scene import SceneParams
+
+        default = getattr(SceneParams(), name)
+        if isinstance(value, str):
+            value = value.lower()
+        if name == "search_points" and (not _is_int(value) or value < 100):
+            raise _Bad("a whole number >= 100")
+        if isinstance(value, bool) or (isinstance(default, int) and not _is_int(value)):
+            raise _Bad("a whole number" if isinstance(default, int) else "a number")
+        try:
+            SceneParams(**{name: value})
+        except InputError as exc:
+            raise _Bad(str(exc).split(": ", 1)[-1].removeprefix("must be ")) from None
+        return float(value) if isinstance(default, float) else value
+    return check
+
+
+def _key(default: Any, check: Check, doc: str) -> Any:
+    return dataclasses.field(default=default, metadata={"check": check, "doc": doc})
+
+
+# ---------------------------------------------------------------------------------------------
+# sections
+
+
+class _Section:
+    """A frozen section; every field is checked (and converted) on construction."""
+
+    NAME: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if value is None and f.default is None:
+                continue  # an optional key left out
+            try:
+                object.__setattr__(self, f.name, f.metadata["check"](value))
+            except _Bad as bad:
+                raise ConfigError(f"{self.NAME}.{f.name} = {_show(value)}: must be "
+                                  f"{bad.allowed}") from None
+        self._cross_check()
+
+    def _cross_check(self) -> None:
+        """Checks between keys of the section (override)."""
+
+
+def _show(value: Any) -> str:
+    """A value as TOML would spell it (true/false, quoted strings, arrays)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {_show(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConfig(_Section):
+    """The depth camera (or recording) the daemon reads."""
+
+    NAME: ClassVar[str] = "camera"
+    source: str = _key("openni2://", _depth_uri,
+                       "depth URI: openni2:// (first camera), openni2://SERIAL, oni:FILE.oni, "
+                       "images:DIR/")
+    fuse_frames: int = _key(PARAM_BY_NAME["fuse_frames"].default, _param("fuse_frames"),
+                            "depth frames fused (per-pixel median) per reference or check")
+    min_valid_fraction: float = _key(_SCENE.min_valid_fraction, _scene("min_valid_fraction"),
+                                     "a fused pixel needs readings in this fraction of the "
+                                     "frames")
+    read_timeout_s: float = _key(1.0, _float(0.0, 30.0, " seconds", lo_open=True),
+                                 "longest wait for one frame before the camera counts as lost")
+
+
+@dataclasses.dataclass(frozen=True)
+class SerialConfig(_Section):
+    """The serial line to the base controller."""
+
+    NAME: ClassVar[str] = "serial"
+    port: str = _key("/dev/robot-base", _text,
+                     "serial port: a device path (the udev rule's /dev/robot-base) or a pyserial "
+                     "URL (socket://HOST:PORT, loop://)")
+    baud: int = _key(115200, _choice(BAUD_RATES), "line speed in baud (8N1)")
+
+
+@dataclasses.dataclass(frozen=True)
+class StoreConfig(_Section):
+    """Where station references are kept."""
+
+    NAME: ClassVar[str] = "store"
+    state_dir: str = _key("/var/lib/robot-change", _text,
+                          "folder of the station references (systemd's StateDirectory); a "
+                          "relative path is taken from the config file's folder")
+
+    @property
+    def references(self) -> Path:
+        """The folder a :class:`robot_change.store.ReferenceStore` uses."""
+        return Path(self.state_dir) / "references"
+
+
+@dataclasses.dataclass(frozen=True)
+class CloudConfig(_Section):
+    """Depth -> clean cloud (robot_change.cloud.CloudParams; depth range as on the wire)."""
+
+    NAME: ClassVar[str] = "cloud"
+    leaf_m: float = _key(_CLOUD.leaf_m, _cloud("leaf_m"), "voxel size in metres")
+    min_depth_mm: int = _key(round(_CLOUD.min_depth_m * 1000), _int(0, 10_000, " mm"), "nearer depth is not used")
+    max_depth_mm: int = _key(PARAM_BY_NAME["max_depth_mm"].default, _param("max_depth_mm"),
+                             "depth beyond this is not used")
+    remove_outliers: bool = _key(_CLOUD.remove_outliers, _cloud("remove_outliers"),
+                                 "statistical outlier removal on the voxel cloud")
+    outlier_k: int = _key(_CLOUD.outlier_k, _cloud("outlier_k"), "neighbours per voxel in outlier removal")
+    outlier_alpha: float = _key(_CLOUD.outlier_alpha, _cloud("outlier_alpha"),
+                                "a voxel is an outlier beyond mean + alpha * std of the "
+                                "neighbour distances")
+    outlier_cap_leaves: float = _key(_CLOUD.outlier_cap_leaves, _cloud("outlier_cap_leaves"),
+                                     "... and within this many leaves it never is")
+    remove_plane: bool = _key(_CLOUD.remove_plane, _cloud("remove_plane"), "remove the dominant plane (floor)")
+    plane_distance_m: float = _key(_CLOUD.plane_distance_m, _cloud("plane_distance_m"),
+                                   "plane inlier distance in metres")
+    plane_iterations: int = _key(_CLOUD.plane_iterations, _cloud("plane_iterations"), "most RANSAC triples")
+    plane_seed: int = _key(_CLOUD.plane_seed, _cloud("plane_seed"), "RANSAC seed (same seed, same plane)")
+    plane_min_inliers: int = _key(_CLOUD.plane_min_inliers, _cloud("plane_min_inliers"),
+                                  "a plane needs this many voxels")
+    plane_up: tuple[float, float, float] | None = _key(
+        None, _cloud("plane_up"), "camera-frame up vector; only planes within "
+        "plane_max_tilt_deg of it count (set both or neither)")
+    plane_max_tilt_deg: float | None = _key(None, _cloud("plane_max_tilt_deg"),
+                                            "largest tilt of the plane from plane_up, degrees")
+
+    def _cross_check(self) -> None:
+        if self.min_depth_mm >= self.max_depth_mm:
+            raise ConfigError(f"cloud.min_depth_mm = {self.min_depth_mm}: must be below "
+                              f"cloud.max_depth_mm = {self.max_depth_mm}")
+        if (self.plane_up is None) != (self.plane_max_tilt_deg is None):
+            given, missing = (("plane_up", "plane_max_tilt_deg") if self.plane_up is not None
+                              else ("plane_max_tilt_deg", "plane_up"))
+            raise ConfigError(f"cloud.{given} = {_show(getattr(self, given))}: must come with "
+                              f"cloud.{missing} (set both or neither)")
+
+    def params(self):
+        """The :class:`robot_change.cloud.CloudParams` these keys describe."""
+        from robot_change.cloud import CloudParams
+
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        values["min_depth_m"] = values.pop("min_depth_mm") / 1000.0
+        values["max_depth_m"] = values.pop("max_depth_mm") / 1000.0
+        return CloudParams(**values)
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureConfig(_Section):
+    """The Gaussian mixture fitted to a cloud (robot_change.scene.SceneParams ->
+    robot_change.mixture.fit_mixture)."""
+
+    NAME: ClassVar[str] = "mixture"
+    criterion: str = _key(_SCENE.criterion, _scene("criterion"),
+                          "model-selection criterion that picks the number of components")
+    max_components: int = _key(_SCENE.max_components, _scene("max_components"), "most components of one mixture")
+    tol: float = _key(_SCENE.tol, _scene("tol"), "EM stops when the mean log-likelihood per point "
+                      "changes by less")
+    max_iter: int = _key(_SCENE.max_iter, _scene("max_iter"), "most iterations of one EM run")
+    seed: int = _key(_SCENE.seed, _scene("seed"), "seed of the random subsets (same seed, same fit)")
+    search_points: int = _key(_SCENE.search_points, _scene("search_points"),
+                              "the split search runs on a random subset of this many points")
+
+
+#: Free-form keys of [change]: snake_case names, numbers or booleans.
+_FREE_KEY = re.compile(r"[a-z][a-z0-9_]{0,63}\Z")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangeConfig(_Section):
+    """Thresholds of change detection.  The protocol's three are checked here; the change step
+    is still being written, so further numeric keys are kept in ``extra`` (validated: snake_case
+    names, finite numbers or booleans, and no near-miss of a known key)."""
+
+    NAME: ClassVar[str] = "change"
+    min_region_points: int = _key(PARAM_BY_NAME["min_region_points"].default,
+                                  _param("min_region_points"),
+                                  "changed regions with fewer points are ignored")
+    min_region_extent_mm: int = _key(PARAM_BY_NAME["min_region_extent_mm"].default,
+                                     _param("min_region_extent_mm"),
+                                     "changed regions smaller than this are ignored")
+    pause_on_change: bool = _key(bool(PARAM_BY_NAME["pause_on_change"].default),
+                                 _param("pause_on_change"),
+                                 "true: a change raises PAUSE; false: report only")
+    extra: Mapping[str, float | int | bool] = dataclasses.field(
+        default_factory=lambda: types.MappingProxyType({}),
+        metadata={"check": lambda v: v, "doc": "further thresholds of the change step"})
+
+    def _cross_check(self) -> None:
+        known = [f.name for f in dataclasses.fields(self) if f.name != "extra"]
+        clean = {}
+        for name, value in dict(self.extra).items():
+            where = f"change.{name} = {_show(value)}"
+            if not isinstance(name, str) or not _FREE_KEY.match(name):
+                raise ConfigError(f"{where}: a threshold name is snake_case (a-z, 0-9, _)")
+            elsewhere = _ALL_KEYS.get(name)
+            if name in known or name == "extra":
+                raise ConfigError(f"{where}: '{name}' is not a free-form threshold")
+            if elsewhere:
+                raise ConfigError(f"{where}: '{name}' belongs in [{elsewhere}]")
+            near = difflib.get_close_matches(name, known, n=1, cutoff=0.85)
+            if near:
+                raise ConfigError(f"{where}: unknown key; did you mean change.{near[0]}? "
+                                  "(free-form thresholds must not be near-misses of known keys)")
+            if not (isinstance(value, bool) or _is_int(value)
+                    or (isinstance(value, float) and math.isfinite(value))):
+                raise ConfigError(f"{where}: a free-form threshold must be a finite number or "
+                                  "true/false")
+            clean[name] = value
+        object.__setattr__(self, "extra", types.MappingProxyType(clean))
+
+
+@dataclasses.dataclass(frozen=True)
+class WatchConfig(_Section):
+    """WATCH: a change must persist over watch_m of the last watch_n checks."""
+
+    NAME: ClassVar[str] = "watch"
+    watch_m: int = _key(PARAM_BY_NAME["watch_m"].default, _param("watch_m"),
+                        "WATCH pauses when a change is seen in watch_m ...")
+    watch_n: int = _key(PARAM_BY_NAME["watch_n"].default, _param("watch_n"),
+                        "... of the last watch_n checks")
+    check_interval_ms: int = _key(PARAM_BY_NAME["check_interval_ms"].default,
+                                  _param("check_interval_ms"), "time between two WATCH checks")
+
+    def _cross_check(self) -> None:
+        if self.watch_m > self.watch_n:
+            raise ConfigError(f"watch.watch_m = {self.watch_m}: must be <= watch.watch_n = "
+                              f"{self.watch_n} (M of the last N checks)")
+
+
+@dataclasses.dataclass(frozen=True)
+class ServiceConfig(_Section):
+    """The daemon itself."""
+
+    NAME: ClassVar[str] = "service"
+    watchdog: bool = _key(True, _bool,
+                          "send WATCHDOG=1 when systemd's WatchdogSec= asks for it (false only "
+                          "for debugging: systemd then kills the service after WatchdogSec)")
+    log_level: str = _key("info", _choice(LOG_LEVELS), "journal verbosity")
+
+
+_SECTIONS: tuple[type[_Section], ...] = (CameraConfig, SerialConfig, StoreConfig, CloudConfig,
+                                          MixtureConfig, ChangeConfig, WatchConfig, ServiceConfig)
+#: key -> the section it belongs to (each key name is used by one section only).
+_ALL_KEYS: dict[str, str] = {
+    f.name: cls.NAME for cls in _SECTIONS
+    for f in dataclasses.fields(cls) if f.name != "extra"  # type: ignore[arg-type]
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """The whole configuration; each section a frozen dataclass (defaults where absent)."""
+
+    camera: CameraConfig = dataclasses.field(default_factory=CameraConfig)
+    serial: SerialConfig = dataclasses.field(default_factory=SerialConfig)
+    store: StoreConfig = dataclasses.field(default_factory=StoreConfig)
+    cloud: CloudConfig = dataclasses.field(default_factory=CloudConfig)
+    mixture: MixtureConfig = dataclasses.field(default_factory=MixtureConfig)
+    change: ChangeConfig = dataclasses.field(default_factory=ChangeConfig)
+    watch: WatchConfig = dataclasses.field(default_factory=WatchConfig)
+    service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
+    #: the file it was read from (None for defaults); not part of equality
+    path: Path | None = dataclasses.field(default=None, compare=False)
+
+    @classmethod
+    def default(cls) -> Config:
+        """Every key at its default (what an empty file gives)."""
+        return cls()
+
+    def scene_params(self):
+        """The :class:`robot_change.scene.SceneParams` a reference or check is built with."""
+        from robot_change.scene import SceneParams
+
+        m = self.mixture
+        return SceneParams(cloud=self.cloud.params(), criterion=m.criterion,
+                           max_components=m.max_components, tol=m.tol, max_iter=m.max_iter,
+                           seed=m.seed, search_points=m.search_points,
+                           min_valid_fraction=self.camera.min_valid_fraction)
+
+    def parameters(self) -> dict[str, int]:
+        """The protocol's runtime parameters (``PARAMS`` names -> values) as configured: the
+        daemon's parameter table at start; SET_PARAM changes it until the next restart."""
+        values: dict[str, int] = {}
+        for p in PARAMS:
+            section = getattr(self, _ALL_KEYS[p.name])
+            values[p.name] = int(getattr(section, p.name))
+        return values
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        """Section -> key -> value (optional keys left out when unset), e.g. to print."""
+        out: dict[str, dict[str, Any]] = {}
+        for cls in _SECTIONS:
+            section = getattr(self, cls.NAME)
+            table: dict[str, Any] = {}
+            for f in dataclasses.fields(section):
+                value = getattr(section, f.name)
+                if f.name == "extra":
+                    table.update(value)
+                elif value is not None:
+                    table[f.name] = list(value) if isinstance(value, tuple) else value
+            out[cls.NAME] = table
+        return out
+
+
+# ---------------------------------------------------------------------------------------------
+# loading
+
+
+def _suggest(name: str, candidates: list[str]) -> str:
+    near = difflib.get_close_matches(name, candidates, n=1, cutoff=0.6)
+    return f"; did you mean {near[0]!r}?" if near else ""
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such configuration file; copy the example "
+                          "systemd/robot-change.toml there (docs/deployment.md)") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a configuration file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the configuration file ({exc.strerror}); "
+                          "check its permissions (the service user must be able to read "
+                          "it)") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError(f"{path}: not UTF-8 text (byte {raw[exc.start]:#04x} at line {line}, "
+                          f"column {column}); TOML files are UTF-8") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}")  # "... (at line L, column C)" from None
+
+
+def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
+                     base_dir: Path | None = None) -> Config:
+    """Build a :class:`Config` from parsed TOML; errors are prefixed with ``source``."""
+    sections: dict[str, _Section] = {}
+    names = [cls.NAME for cls in _SECTIONS]
+    for name, table in data.items():
+        if name not in names:
+            hint = (f"; '{name}' is a key of [{_ALL_KEYS[name]}]" if name in _ALL_KEYS
+                    else _suggest(name, names))
+            raise ConfigError(f"{source}: unknown section [{name}] (known: "
+                              f"{', '.join(names)}){hint}")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{source}: {name} = {_show(table)}: must be a table, "
+                              f"written [{name}] followed by its keys")
+    for cls in _SECTIONS:
+        table = dict(data.get(cls.NAME, {}))
+        fields = {f.name for f in dataclasses.fields(cls)} - {"extra"}  # type: ignore[arg-type]
+        kwargs: dict[str, Any] = {}
+        extra: dict[str, Any] = {}
+        for key, value in table.items():
+            if key in fields:
+                kwargs[key] = value
+            elif cls is ChangeConfig:
+                extra[key] = value
+            else:
+                where = f"{cls.NAME}.{key} = {_show(value)}"
+                if key in _ALL_KEYS:
+                    hint = f"; it belongs in [{_ALL_KEYS[key]}]"
+                else:
+                    hint = _suggest(key, sorted(fields))
+                raise ConfigError(f"{source}: {where}: unknown key (known in [{cls.NAME}]: "
+                                  f"{', '.join(sorted(fields))}){hint}")
+        if extra:
+            kwargs["extra"] = extra
+        try:
+            sections[cls.NAME] = cls(**kwargs)
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+    store = sections["store"]
+    if base_dir is not None and not os.path.isabs(store.state_dir):
+        sections["store"] = StoreConfig(state_dir=str(base_dir / store.state_dir))
+    return Config(**sections)  # type: ignore[arg-type]
+
+
+def load_config(path: str | os.PathLike) -> Config:
+    """Read and check a TOML configuration file (see the module docstring).
+
+    Raises :class:`ConfigError` (file, dotted key, value, what is allowed) for a missing,
+    unreadable or invalid file, an unknown section or key, or a value out of range.
+    """
+    path = Path(path)
+    data = _read(path)
+    config = config_from_dict(data, str(path), base_dir=path.resolve().parent)
+    return dataclasses.replace(config, path=path)

@@ -1,0 +1,267 @@
+"""Per-station references on disk: one verified scene file per station, the previous kept.
+
+    root/
+      dock.scene.npz                 the reference of station "dock" (SceneModel.save)
+      dock.prev.scene.npz            the one it replaced
+      quarantine/
+        dock.scene.npz.20250101T120000.123456Z          a file that failed verification
+        dock.scene.npz.20250101T120000.123456Z.txt      why
+
+Every write is atomic (hw.atomic: temp file, fsync, rename), so a crash or a kill -9 in the
+middle of a save leaves the previous reference in place, whole.  Every load is verified
+(``SceneModel.load``: format, version, checksum).  A file that fails is never used and never
+deleted: it is moved to ``quarantine/`` and reported (:class:`ReferenceMissing` names it).  The
+previous version is only ever used when asked for (:meth:`ReferenceStore.load_previous`).
+Station names come from the serial line: they are checked to be names, never paths.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import logging
+import os
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+from hw.atomic import AtomicFile, write_atomically
+from robot_change.errors import ReferenceMissing, SceneFileError, StationNameError, StoreError
+
+__all__ = ["ReferenceStore", "StationInfo", "check_station", "CURRENT", "PREVIOUS"]
+
+log = logging.getLogger(__name__)
+
+#: File name endings of the current and the previous reference.
+CURRENT = ".scene.npz"
+PREVIOUS = ".prev.scene.npz"
+QUARANTINE = "quarantine"
+MAX_STATION = 32
+# As the protocol's station field (robot_change.protocol): no '.', so "a.prev" cannot name the
+# previous reference of station "a", and no path can be formed.
+_STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,%d}\Z" % (MAX_STATION - 1))
+
+
+def check_station(station: Any) -> str:
+    """``station`` if it is a valid station name, else :class:`StationNameError`."""
+    if not isinstance(station, str) or not _STATION.match(station):
+        raise StationNameError(
+            f"station {station!r}: a station name is 1..{MAX_STATION} ASCII letters, digits, "
+            "'_' or '-', starting with a letter or digit (a name, never a path)")
+    return station
+
+
+@dataclasses.dataclass(frozen=True)
+class FileInfo:
+    """A file on disk: where, how big, last written (UTC)."""
+
+    path: Path
+    size: int
+    modified: datetime.datetime
+
+
+@dataclasses.dataclass(frozen=True)
+class StationInfo:
+    """What the store holds for one station (from the file system; nothing is verified)."""
+
+    station: str
+    current: FileInfo | None
+    previous: FileInfo | None
+    quarantined: tuple[Path, ...]
+
+
+def _file_info(path: Path) -> FileInfo | None:
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    modified = datetime.datetime.fromtimestamp(st.st_mtime, datetime.timezone.utc)
+    return FileInfo(path, st.st_size, modified)
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _default_scene_type() -> type:
+    from robot_change.scene import SceneModel
+
+    return SceneModel
+
+
+class ReferenceStore:
+    """The station references under ``root`` (created on the first save).
+
+    ``scene_type`` is the class whose ``save(path)`` / ``load(path)`` (raising
+    :class:`SceneFileError`) read and write one reference: :class:`robot_change.scene.SceneModel`
+    unless given.
+    """
+
+    def __init__(self, root: str | os.PathLike, scene_type: type | None = None) -> None:
+        self.root = Path(root)
+        self.scene_type = scene_type if scene_type is not None else _default_scene_type()
+
+    def __repr__(self) -> str:
+        return f"ReferenceStore({str(self.root)!r})"
+
+    # ----------------------------------------------------------------------- paths
+
+    def path(self, station: str) -> Path:
+        """The file of ``station``'s reference."""
+        return self.root / (check_station(station) + CURRENT)
+
+    def previous_path(self, station: str) -> Path:
+        """The file of the reference it replaced."""
+        return self.root / (check_station(station) + PREVIOUS)
+
+    @property
+    def quarantine_dir(self) -> Path:
+        return self.root / QUARANTINE
+
+    # ----------------------------------------------------------------------- writing
+
+    def save(self, station: str, scene: Any) -> Path:
+        """Store ``scene`` as ``station``'s reference; the one it replaces becomes the previous.
+
+        The current file is verified before it is kept as the previous one (a damaged one is
+        quarantined instead, and the old previous stays).  Each step is atomic: killed at any
+        moment, the store holds the old reference or the new one, never a mix.  Raises
+        :class:`StoreError` when the folder cannot be written (full disk, permissions).
+        """
+        current = self.path(station)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            if current.exists():
+                try:
+                    self.scene_type.load(current)
+                except SceneFileError as exc:
+                    self._quarantine(current, exc)
+                else:
+                    with AtomicFile(self.previous_path(station)) as out, open(current, "rb") as src:
+                        shutil.copyfileobj(src, out, 1 << 20)
+            scene.save(current)
+        except OSError as exc:
+            raise StoreError(
+                f"station {station!r}: cannot write its reference in {self.root} "
+                f"({exc.strerror or exc}); check free space and that the service user owns "
+                "the folder") from exc
+        log.info("station %s: reference saved to %s", station, current)
+        return current
+
+    def delete(self, station: str) -> list[Path]:
+        """Remove ``station``'s reference and its previous version; returns the files removed
+        (none when there was nothing).  Quarantined files stay."""
+        removed = []
+        for path in (self.path(station), self.previous_path(station)):
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                raise StoreError(f"station {station!r}: cannot remove {path} "
+                                 f"({exc.strerror}); check the folder's permissions") from exc
+            removed.append(path)
+        if removed:
+            _fsync_dir(self.root)
+            log.info("station %s: reference deleted", station)
+        return removed
+
+    # ----------------------------------------------------------------------- reading
+
+    def load(self, station: str) -> Any:
+        """``station``'s reference, verified.
+
+        Raises :class:`ReferenceMissing` when there is none, or when its file failed
+        verification: the file is then moved to ``quarantine/`` and the error names it, and
+        whether a previous version exists (:meth:`load_previous` loads it, on request only).
+        """
+        return self._load(station, self.path(station), previous=False)
+
+    def load_previous(self, station: str) -> Any:
+        """The reference ``station`` had before the last save, verified (as :meth:`load`)."""
+        return self._load(station, self.previous_path(station), previous=True)
+
+    def stations(self) -> list[str]:
+        """The stations with a current reference file, sorted (files are not verified)."""
+        try:
+            names = [p.name[: -len(CURRENT)] for p in self.root.iterdir()
+                     if p.name.endswith(CURRENT) and p.is_file()]
+        except FileNotFoundError:
+            return []
+        return sorted(n for n in names if _STATION.match(n))
+
+    def info(self, station: str) -> StationInfo:
+        """Files held for ``station`` (current, previous, quarantined); reads no file."""
+        prefix = check_station(station) + "."
+        try:
+            bad = sorted(p for p in self.quarantine_dir.iterdir()
+                         if p.name.startswith(prefix) and not p.name.endswith(".txt"))
+        except FileNotFoundError:
+            bad = []
+        return StationInfo(station, _file_info(self.path(station)),
+                           _file_info(self.previous_path(station)), tuple(bad))
+
+    def remove_stale_temp_files(self) -> list[Path]:
+        """Delete temp files left by writes that were killed; call once at start, before any
+        save.  Returns what was removed."""
+        try:
+            stale = [p for p in self.root.iterdir()
+                     if p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file()]
+        except FileNotFoundError:
+            return []
+        for path in stale:
+            path.unlink(missing_ok=True)
+        if stale:
+            log.info("removed %d stale temp file(s) from %s", len(stale), self.root)
+        return stale
+
+    # ----------------------------------------------------------------------- internals
+
+    def _load(self, station: str, path: Path, previous: bool) -> Any:
+        which = "previous reference" if previous else "reference"
+        prev = self.previous_path(station)
+        try:
+            return self.scene_type.load(path)
+        except FileNotFoundError:
+            raise ReferenceMissing(
+                f"station {station!r}: no {which} stored ({path} does not exist); capture one "
+                f"with CAPTURE_REFERENCE {station}" + self._previous_hint(prev, previous),
+                station=station) from None
+        except SceneFileError as exc:
+            moved = self._quarantine(path, exc)
+            raise ReferenceMissing(
+                f"station {station!r}: the {which} {path.name} failed verification and was "
+                f"moved to {moved} ({exc}); capture the reference again with "
+                f"CAPTURE_REFERENCE {station}" + self._previous_hint(prev, previous),
+                station=station, quarantined=moved) from exc
+        except OSError as exc:
+            raise StoreError(f"station {station!r}: cannot read {path} ({exc.strerror}); check "
+                             "the folder's permissions") from exc
+
+    @staticmethod
+    def _previous_hint(prev: Path, previous: bool) -> str:
+        if previous or not prev.exists():
+            return ""
+        return f", or use the previous reference {prev.name} (load_previous)"
+
+    def _quarantine(self, path: Path, reason: Exception) -> Path:
+        """Move a file that failed verification to quarantine/ with a timestamp and a note."""
+        folder = self.quarantine_dir
+        folder.mkdir(exist_ok=True)
+        stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+        target = folder / f"{path.name}.{stamp}"
+        n = 1
+        while target.exists():
+            target = folder / f"{path.name}.{stamp}-{n}"
+            n += 1
+        os.replace(path, target)
+        _fsync_dir(self.root)
+        write_atomically(target.with_name(target.name + ".txt"),
+                         f"{path}\nquarantined {stamp}\n{reason}\n".encode())
+        log.error("%s failed verification (%s); moved to %s", path, reason, target)
+        return target

@@ -1,0 +1,204 @@
+"""robot_change.config: TOML -> frozen dataclasses; every error names file, key, value, rule."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import pytest
+
+from conftest import REPO
+from robot_change.cloud import CloudParams
+from robot_change.config import (
+    EXIT_CONFIG,
+    Config,
+    StoreConfig,
+    WatchConfig,
+    config_from_dict,
+    load_config,
+)
+from robot_change.errors import ConfigError
+from robot_change.protocol import PARAMS
+from robot_change.scene import SceneParams
+
+EXAMPLE = REPO / "systemd" / "robot-change.toml"
+
+
+def write(tmp_path, text: str):
+    path = tmp_path / "robot-change.toml"
+    path.write_text(text)
+    return path
+
+
+def error_of(tmp_path, text: str) -> str:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert message.startswith(str(path)), message  # every error names the file
+    return message
+
+
+# ---------------------------------------------------------------------------------------------
+# the example file and the defaults
+
+
+def test_the_example_file_is_accepted_and_holds_every_default():
+    config = load_config(EXAMPLE)
+    assert config == Config.default()
+    assert config.path == EXAMPLE
+
+
+def test_the_example_file_documents_every_key():
+    text = EXAMPLE.read_text()
+    for section, table in Config.default().as_dict().items():
+        assert f"[{section}]" in text
+        for field in dataclasses.fields(getattr(Config.default(), section)):
+            if field.name == "extra":
+                continue
+            # set (a default), or shown in a comment when it has no default value
+            assert re.search(rf"^#? ?{field.name} = ", text, re.M), f"{section}.{field.name}"
+
+
+def test_an_empty_file_gives_the_defaults(tmp_path):
+    assert load_config(write(tmp_path, "")) == Config.default()
+
+
+def test_the_protocol_parameters_have_the_same_names_ranges_and_defaults():
+    config = Config.default()
+    assert config.parameters() == {p.name: p.default for p in PARAMS}
+    for p in PARAMS:
+        section = next(s for s, table in config.as_dict().items() if p.name in table)
+        if p.unit == "bool":
+            continue
+        for good in (p.minimum, p.maximum):
+            config_from_dict({section: {p.name: good}} if p.name not in ("watch_m", "watch_n")
+                             else {section: {"watch_m": good, "watch_n": good}})
+        for bad in (p.minimum - 1, p.maximum + 1):
+            with pytest.raises(ConfigError, match=rf"{section}\.{p.name} = {bad}: must be a "
+                               rf"whole number in {p.minimum}\.\.{p.maximum}"):
+                config_from_dict({section: {p.name: bad}})
+
+
+def test_sections_map_onto_cloud_and_scene_params():
+    config = config_from_dict({"cloud": {"leaf_m": 0.03, "max_depth_mm": 6000,
+                                         "plane_up": [0, -1, 0], "plane_max_tilt_deg": 15},
+                               "mixture": {"criterion": "BIC", "max_components": 8},
+                               "camera": {"min_valid_fraction": 0.6}})
+    params = config.scene_params()
+    assert isinstance(params, SceneParams)
+    assert params.cloud == CloudParams(leaf_m=0.03, max_depth_m=6.0, plane_up=(0, -1, 0),
+                                       plane_max_tilt_deg=15.0)
+    assert (params.criterion, params.max_components, params.min_valid_fraction) == ("bic", 8, 0.6)
+    assert Config.default().scene_params().cloud == CloudParams()
+
+
+def test_sections_are_frozen_and_validate_on_construction():
+    config = Config.default()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.watch.watch_m = 4  # type: ignore[misc]
+    with pytest.raises(ConfigError, match="watch.watch_m = 6: must be <= watch.watch_n = 5"):
+        WatchConfig(watch_m=6)
+
+
+def test_relative_state_dir_is_taken_from_the_config_folder(tmp_path):
+    config = load_config(write(tmp_path, '[store]\nstate_dir = "state"\n'))
+    assert config.store.state_dir == str(tmp_path.resolve() / "state")
+    assert config.store.references == tmp_path.resolve() / "state" / "references"
+    assert StoreConfig().state_dir == "/var/lib/robot-change"
+
+
+def test_free_form_change_thresholds_are_kept_and_validated(tmp_path):
+    config = load_config(write(tmp_path, "[change]\nemd_threshold = 0.25\nsymmetric = true\n"))
+    assert dict(config.change.extra) == {"emd_threshold": 0.25, "symmetric": True}
+    with pytest.raises(TypeError):
+        config.change.extra["x"] = 1  # type: ignore[index]
+    assert "change.emd_threshold = \"high\": a free-form threshold must be a finite number" \
+        in error_of(tmp_path, '[change]\nemd_threshold = "high"\n')
+    assert "did you mean change.min_region_points?" in error_of(
+        tmp_path, "[change]\nmin_region_point = 100\n")
+    assert "'watch_m' belongs in [watch]" in error_of(tmp_path, "[change]\nwatch_m = 2\n")
+    assert "change.Emd = 1: a threshold name is snake_case" in error_of(
+        tmp_path, "[change]\nEmd = 1\n")
+
+
+# ---------------------------------------------------------------------------------------------
+# errors: file, dotted key, value, what is allowed
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("[cloud]\nleaf_m = -1\n", "cloud.leaf_m = -1: must be a number with 0.001 <= leaf_m <= 1.0"),
+    ("[cloud]\nremove_plane = 1\n", "cloud.remove_plane = 1: must be true or false"),
+    ("[cloud]\noutlier_k = 4.5\n", "cloud.outlier_k = 4.5: must be a whole number in 1..26"),
+    ("[cloud]\nmin_depth_mm = 6000\n", "cloud.min_depth_mm = 6000: must be below "
+                                       "cloud.max_depth_mm = 5000"),
+    ("[cloud]\nplane_up = [0, 1]\n", "cloud.plane_up = [0, 1]: must be an array of 3 numbers"),
+    ("[cloud]\nplane_up = [0, -1, 0]\n", "cloud.plane_up = [0.0, -1.0, 0.0]: must come with "
+                                         "cloud.plane_max_tilt_deg"),
+    ("[camera]\nsource = \"rtsp://x\"\n", "camera.source = \"rtsp://x\": must be a depth URI"),
+    ("[camera]\nfuse_frames = 0\n", "camera.fuse_frames = 0: must be a whole number in 1..30 "
+                                    "frames"),
+    ("[camera]\nread_timeout_s = 0\n", "camera.read_timeout_s = 0: must be a number with "
+                                       "0.0 < x <= 30.0 seconds"),
+    ("[serial]\nbaud = 115201\n", "serial.baud = 115201: must be one of 9600, 19200"),
+    ("[serial]\nport = \"\"\n", "serial.port = \"\": must be a non-empty string"),
+    ("[mixture]\ncriterion = \"aicc\"\n", "mixture.criterion = \"aicc\": must be one of mdl, "
+                                          "bic, aic"),
+    ("[mixture]\nmax_components = 0\n", "mixture.max_components = 0: must be a whole number in "
+                                        "1..1000"),
+    ("[mixture]\nsearch_points = 10\n", "mixture.search_points = 10: must be a whole number "
+                                        ">= 100"),
+    ("[watch]\nwatch_m = 4\nwatch_n = 3\n", "watch.watch_m = 4: must be <= watch.watch_n = 3"),
+    ("[change]\npause_on_change = 1\n", "change.pause_on_change = 1: must be true or false"),
+    ("[service]\nlog_level = \"verbose\"\n", "service.log_level = \"verbose\": must be one of "
+                                             "'debug', 'info', 'warning', 'error'"),
+    ("[service]\nwatchdog = \"yes\"\n", "service.watchdog = \"yes\": must be true or false"),
+])
+def test_a_bad_value_names_key_value_and_what_is_allowed(tmp_path, text, expected):
+    assert expected in error_of(tmp_path, text)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("[camrea]\n", "unknown section [camrea] (known: camera, serial, store, cloud, mixture, "
+                   "change, watch, service); did you mean 'camera'?"),
+    ("[cloud]\nleaf = 0.02\n", "cloud.leaf = 0.02: unknown key (known in [cloud]:"),
+    ("[cloud]\nleaf = 0.02\n", "did you mean 'leaf_m'?"),
+    ("[serial]\nbaudrate = 9600\n", "did you mean 'baud'?"),
+    ("[cloud]\nwatch_n = 5\n", "it belongs in [watch]"),
+    ("watch_n = 5\n", "'watch_n' is a key of [watch]"),
+    ("camera = 5\n", "camera = 5: must be a table, written [camera]"),
+])
+def test_unknown_sections_and_keys_are_errors_with_a_suggestion(tmp_path, text, expected):
+    assert expected in error_of(tmp_path, text)
+
+
+def test_invalid_toml_names_line_and_column(tmp_path):
+    message = error_of(tmp_path, "[camera]\nfuse_frames = 5\nsource openni2\n")
+    assert "invalid TOML" in message and "line 3, column 8" in message
+
+
+def test_non_utf8_names_line_and_column(tmp_path):
+    path = tmp_path / "robot-change.toml"
+    path.write_bytes(b"[camera]\nsource = \"caf\xe9\"\n")
+    with pytest.raises(ConfigError, match=r"not UTF-8 text \(byte 0xe9 at line 2, column 14\)"):
+        load_config(path)
+
+
+def test_missing_and_unreadable_files(tmp_path):
+    with pytest.raises(ConfigError, match="no such configuration file; copy the example"):
+        load_config(tmp_path / "absent.toml")
+    with pytest.raises(ConfigError, match="is a folder"):
+        load_config(tmp_path)
+    path = write(tmp_path, "")
+    with pytest.raises(ConfigError, match=r"cannot read the configuration file \(Not a "
+                       r"directory\); check its permissions"):
+        load_config(path / "robot-change.toml")  # an OSError other than "not found"
+
+
+def test_exit_status_for_config_errors_is_ex_config():
+    assert EXIT_CONFIG == 78
+
+
+def test_each_key_belongs_to_one_section():
+    names = [name for table in Config.default().as_dict().values() for name in table]
+    assert len(names) == len(set(names))

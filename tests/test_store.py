@@ -1,0 +1,267 @@
+"""robot_change.store: verified per-station references; a bad file is quarantined and reported,
+never used; a kill -9 in the middle of a save leaves the previous reference whole."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import REPO, SIM_FIXTURES
+from hw.depth import open_depth
+from robot_change.errors import MessageError, ReferenceMissing, StationNameError, StoreError
+from robot_change.protocol import Captured
+from robot_change.scene import SceneModel, build_scene
+from robot_change.store import ReferenceStore, check_station
+
+
+@pytest.fixture(scope="module")
+def scenes() -> tuple[SceneModel, SceneModel]:
+    """Two references of the bundled VGA room (~0.6 MB each), told apart by ``source``."""
+    with open_depth(str(SIM_FIXTURES / "frames" / "room_vga.png")) as source:
+        frame = next(iter(source))
+    a = build_scene([frame], source="A")
+    return a, dataclasses.replace(a, source="B")
+
+
+def same(x: SceneModel, y: SceneModel) -> bool:
+    return (x.source == y.source and np.array_equal(x.depth, y.depth)
+            and np.array_equal(x.points, y.points)
+            and np.array_equal(x.mixture.means, y.mixture.means))
+
+
+# ---------------------------------------------------------------------------------------------
+# saving and loading
+
+
+def test_save_load_and_the_previous_version(tmp_path, scenes):
+    a, b = scenes
+    store = ReferenceStore(tmp_path / "refs")
+    assert store.stations() == []
+    path = store.save("dock", a)
+    assert path == tmp_path / "refs" / "dock.scene.npz"
+    assert same(store.load("dock"), a)
+    assert not store.previous_path("dock").exists()
+    store.save("dock", b)
+    assert same(store.load("dock"), b)
+    assert same(store.load_previous("dock"), a)
+    assert sorted(p.name for p in (tmp_path / "refs").iterdir()) == [
+        "dock.prev.scene.npz", "dock.scene.npz"]  # no temp file left behind
+
+
+def test_stations_info_and_delete(tmp_path, scenes):
+    a, b = scenes
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    store.save("dock", b)
+    store.save("kitchen-2", a)
+    (tmp_path / "notes.txt").write_text("not a reference")
+    (tmp_path / "bad name.scene.npz").write_bytes(b"")
+    assert store.stations() == ["dock", "kitchen-2"]
+    info = store.info("dock")
+    assert info.current.path == store.path("dock") and info.current.size > 100_000
+    assert info.previous.path == store.previous_path("dock")
+    assert info.quarantined == ()
+    assert store.info("kitchen-2").previous is None
+    assert store.delete("dock") == [store.path("dock"), store.previous_path("dock")]
+    assert store.stations() == ["kitchen-2"]
+    assert store.delete("dock") == []
+    with pytest.raises(ReferenceMissing, match="no reference stored") as info_missing:
+        store.load("dock")
+    assert info_missing.value.station == "dock" and info_missing.value.quarantined is None
+
+
+def test_a_missing_reference_is_a_typed_error_naming_the_station(tmp_path):
+    store = ReferenceStore(tmp_path / "never-created")
+    with pytest.raises(ReferenceMissing, match=r"station 'dock': no reference stored .*"
+                       "CAPTURE_REFERENCE dock"):
+        store.load("dock")
+    assert store.stations() == [] and store.info("dock").current is None
+    assert isinstance(ReferenceMissing("x"), LookupError)
+
+
+@pytest.mark.parametrize("name", ["", "../etc", "a/b", "/abs", "dock.prev", ".hidden", "..",
+                                  "a" * 33, "dock\n", "dock ", "café", "-dash", None, 5])
+def test_station_names_are_names_never_paths(tmp_path, scenes, name):
+    store = ReferenceStore(tmp_path)
+    for call in (lambda: store.save(name, scenes[0]), lambda: store.load(name),
+                 lambda: store.delete(name), lambda: store.info(name),
+                 lambda: store.load_previous(name)):
+        with pytest.raises(StationNameError, match="a station name is 1..32 ASCII letters"):
+            call()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MessageError):  # the protocol refuses the same names on the wire
+        Captured(station=name)
+
+
+@pytest.mark.parametrize("name", ["a", "A0", "dock_1", "kitchen-2", "x" * 32])
+def test_valid_station_names_agree_with_the_protocol(name):
+    assert check_station(name) == name
+    assert Captured(station=name).station == name
+
+
+def test_an_unwritable_folder_is_a_store_error(tmp_path, scenes):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(StoreError, match="cannot write its reference in .*check free space"):
+        ReferenceStore(blocker / "refs").save("dock", scenes[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# damaged, foreign and newer files: quarantined and reported, never used, never deleted
+
+
+def _rewrite_header(data: bytes, **changes) -> bytes:
+    """The same .npz with header fields changed (the checksum is not recomputed)."""
+    with np.load(io.BytesIO(data)) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    header = json.loads(str(arrays["header"][()]))
+    header.update(changes)
+    arrays["header"] = np.array(json.dumps(header))
+    out = io.BytesIO()
+    np.savez(out, **arrays)
+    return out.getvalue()
+
+
+def _tamper_depth(data: bytes) -> bytes:
+    with np.load(io.BytesIO(data)) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["depth"] = arrays["depth"].copy()
+    arrays["depth"][100, 100] += 1
+    out = io.BytesIO()
+    np.savez(out, **arrays)
+    return out.getvalue()
+
+
+DAMAGE = {
+    "truncated": lambda data: data[: len(data) // 2],
+    "empty": lambda data: b"",
+    "tampered": _tamper_depth,
+    "foreign": lambda data: _rewrite_header(data, format="someone.else"),
+    "newer": lambda data: _rewrite_header(data, version=99),
+    "not npz": lambda data: b"\x89PNG\r\n\x1a\n" + bytes(1000),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_a_bad_reference_is_quarantined_reported_and_never_used(tmp_path, scenes, damage):
+    a, b = scenes
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    store.save("dock", b)
+    bad = DAMAGE[damage](store.path("dock").read_bytes())
+    store.path("dock").write_bytes(bad)
+    with pytest.raises(ReferenceMissing) as info:
+        store.load("dock")
+    err = info.value
+    assert err.station == "dock"
+    moved = err.quarantined
+    assert moved.parent == tmp_path / "quarantine" and moved.name.startswith("dock.scene.npz.")
+    assert moved.read_bytes() == bad  # kept as it was, for a post-mortem
+    assert moved.with_name(moved.name + ".txt").read_text().startswith(str(store.path("dock")))
+    message = str(err)
+    assert "failed verification" in message and str(moved) in message
+    assert "CAPTURE_REFERENCE dock" in message and "dock.prev.scene.npz (load_previous)" in message
+    # not used, not silently replaced by the previous one
+    assert not store.path("dock").exists()
+    with pytest.raises(ReferenceMissing, match="no reference stored.*or use the previous"):
+        store.load("dock")
+    assert same(store.load_previous("dock"), a)  # only on request
+    assert store.info("dock").quarantined == (moved,)
+    assert store.stations() == []
+
+
+def test_a_bad_previous_is_quarantined_too(tmp_path, scenes):
+    store = ReferenceStore(tmp_path)
+    store.save("dock", scenes[0])
+    store.save("dock", scenes[1])
+    store.previous_path("dock").write_bytes(b"garbage")
+    with pytest.raises(ReferenceMissing, match="previous reference dock.prev.scene.npz failed"):
+        store.load_previous("dock")
+    assert same(store.load("dock"), scenes[1])
+
+
+def test_saving_over_a_bad_reference_keeps_the_good_previous(tmp_path, scenes):
+    a, b = scenes
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    store.save("dock", a)  # previous = a
+    store.path("dock").write_bytes(b"garbage")
+    store.save("dock", b)
+    assert same(store.load("dock"), b)
+    assert same(store.load_previous("dock"), a)  # not the garbage
+    [moved] = store.info("dock").quarantined
+    assert moved.read_bytes() == b"garbage"
+
+
+# ---------------------------------------------------------------------------------------------
+# kill -9 while writing
+
+WRITER = """
+import sys
+from robot_change.scene import SceneModel
+from robot_change.store import ReferenceStore
+root, first, second = sys.argv[1:]
+scenes = [SceneModel.load(first), SceneModel.load(second)]
+store = ReferenceStore(root)
+print("ready", flush=True)
+i = 0
+while True:
+    store.save("dock", scenes[i % 2])
+    i += 1
+"""
+
+
+def _temp_files(root) -> set:
+    return {p for p in root.iterdir() if p.name.endswith(".tmp")}
+
+
+def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scenes):
+    a, b = scenes
+    a.save(tmp_path / "a.npz")
+    b.save(tmp_path / "b.npz")
+    root = tmp_path / "refs"
+    ReferenceStore(root).save("dock", a)
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER)
+    rng = random.Random(7)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    killed_mid_write = 0
+    for trial in range(8):
+        child = subprocess.Popen([sys.executable, str(script), str(root), str(tmp_path / "a.npz"),
+                                  str(tmp_path / "b.npz")], stdout=subprocess.PIPE, env=env)
+        stale = _temp_files(root)  # left by earlier kills
+        try:
+            assert child.stdout.readline() == b"ready\n"
+            if trial % 2:
+                time.sleep(rng.uniform(0.0, 0.7))  # a random moment of the save loop
+            else:  # the moment a temp file appears: the middle of a write
+                deadline = time.monotonic() + 10
+                while _temp_files(root) <= stale and time.monotonic() < deadline:
+                    pass
+            child.send_signal(signal.SIGKILL)
+        finally:
+            child.kill()
+            child.wait(timeout=30)
+            child.stdout.close()
+        assert child.returncode == -signal.SIGKILL
+        killed_mid_write += bool(_temp_files(root) - stale)
+        store = ReferenceStore(root)
+        current = store.load("dock")  # whole and verified, whichever it is
+        assert any(same(current, s) for s in scenes)
+        if store.previous_path("dock").exists():
+            assert any(same(store.load_previous("dock"), s) for s in scenes)
+        assert not (root / "quarantine").exists()
+    assert killed_mid_write >= 1, "no kill landed in the middle of a write"
+    removed = ReferenceStore(root).remove_stale_temp_files()
+    assert len(removed) >= 1
+    assert sorted(p.name for p in root.iterdir()) == ["dock.prev.scene.npz", "dock.scene.npz"]
