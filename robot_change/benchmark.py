@@ -17,6 +17,7 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change import em
 from robot_change.cloud import CloudParams, clean_cloud
+from robot_change.emd import emd, greedy_emd, ground_distance
 from robot_change.mixture import fit_mixture
 
 #: Keys of ``robot-change bench --json`` that come from the preprocessing chain (milliseconds).
@@ -103,6 +104,92 @@ def benchmark_em(points, n_components: int = 8, runs: int = 7, warmup: int = 2,
     return {"em_iter_ms": iter_ms, "fit_ms": fit_ms,
             "fit_k": one_fit().n_components, "n_points": int(len(x_all)),
             "iter_points": int(len(x))}
+
+
+def _covariances(rng, k):
+    g = rng.standard_normal((k, 3, 3)) * 0.05
+    return g @ g.transpose(0, 2, 1) + 1e-4 * np.eye(3)
+
+
+def emd_scene(seed: int, k: int = 30, n_changed: int = 5):
+    """Reference and current mixture parameters of one synthetic scene for the EMD benchmark:
+    30 reference components in a 3 m box; the current keeps 25 (jittered 2 cm, reweighted) and
+    adds 5 new ones.
+
+    Returns
+    -------
+    dict
+        ``w_ref`` (k,), ``mu_ref`` (k, 3), ``cov_ref`` (k, 3, 3), ``w_cur``, ``mu_cur``,
+        ``cov_cur`` likewise, ``new`` (k,) bool (components of the current that appeared),
+        ``gone`` (k,) bool (components of the reference that disappeared).
+    """
+    rng = np.random.default_rng(seed)
+    mu_ref = rng.random((k, 3)) * 3.0
+    cov_ref = _covariances(rng, k)
+    w_ref = rng.random(k) + 0.2
+    gone = np.zeros(k, bool)
+    gone[rng.choice(k, n_changed, replace=False)] = True
+    kept = np.flatnonzero(~gone)
+    mu_cur = np.vstack([mu_ref[kept] + 0.02 * rng.standard_normal((len(kept), 3)),
+                        rng.random((n_changed, 3)) * 3.0])
+    cov_cur = np.concatenate([cov_ref[kept], _covariances(rng, n_changed)])
+    w_cur = np.concatenate([w_ref[kept] * (1.0 + 0.1 * rng.standard_normal(len(kept))),
+                            0.3 * rng.random(n_changed) + 0.05])
+    new = np.zeros(k, bool)
+    new[len(kept):] = True
+    perm = rng.permutation(k)
+    return dict(w_ref=w_ref / w_ref.sum(), mu_ref=mu_ref, cov_ref=cov_ref,
+                w_cur=np.abs(w_cur[perm]) / np.abs(w_cur).sum(), mu_cur=mu_cur[perm],
+                cov_cur=cov_cur[perm], new=new[perm], gone=gone)
+
+
+def _both_ways(s, cost, cand_cur, cand_ref):
+    appeared = greedy_emd(s["w_ref"], s["w_cur"], cost, cand_cur)
+    disappeared = greedy_emd(s["w_cur"], s["w_ref"], cost.T, cand_ref)
+    return appeared, disappeared
+
+
+def bench_emd(runs: int = 200, warmup: int = 20, n_scenes: int = 5) -> dict[str, float]:
+    """Times for ``robot-change bench --json`` (medians, one thread).
+
+    Returns
+    -------
+    dict
+        ``emd_10x10_us``, ``emd_30x30_us``, ``greedy_both_ways_k30_ms`` (every component a
+        candidate; median over scenes of the per-scene medians), ``greedy_both_ways_k30_worst_ms``
+        (the slowest scene), ``greedy_both_ways_k30_5cand_ms`` (5 candidates a side),
+        ``ground_w2_30x30_ms``, ``greedy_removals_k30`` (mean removals per direction, all
+        candidates), ``greedy_solves_k30`` (mean transportation problems started per
+        direction).
+    """
+    out: dict[str, float] = {}
+    for k in (10, 30):
+        s = emd_scene(0, k, n_changed=2 if k == 10 else 5)
+        cost = ground_distance(s["mu_ref"], s["mu_cur"])
+        out[f"emd_{k}x{k}_us"] = round(
+            1e3 * median_ms(lambda: emd(s["w_ref"], s["w_cur"], cost), runs, warmup), 2)
+    all_ms, five_ms, removals, solves = [], [], [], []
+    for seed in range(n_scenes):
+        s = emd_scene(seed)
+        cost = np.ascontiguousarray(ground_distance(s["mu_ref"], s["mu_cur"]))
+        every = np.ones(30, bool)
+        all_ms.append(median_ms(lambda: _both_ways(s, cost, every, every), runs // 4, warmup))
+        # 5 novelty candidates a side: the changed components (what the novelty step proposes)
+        five_ms.append(median_ms(lambda: _both_ways(s, cost, s["new"], s["gone"]),
+                                 runs // 4, warmup))
+        for r in _both_ways(s, cost, every, every):
+            removals.append(len(r.order))
+            solves.append(r.n_solves)
+    out["greedy_both_ways_k30_ms"] = round(statistics.median(all_ms), 4)
+    out["greedy_both_ways_k30_worst_ms"] = round(max(all_ms), 4)
+    out["greedy_both_ways_k30_5cand_ms"] = round(statistics.median(five_ms), 4)
+    out["greedy_removals_k30"] = round(float(np.mean(removals)), 2)
+    out["greedy_solves_k30"] = round(float(np.mean(solves)), 1)
+    s = emd_scene(0)
+    out["ground_w2_30x30_ms"] = round(median_ms(
+        lambda: ground_distance(s["mu_ref"], s["mu_cur"], s["cov_ref"], s["cov_cur"],
+                                kind="wasserstein2"), runs // 4, warmup), 4)
+    return out
 
 
 def machine_info() -> dict[str, Any]:

@@ -163,7 +163,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
-    from robot_change.benchmark import bench_preprocess, benchmark_em, machine_info
+    from robot_change.benchmark import bench_emd, bench_preprocess, benchmark_em, machine_info
     from robot_change.cloud import clean_cloud
 
     source = args.source or _bundled(DEMO_FRAME)
@@ -181,6 +181,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         "fit_k": mixture["fit_k"],
         "fit_points": mixture["n_points"],
     })
+    emd_figures = bench_emd(runs=max(20, args.runs * 4), n_scenes=3)
+    result["emd_10x10_us"] = emd_figures["emd_10x10_us"]
+    result["greedy_both_ways_k30_ms"] = emd_figures["greedy_both_ways_k30_ms"]
     result["machine"] = machine_info()
     if args.json:
         _print_json(result)

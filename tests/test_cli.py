@@ -54,7 +54,8 @@ def test_bench_json_has_the_promised_keys():
     assert result.returncode == 0, result.stderr
     figures = json.loads(result.stdout)
     for key in ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms",
-                "n_points_in", "n_points_out", "em_iter_ms", "fit_ms", "fit_k", "machine"):
+                "n_points_in", "n_points_out", "em_iter_ms", "fit_ms", "fit_k", "emd_10x10_us",
+                "greedy_both_ways_k30_ms", "machine"):
         assert key in figures
     assert figures["n_points_in"] > figures["n_points_out"] > 0
     assert figures["preprocess_ms"] > 0
