@@ -1,0 +1,371 @@
+"""Evaluation of change detection (robot_change.change) on the simulated scenes and the real
+table-top pairs, for our method and the baselines.  docs/evaluation.md reports its output.
+
+    .venv/bin/python bench/eval_change.py [--split dev|holdout|all] [--real] [--methods ...]
+        [--single-frame] [--json OUT] [--plots DIR] [--speed] [--set field=value ...]
+
+Truth and scoring (point level):
+
+* a point of a clean cloud is *truth-changed* when at least half of its depth pixels
+  (``pixel_voxel == row``) lie in the scene's truth mask: ``truth_appeared`` over the current
+  image for current points, ``truth_disappeared`` over the reference image for reference
+  points;
+* a predicted point is a hit when it is truth-changed; precision = hits / predicted, recall =
+  truth-changed points predicted / truth-changed points, F1 their harmonic mean.  "changed"
+  pools appeared and disappeared points; the totals sum the counts over scenes (micro
+  average);
+* a no-change scene has a false alarm when the method reports any region (``changed``).
+
+Every method sees the same two SceneModels: the reference and the current, each fused from the
+scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with
+the same CloudParams.  A benchmark, never a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from robot_change.change import (  # noqa: E402
+    ChangeParams,
+    detect_changes,
+    detect_geometric,
+    detect_nn_threshold,
+    detect_plain,
+)
+from robot_change.cloud import CloudParams  # noqa: E402
+from robot_change.scene import SceneParams, build_scene  # noqa: E402
+
+NO_CHANGE = ("office_no_change", "office_no_change_jitter", "storage_no_change_jitter")
+PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
+
+#: Table-top pairs (objects 0.6-1.7 m away, 5-15 cm in size): a 1 cm leaf instead of 2 cm.
+#: Everything else scales with the leaf or the depth (see docs/evaluation.md).
+TABLETOP_CLOUD = CloudParams(leaf_m=0.01, plane_min_inliers=500)
+
+
+#: NN threshold of the baselines: 5 cm at the room leaf of 2 cm (ALGORITHM.md section 3's
+#: check), scaled with the leaf (2.5 cm for the 1 cm table-top leaf).
+NN_LEAVES = 2.5
+
+
+def nn_m(reference) -> float:
+    return NN_LEAVES * reference.params.cloud.leaf_m
+
+
+def method_fns(params: ChangeParams) -> dict:
+    """name -> callable(reference, current) -> ChangeSet."""
+    return {
+        "ours": lambda r, c: detect_changes(r, c, params),
+        "plain": lambda r, c: detect_plain(r, c, params.replace(novelty=False, free_space=False)),
+        "nn": lambda r, c: detect_nn_threshold(r, c, params.replace(free_space=False,
+                                                                     nn_check_m=nn_m(r))),
+        "geometric": lambda r, c: detect_geometric(r, c, params.replace(nn_check_m=nn_m(r))),
+        # ablations of ours (docs/evaluation.md)
+        "ours_greedy": lambda r, c: detect_changes(r, c, params.replace(greedy=True)),
+        "ours_no_free_space": lambda r, c: detect_changes(r, c, params.replace(
+            free_space=False, novelty_seed="density")),
+        "ours_density_seed": lambda r, c: detect_changes(r, c, params.replace(
+            novelty_seed="density")),
+        "ours_nn_check": lambda r, c: detect_changes(r, c, params.replace(nn_check_m=nn_m(r))),
+        "ours_no_pose_window": lambda r, c: detect_changes(r, c, params.replace(
+            free_space_pose_radius_px=0)),
+        "ours_no_hole_fill": lambda r, c: detect_changes(r, c, params.replace(
+            free_space_hole_radius_px=0)),
+        "free_space_only": lambda r, c: detect_nn_threshold(r, c, params.replace(
+            free_space=True, nn_check_m=0.0)),
+    }
+
+
+def point_truth(pixel_voxel: np.ndarray, truth: np.ndarray, n_points: int) -> np.ndarray:
+    """(n_points,) bool: at least half of the point's pixels lie in ``truth``."""
+    pv = pixel_voxel.ravel()
+    ok = pv >= 0
+    total = np.bincount(pv[ok], minlength=n_points)
+    inside = np.bincount(pv[ok], weights=truth.ravel()[ok].astype(np.float64),
+                         minlength=n_points)
+    return (total > 0) & (2 * inside >= total)
+
+
+def score(cs, ref_model, cur_model, truth_app, truth_dis) -> dict:
+    t_app = point_truth(cur_model.pixel_voxel, truth_app, len(cur_model))
+    t_dis = point_truth(ref_model.pixel_voxel, truth_dis, len(ref_model))
+    p_app = np.zeros(len(cur_model), bool)
+    p_app[cs.appeared_index] = True
+    p_dis = np.zeros(len(ref_model), bool)
+    p_dis[cs.disappeared_index] = True
+    out = {}
+    for name, p, t in (("app", p_app, t_app), ("dis", p_dis, t_dis)):
+        out[f"{name}_tp"] = int((p & t).sum())
+        out[f"{name}_pred"] = int(p.sum())
+        out[f"{name}_true"] = int(t.sum())
+    # regions that hit the truth (more than half their points truth-changed)
+    hits = 0
+    for r in cs.regions:
+        t = t_app if r.kind == "appeared" else t_dis
+        hits += int(t[r.point_index].mean() > 0.5)
+    out["n_regions"] = len(cs.regions)
+    out["n_regions_true"] = hits
+    out["changed"] = bool(cs.changed)
+    out["detect_ms"] = cs.timings_ms.get("detect_ms", float("nan"))
+    return out
+
+
+def prf(tp, pred, true):
+    p = tp / pred if pred else (1.0 if true == 0 else 0.0)
+    r = tp / true if true else 1.0
+    f = 2 * p * r / (p + r) if p + r > 0 else 0.0
+    return p, r, f
+
+
+def summarise(rows: list[dict]) -> dict:
+    tot = {k: sum(r[k] for r in rows) for k in ("app_tp", "app_pred", "app_true", "dis_tp",
+                                                   "dis_pred", "dis_true")}
+    a = prf(tot["app_tp"], tot["app_pred"], tot["app_true"])
+    d = prf(tot["dis_tp"], tot["dis_pred"], tot["dis_true"])
+    c = prf(tot["app_tp"] + tot["dis_tp"], tot["app_pred"] + tot["dis_pred"],
+            tot["app_true"] + tot["dis_true"])
+    return {"app_p": a[0], "app_r": a[1], "app_f1": a[2], "dis_p": d[0], "dis_r": d[1],
+            "dis_f1": d[2], "p": c[0], "r": c[1], "f1": c[2], **tot}
+
+
+def load_sim(name: str, single_frame: bool, scene_params: SceneParams):
+    from sim_fixtures import load_scene
+
+    sc = load_scene(name)
+    ref = build_scene(sc.reference_frames(), scene_params, intrinsics=sc.intrinsics,
+                      source=f"{name}/reference")
+    frames = sc.current_frames()
+    if single_frame:
+        frames = frames[:1]
+    cur = build_scene(frames, scene_params, intrinsics=sc.intrinsics, source=f"{name}/current")
+    return ref, cur, sc.truth_appeared, sc.truth_disappeared, sc
+
+
+def load_real(name: str, scene_params: SceneParams):
+    from hw.depth import Intrinsics
+    from sim_fixtures.tabletop import load_tabletop_pair
+
+    pair = load_tabletop_pair(name)
+    cam = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
+    ref = build_scene([pair.reference], scene_params, intrinsics=cam, source=f"{name}/ref")
+    cur = build_scene([pair.current], scene_params, intrinsics=cam, source=f"{name}/cur")
+    return ref, cur, pair.truth_appeared, pair.truth_disappeared, pair
+
+
+def run(names, loader, methods, verbose=True):
+    per = {m: [] for m in methods}
+    cache = {}
+    for name in names:
+        ref, cur, ta, td, _ = loader(name)
+        cache[name] = (ref, cur, ta, td)
+        for m, fn in methods.items():
+            cs = fn(ref, cur)
+            s = score(cs, ref, cur, ta, td)
+            s["scene"] = name
+            per[m].append(s)
+            if verbose:
+                a = prf(s["app_tp"], s["app_pred"], s["app_true"])
+                d = prf(s["dis_tp"], s["dis_pred"], s["dis_true"])
+                c = prf(s["app_tp"] + s["dis_tp"], s["app_pred"] + s["dis_pred"],
+                        s["app_true"] + s["dis_true"])
+                print(f"  {name:26s} {m:10s} F1 {c[2]:.3f} app {a[0]:.2f}/{a[1]:.2f} "
+                      f"dis {d[0]:.2f}/{d[1]:.2f} regions {s['n_regions']} "
+                      f"(true {s['n_regions_true']}) changed {s['changed']} "
+                      f"{s['detect_ms']:.0f} ms", flush=True)
+    return per, cache
+
+
+def parse_set(items):
+    out = {}
+    fields = {f.name: f for f in dataclasses.fields(ChangeParams)}
+    for it in items or ():
+        k, v = it.split("=", 1)
+        if k not in fields:
+            raise SystemExit(f"unknown ChangeParams field {k}")
+        out[k] = json.loads(v) if v not in ("True", "False") else v == "True"
+    return out
+
+
+def speed(n_runs: int = 15) -> dict:
+    """detect_ms: saved reference (loaded) + one current VGA frame -> ChangeSet, median."""
+    import tempfile
+
+    from robot_change.scene import SceneModel
+    from sim_fixtures import load_scene
+
+    out = {}
+    for name in ("office_box_added", "office_no_change", "lounge_chair_removed"):
+        sc = load_scene(name)
+        ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+        with tempfile.TemporaryDirectory() as tmp:
+            ref.save(Path(tmp) / "ref.npz")
+            ref = SceneModel.load(Path(tmp) / "ref.npz")
+        frame = sc.current_frames()[0]
+        times, stages = [], []
+        for i in range(n_runs + 2):
+            t0 = time.perf_counter()
+            cs = detect_changes(ref, frame, intrinsics=sc.intrinsics)
+            dt = (time.perf_counter() - t0) * 1e3
+            if i >= 2:
+                times.append(dt)
+                stages.append(cs.timings_ms)
+        med = {k: statistics.median(s.get(k, 0.0) for s in stages) for k in stages[0]}
+        out[name] = {"detect_ms": statistics.median(times), "stages_ms": med}
+    out["detect_ms"] = statistics.median(v["detect_ms"] for v in out.values())
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--split", default="dev", choices=("dev", "holdout", "all", "none"))
+    ap.add_argument("--scenes", nargs="*")
+    ap.add_argument("--real", action="store_true", help="also the 9 real table-top pairs")
+    ap.add_argument("--methods", nargs="*", default=["ours", "plain", "nn", "geometric"])
+    ap.add_argument("--single-frame", action="store_true")
+    ap.add_argument("--set", nargs="*", help="ChangeParams field=value (JSON values)")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--plots", type=Path)
+    ap.add_argument("--speed", action="store_true")
+    ap.add_argument("-q", "--quiet", action="store_true")
+    args = ap.parse_args(argv)
+
+    from sim_fixtures import scene_names
+
+    params = ChangeParams(**parse_set(args.set))
+    fns = {m: f for m, f in method_fns(params).items() if m in args.methods}
+    report = {"machine": {"python": platform.python_version(), "cpu": platform.processor()
+                          or platform.machine(), "platform": platform.platform()},
+              "params": dataclasses.asdict(params), "single_frame": args.single_frame,
+              "results": {}}
+    groups = {}
+    if args.scenes:
+        groups["selected"] = args.scenes
+    elif args.split != "none":
+        splits = ("dev", "holdout") if args.split == "all" else (args.split,)
+        for sp in splits:
+            groups[sp] = scene_names(sp)
+    sp = SceneParams()
+    caches = {}
+    for group, names in groups.items():
+        print(f"== {group} ({len(names)} scenes)", flush=True)
+        per, cache = run(names, lambda n: load_sim(n, args.single_frame, sp), fns,
+                         not args.quiet)
+        caches[group] = cache
+        report["results"][group] = {m: {"total": summarise([r for r in rows if r["scene"]
+                                                            not in PAPER]),
+                                        "scenes": rows} for m, rows in per.items()}
+    if args.real:
+        from sim_fixtures.tabletop import tabletop_pairs
+
+        print("== real table-top pairs", flush=True)
+        tsp = SceneParams(cloud=TABLETOP_CLOUD)
+        per, cache = run(tabletop_pairs(), lambda n: load_real(n, tsp), fns, not args.quiet)
+        caches["real"] = cache
+        report["results"]["real"] = {m: {"total": summarise(rows), "scenes": rows}
+                                     for m, rows in per.items()}
+    for group, res in report["results"].items():
+        print(f"\n== {group}: totals (paper_sigma_* scenes excluded from the sim totals)")
+        print(f"{'method':10s} {'F1':>6s} {'P':>6s} {'R':>6s} | {'appF1':>6s} {'appP':>6s} "
+              f"{'appR':>6s} | {'disF1':>6s} {'disP':>6s} {'disR':>6s} | false alarms | "
+              f"missed scenes")
+        for m, r in res.items():
+            t = r["total"]
+            fa = [s["scene"] for s in r["scenes"] if s["scene"] in NO_CHANGE and s["changed"]]
+            nc = [s["scene"] for s in r["scenes"] if s["scene"] in NO_CHANGE]
+            missed = [s["scene"] for s in r["scenes"] if s["scene"] not in NO_CHANGE
+                      and s["n_regions_true"] == 0]
+            print(f"{m:10s} {t['f1']:6.3f} {t['p']:6.3f} {t['r']:6.3f} | {t['app_f1']:6.3f} "
+                  f"{t['app_p']:6.3f} {t['app_r']:6.3f} | {t['dis_f1']:6.3f} {t['dis_p']:6.3f} "
+                  f"{t['dis_r']:6.3f} | {len(fa)}/{len(nc)} {fa} | {missed}")
+        paper = [s for s in res[next(iter(res))]["scenes"] if s["scene"] in PAPER]
+        if paper:
+            print("paper protocol: regions (true) / F1 per method")
+            for m, r in res.items():
+                cells = []
+                for s in r["scenes"]:
+                    if s["scene"] in PAPER:
+                        f = prf(s["app_tp"] + s["dis_tp"], s["app_pred"] + s["dis_pred"],
+                                s["app_true"] + s["dis_true"])[2]
+                        cells.append(f"{s['scene'][11:]}: {s['n_regions']} ({s['n_regions_true']})"
+                                     f" F1 {f:.3f}")
+                print(f"  {m:10s} " + " | ".join(cells))
+    if args.speed:
+        report["speed"] = speed()
+        print("\nspeed:", json.dumps({k: (round(v["detect_ms"], 1) if isinstance(v, dict)
+                                          else round(v, 1))
+                                      for k, v in report["speed"].items()}))
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1, default=float))
+    if args.plots:
+        plots(report, caches, params, args.plots)
+    return report
+
+
+def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> None:
+    """F1 bars per method and group, and a picture per a few scenes (matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    groups = list(report["results"])
+    methods = [m for m in ("ours", "geometric", "free_space_only", "nn", "plain")
+               if m in report["results"][groups[0]]]
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    width = 0.8 / len(methods)
+    for i, m in enumerate(methods):
+        vals = [report["results"][g][m]["total"]["f1"] for g in groups]
+        xs = np.arange(len(groups)) + i * width
+        ax.bar(xs, vals, width, label=m)
+        for x, v in zip(xs, vals):
+            ax.text(x, v + 0.01, f"{v:.2f}", ha="center", fontsize=7)
+    ax.axhline(0.85, color="k", lw=0.8, ls="--")
+    ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2, groups)
+    ax.set_ylabel("F1, changed points")
+    ax.set_ylim(0, 1.1)
+    ax.legend(fontsize=7, ncol=len(methods), loc="upper center")
+    fig.tight_layout()
+    fig.savefig(folder / "change_f1.png", dpi=110)
+    plt.close(fig)
+
+    picks = [("dev", "lab_crate_moved"), ("dev", "office_no_change_jitter"),
+             ("dev", "paper_sigma_100mm"), ("holdout", "meeting_two_changes"),
+             ("real", "learn39-learn40")]
+    for group, name in picks:
+        if group not in caches or name not in caches[group]:
+            continue
+        ref, cur, ta, td = caches[group][name]
+        cs = detect_changes(ref, cur, params)
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.9))
+        for ax, model, mask, truth, title in (
+                (axes[0], ref, cs.disappeared_mask, td, "reference: disappeared"),
+                (axes[1], cur, cs.appeared_mask, ta, "current: appeared")):
+            d = model.depth.astype(np.float64)
+            d[d == 0] = np.nan
+            ax.imshow(d, cmap="gray_r")
+            over = np.zeros(mask.shape + (4,))
+            over[mask] = (1, 0, 0, 0.6) if "appeared" == title.split()[-1] else (0, 0.3, 1, 0.6)
+            ax.imshow(over)
+            ax.contour(truth, levels=[0.5], colors="yellow", linewidths=0.7)
+            ax.set_title(f"{name} {title} ({int(mask.sum())} px)", fontsize=8)
+            ax.axis("off")
+        fig.suptitle("ours; yellow: truth outline", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(folder / f"change_{name}.png", dpi=90)
+        plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

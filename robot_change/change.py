@@ -1,0 +1,1120 @@
+"""Change detection: what appeared and what disappeared between a reference scene and now.
+
+ALGORITHM.md section 3, as we built and measured it (docs/algorithm.md, "Change detection";
+numbers in docs/evaluation.md).  For what appeared (current points):
+
+1. **Free-space check** against the reference depth image: a current point is a candidate only
+   if the reference saw *through* it at the majority of its pixels -- its nearest reading
+   within a few pixels (pose tolerance) is farther by a depth-dependent margin; where it has no
+   reading, the farthest reading around a shadow or dropout stands in; with none at all,
+   "no reading" counts as seen through.
+2. **Novelty components.**  The reference mixture is held fixed (means, covariances and
+   relative weights) as the background model of the current cloud; current points it explains
+   poorly (log-density below a low quantile of the reference's own points) or that the
+   reference saw through seed new free components, one per connected group on the voxel grid,
+   and EM fits them (:func:`robot_change.mixture.fit_mixture` with ``fixed=`` and
+   ``fix_weights=True``).
+3. **Greedy EMD** (reference -> current) over the novelty components, with an explicit
+   acceptance rule on its trajectory.  Computed and reported always; it decides only with
+   ``greedy=True`` (off by default: measured to lose real changes, docs/evaluation.md).
+4. **Segmentation**: a point is changed when the posterior mass of the change components at it
+   exceeds ``posterior_threshold`` (0.5) and it passed the free-space check.
+5. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys),
+   regions below ``min_region_points`` dropped.
+
+The mirror (disappeared: reference points) runs the same steps with the roles swapped: the
+reference cloud against the current's mixture held fixed, the free-space check against the
+current depth image.
+
+Each ingredient can be switched off (:class:`ChangeParams`) so it can be measured.  The
+baselines (the plain method, the nearest-neighbour threshold, the geometric check) are
+:func:`detect_plain`, :func:`detect_nn_threshold` and :func:`detect_geometric`.
+
+Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  Kernels are
+``@njit(cache=True, nogil=True)`` with NumPy twins in ``tests/test_change.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hw.depth import Intrinsics
+from robot_change.cloud import CloudParams, clean_cloud
+from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change.filters import KEY_BITS
+from robot_change.mixture import Mixture, fit_mixture
+
+__all__ = [
+    "ChangeParams",
+    "ChangeSet",
+    "Epoch",
+    "GreedyTrace",
+    "Region",
+    "accept_trajectory",
+    "detect_changes",
+    "detect_geometric",
+    "detect_nn_threshold",
+    "detect_plain",
+    "epoch_from_depth",
+    "free_space_votes",
+    "group_regions",
+    "label_voxel_components",
+]
+
+METHODS = ("novelty", "plain", "geometric", "nn")
+GROUND_DISTANCES = ("euclidean", "wasserstein2")
+NOVELTY_SEEDS = ("density", "density+free_space")
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+def _num(name, value, low, high, *, low_open=False, unit=""):
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if ok:
+        v = float(value)
+        ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
+    if not ok:
+        rel = "<" if low_open else "<="
+        raise InputError(f"ChangeParams.{name}={value!r}: must be a number with {low} {rel} "
+                         f"{name} <= {high}{unit}")
+
+
+def _int(name, value, low, high):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or \
+            not low <= value <= high:
+        raise InputError(f"ChangeParams.{name}={value!r}: must be a whole number in "
+                         f"{low}..{high}")
+
+
+def _bool(name, value):
+    if not isinstance(value, bool):
+        raise InputError(f"ChangeParams.{name}={value!r}: must be True or False")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangeParams:
+    """Parameters of :func:`detect_changes`, validated on construction (:class:`InputError`
+    naming the field, its value and what is allowed).
+
+    Every ingredient can be switched so it can be measured (docs/evaluation.md has the
+    numbers behind each default).
+    """
+
+    # --- the mixture part ------------------------------------------------------------------
+    # True: novelty components over the other epoch's mixture held fixed (ours).  False: the
+    # plain method, two independent fits and greedy EMD over all components.
+    novelty: bool = True
+    # Points below this quantile of the fixed mixture's log-density on its own cloud seed the
+    # novelty components.
+    novelty_quantile: float = 0.01
+    # Which points seed the novelty components: "density" (log-density below the quantile) or
+    # "density+free_space" (those, and the points the other epoch's depth image sees through).
+    novelty_seed: str = "density+free_space"
+    # Fixed components keep their relative weights in the novelty fit (only their total mass
+    # is re-estimated), so the EMD of an unchanged view is ~0 instead of the reweighting noise.
+    novelty_fix_weights: bool = True
+    # True: MDL may split the seeded novelty components further (split-EM over the free
+    # components); False: EM of the seeded components only (one component per connected
+    # group of novel points).  Measured: F1 0.965 vs 0.964 (dev, single frame), 0.939 vs 0.932
+    # (real), ~20 ms less per direction; so False.
+    novelty_split: bool = False
+    # EM tolerance of the novelty fit (change of mean log-likelihood per point; the seeds
+    # start at their groups' moments, so EM has little to do).  1e-2 instead of
+    # fit_mixture's 1e-3: the same F1 on the dev scenes and the real pairs, the two novelty
+    # fits 48 -> 16 ms.
+    novelty_tol: float = 1e-2
+    # The current's own mixture for the mirror (reference cloud fitted with it held fixed),
+    # when the current comes as a depth image without one: "fit" (split-EM from K = 1, as a
+    # reference is built) or "from_reference" (EM from the reference mixture, all components
+    # free, no splits: a removed object's component moves away or dies; ~5x faster: 15-25 ms
+    # instead of 80-110 ms, same F1 to 0.001 on the dev scenes).
+    current_mixture: str = "from_reference"
+    # Most novelty components on top of the fixed ones (bounds K = K_ref + this).
+    max_novelty_components: int = 8
+    # Ground distance between components for the EMD: "euclidean" (between means) or
+    # "wasserstein2" (closed-form 2-Wasserstein between the Gaussians: shape counts).
+    ground_distance: str = "wasserstein2"
+    # True: greedy EMD (the paper's selection) decides which novelty components are changes,
+    # by the acceptance rule below.  False: every novelty component is a candidate and the
+    # free-space check decides point by point; the greedy trajectory is still computed and
+    # reported.  Measured (docs/evaluation.md): on the table-top pairs the greedy loop stops
+    # before the novelty components of objects that moved a few cm (their removal does not
+    # lower the EMD), F1 0.61 with it vs 0.94 without; on the simulated dev scenes no
+    # difference.  So off by default.
+    greedy: bool = False
+    # Acceptance rule on the greedy trajectory: a removal is accepted while its EMD drop is at
+    # least accept_min_drop_m (metres: drop ~ weight x distance) AND at least
+    # accept_min_drop_rel x the starting EMD, and the component holds at least
+    # min_region_points points (N w_k).  The first rejected step stops the loop.
+    accept_min_drop_m: float = 0.0005
+    accept_min_drop_rel: float = 0.02
+    # Segmentation: posterior mass of the accepted components above this.
+    posterior_threshold: float = 0.5
+    # --- the geometric part -----------------------------------------------------------------
+    # Free-space check against the other epoch's depth image.
+    free_space: bool = True
+    # Seen through = other depth > own depth + margin_m + margin_rel_per_m * z^2 (z in m; the
+    # z^2 term follows the Kinect's axial noise), or no reading when no_reading_is_free.
+    free_space_margin_m: float = 0.03
+    free_space_margin_per_m2: float = 0.004
+    free_space_no_reading_is_free: bool = True
+    # The other image's nearest reading within this many pixels is compared (a camera back
+    # at its station within a few pixels must not make static edges look seen through).
+    free_space_pose_radius_px: int = 3
+    # Where that window has no reading, the farthest reading within this many pixels stands
+    # in (projector shadows and dropouts); 0 = the pixel alone.
+    free_space_hole_radius_px: int = 5
+    # A point passes when at least this fraction of its pixels are seen through.
+    free_space_min_fraction: float = 0.5
+    # Optional nearest-neighbour check: a changed point needs no point of the other epoch
+    # within this distance (m); 0 = off.
+    nn_check_m: float = 0.0
+    # --- regions ----------------------------------------------------------------------------
+    # Voxels are connected when their indices differ by at most this much per axis
+    # (1 = the 26-neighbourhood).
+    region_connectivity: int = 1
+    min_region_points: int = 12
+    # Run the mirror (what disappeared); False reports appearances only (the paper).
+    disappeared: bool = True
+    # Fewer points than this in either clean cloud raises EmptySceneError.
+    min_cloud_points: int = 50
+    # Seed of the mixture fits (subsets); same seed, same result.
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.novelty_seed not in NOVELTY_SEEDS:
+            raise InputError(f"ChangeParams.novelty_seed={self.novelty_seed!r}: must be one of "
+                             f"{NOVELTY_SEEDS}")
+        if self.current_mixture not in ("fit", "from_reference"):
+            raise InputError(f"ChangeParams.current_mixture={self.current_mixture!r}: must be "
+                             f"'fit' or 'from_reference'")
+        for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
+                     "free_space_no_reading_is_free", "disappeared"):
+            _bool(name, getattr(self, name))
+        _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
+        _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
+        _int("max_novelty_components", self.max_novelty_components, 1, 64)
+        if self.ground_distance not in GROUND_DISTANCES:
+            raise InputError(f"ChangeParams.ground_distance={self.ground_distance!r}: must be "
+                             f"one of {GROUND_DISTANCES}")
+        _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
+        _num("accept_min_drop_rel", self.accept_min_drop_rel, 0.0, 1.0)
+        _num("posterior_threshold", self.posterior_threshold, 0.0, 1.0, low_open=True)
+        _num("free_space_margin_m", self.free_space_margin_m, 0.0, 10.0, unit=" metres")
+        _num("free_space_margin_per_m2", self.free_space_margin_per_m2, 0.0, 1.0,
+             unit=" per metre")
+        _num("free_space_min_fraction", self.free_space_min_fraction, 0.0, 1.0, low_open=True)
+        _num("nn_check_m", self.nn_check_m, 0.0, 10.0, unit=" metres")
+        _int("free_space_pose_radius_px", self.free_space_pose_radius_px, 0, 50)
+        _int("free_space_hole_radius_px", self.free_space_hole_radius_px, 0, 50)
+        _int("region_connectivity", self.region_connectivity, 1, 3)
+        _int("min_region_points", self.min_region_points, 1, 10**9)
+        _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
+        _int("seed", self.seed, 0, 2**63 - 1)
+
+    def replace(self, **changes: Any) -> ChangeParams:
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """One connected changed region.
+
+    ``kind``: ``"appeared"`` (points of the current cloud) or ``"disappeared"`` (points of the
+    reference cloud).  ``centroid`` (3,) m, ``bbox_min``/``bbox_max`` (3,) m and ``extent``
+    (3,) = max - min, camera optical frame.  ``n_points`` voxel points, ``n_pixels`` depth
+    pixels behind them (in the current image for appeared, the reference image for
+    disappeared).  ``components``: indices of the accepted change components (in
+    :attr:`ChangeSet.appeared_mixture` / :attr:`ChangeSet.disappeared_mixture`) that carry the
+    most posterior mass of the region's points, most first; empty for the methods without a
+    mixture.  ``point_index``: rows of the region's points in that epoch's cloud.
+    """
+
+    kind: str
+    centroid: np.ndarray
+    extent: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    n_points: int
+    n_pixels: int
+    components: tuple[int, ...]
+    point_index: np.ndarray = dataclasses.field(repr=False)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (no point indices)."""
+        return {
+            "kind": self.kind,
+            "centroid_m": [round(float(v), 4) for v in self.centroid],
+            "extent_m": [round(float(v), 4) for v in self.extent],
+            "bbox_min_m": [round(float(v), 4) for v in self.bbox_min],
+            "bbox_max_m": [round(float(v), 4) for v in self.bbox_max],
+            "n_points": self.n_points,
+            "n_pixels": self.n_pixels,
+            "components": list(self.components),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class GreedyTrace:
+    """The greedy EMD trajectory of one direction and what the acceptance rule made of it.
+
+    ``candidates``: indices (into the mixture searched) the greedy loop could remove;
+    ``order``: the removal order it found; ``emd_after``: EMD before any removal, then after
+    each (m + 1,); ``accepted``: how many leading removals were accepted; ``change``: the
+    accepted component indices.
+    """
+
+    candidates: np.ndarray
+    order: np.ndarray
+    emd_after: np.ndarray
+    accepted: int
+    change: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"candidates": self.candidates.tolist(), "order": self.order.tolist(),
+                "emd_after": [float(v) for v in self.emd_after], "accepted": self.accepted,
+                "change": self.change.tolist()}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ChangeSet:
+    """The result of :func:`detect_changes` (and of the baselines).
+
+    ``changed``: any region at all.  ``appeared``/``disappeared``: tuples of :class:`Region`.
+    ``appeared_points`` (M, 3) float32 current-cloud points in appeared regions;
+    ``disappeared_points`` (M', 3) float32 reference-cloud points in disappeared regions
+    (camera optical frame, metres).  ``appeared_index``/``disappeared_index``: their rows in
+    the current / reference cloud.  ``appeared_mask`` (H, W) bool over the current image and
+    ``disappeared_mask`` over the reference image: the pixels of those points.
+    ``appeared_mixture``: the mixture of the current cloud that was searched (reference
+    components held fixed + novelty components; the current's own mixture for the plain
+    method; None without a mixture); ``disappeared_mixture`` likewise for the reference cloud.
+    ``k_reference``/``k_current``: K of the two epochs' own mixtures (0 when not fitted).
+    ``greedy_appeared``/``greedy_disappeared``: :class:`GreedyTrace` or None.  ``method``:
+    ``"novelty"``, ``"plain"``, ``"geometric"`` or ``"nn"``.  ``timings_ms``: per stage and
+    ``detect_ms`` (the whole call).
+    """
+
+    changed: bool
+    appeared: tuple[Region, ...]
+    disappeared: tuple[Region, ...]
+    appeared_points: np.ndarray
+    disappeared_points: np.ndarray
+    appeared_index: np.ndarray
+    disappeared_index: np.ndarray
+    appeared_mask: np.ndarray
+    disappeared_mask: np.ndarray
+    appeared_mixture: Mixture | None
+    disappeared_mixture: Mixture | None
+    k_reference: int
+    k_current: int
+    greedy_appeared: GreedyTrace | None
+    greedy_disappeared: GreedyTrace | None
+    method: str
+    params: Any
+    timings_ms: dict[str, float]
+
+    @property
+    def regions(self) -> tuple[Region, ...]:
+        """Appeared then disappeared regions."""
+        return self.appeared + self.disappeared
+
+    def summary(self) -> dict:
+        """JSON-ready summary: changed, regions, K of both mixtures, greedy traces, timings."""
+        return {
+            "changed": self.changed,
+            "method": self.method,
+            "regions": [r.to_dict() for r in self.regions],
+            "n_appeared_points": int(self.appeared_points.shape[0]),
+            "n_disappeared_points": int(self.disappeared_points.shape[0]),
+            "k_reference": self.k_reference,
+            "k_current": self.k_current,
+            "k_appeared_mixture": (self.appeared_mixture.n_components
+                                   if self.appeared_mixture is not None else 0),
+            "k_disappeared_mixture": (self.disappeared_mixture.n_components
+                                      if self.disappeared_mixture is not None else 0),
+            "greedy_appeared": (self.greedy_appeared.to_dict()
+                                if self.greedy_appeared is not None else None),
+            "greedy_disappeared": (self.greedy_disappeared.to_dict()
+                                   if self.greedy_disappeared is not None else None),
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+        }
+
+
+# --------------------------------------------------------------------------- epochs
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Epoch:
+    """What change detection needs of one epoch (a view of a SceneModel).
+
+    ``depth`` (H, W) uint16 mm (fused for a reference), ``intrinsics``, the clean cloud
+    ``points`` (M, 3) float32 with its voxel ``keys`` (M,) int64 and ``pixel_voxel`` (H, W)
+    int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``.
+    """
+
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    points: np.ndarray
+    keys: np.ndarray
+    pixel_voxel: np.ndarray
+    leaf_m: float
+    mixture: Mixture | None
+    cloud_params: CloudParams | None = None
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
+                     cloud_params: CloudParams = CloudParams(),
+                     mixture: Mixture | None = None) -> Epoch:
+    """Clean the depth image (:func:`robot_change.cloud.clean_cloud`) into an :class:`Epoch`."""
+    cloud = clean_cloud(depth, intrinsics, cloud_params)
+    return Epoch(np.ascontiguousarray(depth), intrinsics, cloud.points, cloud.keys,
+                 cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params)
+
+
+def _as_epoch(obj: Any, name: str) -> Epoch:
+    """An :class:`Epoch` from an Epoch or a SceneModel (duck-typed: ``depth``, ``intrinsics``,
+    ``cloud`` or ``points``/``keys``/``pixel_voxel``, ``mixture``, ``params``)."""
+    if isinstance(obj, Epoch):
+        return obj
+    try:
+        depth = obj.depth
+        intrinsics = obj.intrinsics
+        cloud = getattr(obj, "cloud", None)
+        src = cloud if cloud is not None else obj
+        points, keys, pixel_voxel = src.points, src.keys, src.pixel_voxel
+        params = getattr(obj, "params", None)
+        cloud_params = getattr(params, "cloud", None) if params is not None else None
+        if cloud_params is None:
+            cloud_params = getattr(src, "params", None)
+        leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
+        mixture = getattr(obj, "mixture", None)
+    except AttributeError as exc:
+        raise InputError(f"{name} must be a SceneModel (robot_change.scene) or an Epoch, got "
+                         f"{type(obj).__name__} ({exc})") from None
+    return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
+                 np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
+                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None)
+
+
+def _check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
+    if ref.depth.shape != cur.depth.shape or ref.intrinsics != cur.intrinsics:
+        _raise_mismatch(f"reference {ref.depth.shape[::-1]} {ref.intrinsics} and current "
+                        f"{cur.depth.shape[::-1]} {cur.intrinsics} differ in image size or "
+                        f"intrinsics; take both with the same camera mode, or rebuild the "
+                        f"reference")
+    if ref.cloud_params is not None and cur.cloud_params is not None:
+        from robot_change.scene import COMPARED_CLOUD_FIELDS
+        diff = [f"{n} {getattr(ref.cloud_params, n)!r} vs {getattr(cur.cloud_params, n)!r}"
+                for n in COMPARED_CLOUD_FIELDS
+                if getattr(ref.cloud_params, n) != getattr(cur.cloud_params, n)]
+        if diff:
+            _raise_mismatch(f"reference and current were cleaned with different CloudParams "
+                            f"({'; '.join(diff)}); build the current with the reference's "
+                            f"params (SceneModel.params.cloud)")
+    for name, ep in (("reference", ref), ("current", cur)):
+        if ep.n_points < params.min_cloud_points:
+            raise EmptySceneError(
+                f"the {name} cloud has {ep.n_points} points after cleaning (< min_cloud_points"
+                f" = {params.min_cloud_points}) from {int(np.count_nonzero(ep.depth))} valid "
+                f"depth pixels: the camera sees nothing to compare (covered, closer than its "
+                f"minimum range, pointed at open space, or broken); treat it as a fault")
+
+
+def _raise_mismatch(message: str) -> None:
+    raise SceneMismatchError(message)
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@numba.njit(cache=True, nogil=True)
+def _filter_pass(src, dst, radius, take_min, along_rows):
+    """One 1-D pass of :func:`_window_filter` (min over readings > 0, or max)."""
+    height, width = src.shape
+    for r in range(height):
+        for c in range(width):
+            best = np.int64(65535) if take_min else np.int64(0)
+            if along_rows:
+                lo, hi = max(c - radius, 0), min(c + radius + 1, width)
+            else:
+                lo, hi = max(r - radius, 0), min(r + radius + 1, height)
+            for t in range(lo, hi):
+                d = np.int64(src[r, t]) if along_rows else np.int64(src[t, c])
+                if take_min:
+                    if d > 0 and d < best:
+                        best = d
+                elif d > best:
+                    best = d
+            if take_min and best == 65535:
+                best = 0
+            dst[r, c] = best
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_filter(depth, radius, take_min):
+    """Square-window min (``take_min``: readings > 0 only, 0 where the window has none) or
+    max of a uint16 depth image, window (2 radius + 1)^2, separable."""
+    tmp = np.zeros(depth.shape, dtype=np.uint16)
+    out = np.zeros(depth.shape, dtype=np.uint16)
+    _filter_pass(depth, tmp, radius, take_min, True)
+    _filter_pass(tmp, out, radius, take_min, False)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _free_space_kernel(pixel_voxel, own_depth, near_other, far_other, n_points, margin_m,
+                       margin_per_m2, no_reading_is_free):
+    """Per point: how many of its pixels the other image sees through, and how many it has.
+
+    ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``own_depth`` (P,) uint16
+    mm; ``near_other`` (P,) the other image's nearest reading in the pose window (0: none
+    there), ``far_other`` (P,) its farthest reading in the hole window (0: none).  The other
+    reading is ``near_other``, else ``far_other``; with neither, the pixel is seen through when
+    ``no_reading_is_free``.  Seen through: reading > own + margin_m + margin_per_m2 * z^2
+    (metres, z = own depth).
+    """
+    votes = np.zeros(n_points, dtype=np.int32)
+    total = np.zeros(n_points, dtype=np.int32)
+    for p in range(pixel_voxel.shape[0]):
+        v = pixel_voxel[p]
+        if v < 0:
+            continue
+        total[v] += 1
+        d1 = near_other[p]
+        if d1 == 0:
+            d1 = far_other[p]
+        if d1 == 0:
+            if no_reading_is_free:
+                votes[v] += 1
+            continue
+        z = own_depth[p] * 0.001
+        if d1 * 0.001 > z + margin_m + margin_per_m2 * z * z:
+            votes[v] += 1
+    return votes, total
+
+
+def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth: np.ndarray,
+                     n_points: int, margin_m: float, margin_per_m2: float = 0.0,
+                     pose_radius: int = 0, hole_radius: int = 0,
+                     no_reading_is_free: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Free-space evidence per point of one epoch against the other epoch's depth image.
+
+    Both images share the pixel grid (same intrinsics, same pose: the station), so a point's
+    projection into the other image is the set of its own pixels (``pixel_voxel == v``).  At
+    each of them the other epoch saw *through* the point when its reading is farther by more
+    than ``margin_m + margin_per_m2 * z**2`` (z = this epoch's depth there, m).  The reading
+    used is the *nearest* one of the other image within ``pose_radius`` pixels (a square
+    window; a camera back at its station within a few pixels does not make static edges look
+    seen through); where that window has no reading, the *farthest* reading within
+    ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
+    with none there either, the pixel counts as seen through when ``no_reading_is_free``
+    (open space beyond the sensor's range).
+
+    Returns
+    -------
+    votes, total : (n_points,) int32
+        Pixels seen through, and pixels, per point.
+    """
+    if pixel_voxel.ndim != 2 or pixel_voxel.shape != own_depth.shape or \
+            own_depth.shape != other_depth.shape:
+        raise InputError(f"pixel_voxel {pixel_voxel.shape}, own depth {own_depth.shape} and "
+                         f"other depth {other_depth.shape} must be the same (H, W)")
+    for name, a in (("own_depth", own_depth), ("other_depth", other_depth)):
+        if a.dtype != np.uint16:
+            raise InputError(f"{name} must be uint16 millimetres, got {a.dtype}")
+    other = np.ascontiguousarray(other_depth)
+    near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
+    far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
+    return _free_space_kernel(np.ascontiguousarray(pixel_voxel, dtype=np.int32).ravel(),
+                              np.ascontiguousarray(own_depth).ravel(), near.ravel(),
+                              far.ravel(), int(n_points), float(margin_m),
+                              float(margin_per_m2), bool(no_reading_is_free))
+
+
+_FIELD = (1 << KEY_BITS) - 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _find(parent, i):
+    root = i
+    while parent[root] != root:
+        root = parent[root]
+    while parent[i] != root:  # path compression
+        nxt = parent[i]
+        parent[i] = root
+        i = nxt
+    return root
+
+
+@numba.njit(cache=True, nogil=True)
+def _components_kernel(keys, radius):
+    """Connected components of voxels: ``keys`` (M,) int64 packed keys, sorted ascending and
+    unique; voxels are neighbours when each index differs by at most ``radius``.  Returns
+    (M,) int64 labels 0..C-1, numbered in order of each component's first voxel."""
+    m = keys.shape[0]
+    parent = np.arange(m)
+    shift_x = np.int64(1) << np.int64(2 * KEY_BITS)
+    shift_y = np.int64(1) << np.int64(KEY_BITS)
+    for i in range(m):
+        k = keys[i]
+        ix = (k >> np.int64(2 * KEY_BITS)) & _FIELD
+        iy = (k >> np.int64(KEY_BITS)) & _FIELD
+        iz = k & _FIELD
+        for dx in range(-radius, radius + 1):
+            for dy in range(-radius, radius + 1):
+                for dz in range(-radius, radius + 1):
+                    # each pair once: only neighbours with a larger key
+                    if dx < 0 or (dx == 0 and (dy < 0 or (dy == 0 and dz <= 0))):
+                        continue
+                    jx = ix + dx
+                    jy = iy + dy
+                    jz = iz + dz
+                    if jx < 0 or jy < 0 or jz < 0 or jx > _FIELD or jy > _FIELD or \
+                            jz > _FIELD:
+                        continue
+                    nk = jx * shift_x + jy * shift_y + jz
+                    j = np.searchsorted(keys, nk)
+                    if j < m and keys[j] == nk:
+                        a = _find(parent, i)
+                        b = _find(parent, j)
+                        if a != b:
+                            if a < b:
+                                parent[b] = a
+                            else:
+                                parent[a] = b
+    labels = np.empty(m, dtype=np.int64)
+    remap = np.full(m, -1, dtype=np.int64)
+    count = 0
+    for i in range(m):
+        r = _find(parent, i)
+        if remap[r] < 0:
+            remap[r] = count
+            count += 1
+        labels[i] = remap[r]
+    return labels
+
+
+def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:
+    """Connected components of a set of voxels given by their packed keys.
+
+    Parameters
+    ----------
+    keys : (M,) int64
+        Packed voxel keys (:func:`robot_change.filters.pack_keys`), any order, no duplicates.
+    radius : int
+        Voxels whose indices differ by at most this on every axis are connected (1: the
+        26-neighbourhood).
+
+    Returns
+    -------
+    (M,) int64
+        Component label of each key (same order as given), 0..C-1.
+    """
+    keys = np.asarray(keys, dtype=np.int64)
+    if keys.ndim != 1:
+        raise InputError(f"keys must be (M,) int64, got shape {keys.shape}")
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    if sk.size > 1 and (np.diff(sk) == 0).any():
+        raise InputError("keys must be unique (one point per voxel)")
+    labels_sorted = _components_kernel(np.ascontiguousarray(sk), int(radius))
+    labels = np.empty_like(labels_sorted)
+    labels[order] = labels_sorted
+    return labels
+
+
+# --------------------------------------------------------------------------- regions
+
+
+def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangeParams,
+                  posterior: np.ndarray | None = None,
+                  change_components: np.ndarray | None = None) -> tuple[Region, ...]:
+    """Group the changed points of ``epoch`` into :class:`Region` s (largest first).
+
+    ``changed`` (M,) bool; ``posterior`` (M, K) responsibilities of the searched mixture and
+    ``change_components`` the accepted components, to name each region's components.
+    """
+    idx = np.flatnonzero(changed)
+    if idx.size == 0:
+        return ()
+    labels = label_voxel_components(epoch.keys[idx], params.region_connectivity)
+    n_lab = int(labels.max()) + 1
+    sizes = np.bincount(labels, minlength=n_lab)
+    pix_count = np.bincount(epoch.pixel_voxel.ravel()[epoch.pixel_voxel.ravel() >= 0],
+                            minlength=epoch.n_points)
+    regions = []
+    for lab in np.argsort(-sizes, kind="stable"):
+        if sizes[lab] < params.min_region_points:
+            break
+        rows = idx[labels == lab]
+        pts = epoch.points[rows].astype(np.float64)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        comps: tuple[int, ...] = ()
+        if posterior is not None and change_components is not None and len(change_components):
+            mass = posterior[rows][:, change_components].sum(axis=0)
+            keep = np.argsort(-mass, kind="stable")
+            comps = tuple(int(change_components[k]) for k in keep if mass[k] > 0.05 * len(rows))
+        regions.append(Region(kind, pts.mean(axis=0), hi - lo, lo, hi, int(len(rows)),
+                              int(pix_count[rows].sum()), comps, rows))
+    return tuple(regions)
+
+
+def _mask_of(epoch: Epoch, rows: np.ndarray) -> np.ndarray:
+    sel = np.zeros(epoch.n_points + 1, dtype=bool)
+    sel[rows] = True
+    pv = epoch.pixel_voxel
+    return sel[np.where(pv >= 0, pv, epoch.n_points)]
+
+
+# --------------------------------------------------------------------------- EMD helpers
+
+
+def _ground(ma: Mixture, mb: Mixture, kind: str) -> np.ndarray:
+    from robot_change import emd as emd_mod
+    if kind == "euclidean":
+        return emd_mod.ground_distance(ma.means, mb.means, kind="euclidean")
+    return emd_mod.ground_distance(ma.means, mb.means, ma.covariances, mb.covariances,
+                                   kind="wasserstein2")
+
+
+def accept_trajectory(order: np.ndarray, emd_after: np.ndarray, weights: np.ndarray,
+                      n_points: int, params: ChangeParams) -> int:
+    """How many leading removals of a greedy EMD trajectory the acceptance rule keeps.
+
+    Step i (removing ``order[i]``) is accepted while ``emd_after[i] - emd_after[i + 1]`` is at
+    least ``accept_min_drop_m`` and at least ``accept_min_drop_rel * emd_after[0]``, and the
+    removed component holds at least ``min_region_points`` points (``n_points * w``); the
+    first step that fails stops it.
+    """
+    d0 = float(emd_after[0]) if len(emd_after) else 0.0
+    need = max(params.accept_min_drop_m, params.accept_min_drop_rel * d0)
+    n_ok = 0
+    for i, k in enumerate(order):
+        drop = float(emd_after[i] - emd_after[i + 1])
+        if drop < need or n_points * float(weights[k]) < params.min_region_points:
+            break
+        n_ok += 1
+    return n_ok
+
+
+def _greedy(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n_points: int,
+            params: ChangeParams) -> GreedyTrace:
+    from robot_change import emd as emd_mod
+    cand_idx = np.flatnonzero(candidates)
+    if cand_idx.size == 0:
+        return GreedyTrace(cand_idx, np.zeros(0, np.int64),
+                           np.array([np.nan]), 0, np.zeros(0, np.int64))
+    cost = _ground(fixed_mix, var_mix, params.ground_distance)
+    res = emd_mod.greedy_emd(fixed_mix.weights, var_mix.weights, cost, candidates,
+                             int(cand_idx.size))
+    order = np.asarray(res.order, dtype=np.int64)
+    emd_after = np.asarray(res.emd_after, dtype=np.float64)
+    if params.greedy:
+        n_ok = accept_trajectory(order, emd_after, var_mix.weights, n_points, params)
+        change = order[:n_ok]
+    else:
+        n_ok = int(order.size)
+        change = cand_idx
+    return GreedyTrace(cand_idx, order, emd_after, n_ok, np.sort(change))
+
+
+# --------------------------------------------------------------------------- one direction
+
+
+def _fit_own(ep: Epoch, params: ChangeParams) -> Mixture:
+    return fit_mixture(ep.points, leaf=ep.leaf_m, seed=params.seed)
+
+
+def _current_mixture(cur: Epoch, ref_mix: Mixture, params: ChangeParams) -> Mixture:
+    """The current's mixture for the mirror when the current came without one."""
+    if params.current_mixture == "fit":
+        return _fit_own(cur, params)
+    # EM from the reference mixture, every component free, no splits: the reference's
+    # components follow the current cloud (a removed object's component moves or dies)
+    return fit_mixture(cur.points, init=ref_mix, leaf=cur.leaf_m, seed=params.seed, split=False,
+                       tol=params.novelty_tol)
+
+
+def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: ChangeParams):
+    """``base_mix`` plus one free component per connected group (on the voxel grid) of novel
+    points with at least ``min_region_points`` points, largest first, at most
+    ``max_novelty_components``; returns (init Mixture, fixed mask)."""
+    k0 = base_mix.n_components
+    idx = np.flatnonzero(novel)
+    groups = []
+    if idx.size:
+        labels = label_voxel_components(other.keys[idx], params.region_connectivity)
+        sizes = np.bincount(labels)
+        for lab in np.argsort(-sizes, kind="stable")[:params.max_novelty_components]:
+            if sizes[lab] < max(params.min_region_points, 4):
+                break
+            groups.append(idx[labels == lab])
+    if not groups:
+        return base_mix, "init"
+    n = other.n_points
+    reg = other.leaf_m ** 2 / 12.0
+    w_new = np.array([len(g) / n for g in groups])
+    means = [other.points[g].astype(np.float64).mean(axis=0) for g in groups]
+    covs = [np.cov(other.points[g].astype(np.float64), rowvar=False, bias=True)
+            + reg * np.eye(3) for g in groups]
+    weights = np.concatenate([base_mix.weights * (1.0 - w_new.sum()), w_new])
+    init = Mixture(weights / weights.sum(), np.vstack([base_mix.means, np.array(means)]),
+                   np.concatenate([base_mix.covariances, np.array(covs)]))
+    fixed = np.zeros(init.n_components, dtype=bool)
+    fixed[:k0] = True
+    return init, fixed
+
+
+def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, params: ChangeParams,
+                       timings: dict, prefix: str, free: np.ndarray | None = None):
+    """Changed points of ``other`` relative to ``base``: the mixture part.
+
+    ``base_mix`` (fitted on ``base``) is held fixed as the background of ``other``'s cloud;
+    novelty components for poorly explained points; greedy EMD base -> other over them.
+    Returns (candidate mask (M,), searched mixture, posterior (M, K), trace).
+    """
+    t0 = time.perf_counter()
+    # the quantile of the base's own log-densities, on a fixed stride subsample (<= 4000 pts)
+    step = max(1, base.n_points // 4000)
+    thr = np.quantile(base_mix.score_samples(base.points[::step]), params.novelty_quantile)
+    log_dens = base_mix.score_samples(other.points)
+    novel = log_dens < thr
+    if params.novelty_seed == "density+free_space" and free is not None:
+        novel |= free
+    t1 = time.perf_counter()
+    k0 = base_mix.n_components
+    init, fixed = _seed_novelty(base_mix, other, novel, params)
+    if isinstance(fixed, str) and params.novelty_fix_weights:
+        # no group of novel points to seed: with the fixed components' weights held, EM has
+        # nothing to estimate, so the searched mixture is the base mixture itself
+        fitted = base_mix
+    else:
+        fitted = fit_mixture(other.points, init=init, fixed=fixed,
+                             fix_weights=params.novelty_fix_weights, leaf=other.leaf_m,
+                             seed=params.seed, split=params.novelty_split,
+                             tol=params.novelty_tol,
+                             max_components=k0 + params.max_novelty_components)
+    t2 = time.perf_counter()
+    candidates = np.zeros(fitted.n_components, dtype=bool)
+    candidates[k0:] = True
+    trace = _greedy(base_mix, fitted, candidates, other.n_points, params)
+    t3 = time.perf_counter()
+    # posteriors only where they can matter: with the free-space check on, a point it rejects
+    # is never changed, so its posterior is not computed (left 0)
+    rows = np.flatnonzero(free) if (params.free_space and free is not None) else None
+    post = _responsibilities(fitted, other.points, rows)
+    if trace.change.size:
+        mass = post[:, trace.change].sum(axis=1)
+        cand = mass > params.posterior_threshold
+    else:
+        cand = np.zeros(other.n_points, dtype=bool)
+    t4 = time.perf_counter()
+    timings[f"{prefix}novelty_mask_ms"] = (t1 - t0) * 1e3
+    timings[f"{prefix}novelty_fit_ms"] = (t2 - t1) * 1e3
+    timings[f"{prefix}greedy_ms"] = (t3 - t2) * 1e3
+    timings[f"{prefix}segment_ms"] = (t4 - t3) * 1e3
+    return cand, fitted, post, trace
+
+
+def _responsibilities(mix: Mixture, points: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    """(M, K) posteriors; only ``rows`` filled when given (zeros elsewhere)."""
+    if rows is None:
+        return mix.responsibilities(points)
+    post = np.zeros((points.shape[0], mix.n_components))
+    if rows.size:
+        post[rows] = mix.responsibilities(points[rows])
+    return post
+
+
+def _plain_direction(base_mix: Mixture, other: Epoch, other_mix: Mixture, params, timings,
+                     prefix):
+    t0 = time.perf_counter()
+    candidates = np.ones(other_mix.n_components, dtype=bool)
+    trace = _greedy(base_mix, other_mix, candidates, other.n_points, params)
+    t1 = time.perf_counter()
+    post = other_mix.responsibilities(other.points)
+    if trace.change.size:
+        cand = post[:, trace.change].sum(axis=1) > params.posterior_threshold
+    else:
+        cand = np.zeros(other.n_points, dtype=bool)
+    timings[f"{prefix}greedy_ms"] = (t1 - t0) * 1e3
+    timings[f"{prefix}segment_ms"] = (time.perf_counter() - t1) * 1e3
+    return cand, other_mix, post, trace
+
+
+def _free_mask(other: Epoch, base: Epoch, params: ChangeParams) -> np.ndarray:
+    """(M,) bool: points of ``other`` that ``base``'s depth image sees through."""
+    votes, total = free_space_votes(other.pixel_voxel, other.depth, base.depth, other.n_points,
+                                    params.free_space_margin_m, params.free_space_margin_per_m2,
+                                    params.free_space_pose_radius_px,
+                                    params.free_space_hole_radius_px,
+                                    params.free_space_no_reading_is_free)
+    return (total > 0) & (votes >= params.free_space_min_fraction * np.maximum(total, 1))
+
+
+def _geometric_filters(other: Epoch, base: Epoch, cand: np.ndarray, params: ChangeParams,
+                       timings: dict, prefix: str, free: np.ndarray | None = None
+                       ) -> np.ndarray:
+    """Free-space check (against ``base``'s depth image) and the optional NN check."""
+    t0 = time.perf_counter()
+    if params.free_space:
+        cand = cand & (free if free is not None else _free_mask(other, base, params))
+    t1 = time.perf_counter()
+    if params.nn_check_m > 0 and cand.any():
+        rows = np.flatnonzero(cand)
+        keep = np.zeros_like(cand)
+        keep[rows[_nn_far(cKDTree(base.points), other.points[rows], params.nn_check_m)]] = True
+        cand = keep
+    timings[f"{prefix}free_space_ms"] = timings.get(f"{prefix}free_space_ms", 0.0) + \
+        (t1 - t0) * 1e3
+    timings[f"{prefix}nn_check_ms"] = (time.perf_counter() - t1) * 1e3
+    return cand
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def _current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None,
+                   timings: dict, reference_model: Any = None) -> Epoch:
+    t0 = time.perf_counter()
+    if isinstance(current, np.ndarray):
+        if intrinsics is None:
+            intrinsics = reference.intrinsics
+        if not isinstance(intrinsics, Intrinsics):
+            raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
+                             f"{type(intrinsics).__name__}")
+        if current.ndim != 2 or current.dtype != np.uint16:
+            raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
+                             f"{current.dtype} of shape {current.shape}")
+        if reference_model is not None:
+            from robot_change.scene import check_compatible
+            check_compatible(reference_model, (intrinsics, reference_model.params))
+        if current.shape != (intrinsics.height, intrinsics.width):
+            raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
+                             f"intrinsics are for {intrinsics.width}x{intrinsics.height}")
+        if current.shape != reference.depth.shape or intrinsics != reference.intrinsics:
+            _raise_mismatch(f"current depth {current.shape[::-1]} with {intrinsics} does not "
+                            f"match the reference's {reference.depth.shape[::-1]} "
+                            f"{reference.intrinsics}; use the camera mode the reference was "
+                            f"taken with, or rebuild the reference")
+        cloud_params = reference.cloud_params or CloudParams(leaf_m=reference.leaf_m)
+        ep = epoch_from_depth(current, intrinsics, cloud_params)
+        timings["current_cloud_ms"] = (time.perf_counter() - t0) * 1e3
+        return ep
+    if intrinsics is not None:
+        raise InputError("intrinsics= is only for a current depth array; a SceneModel "
+                         "carries its own")
+    return _as_epoch(current, "current")
+
+
+def _scene_model(obj: Any) -> Any:
+    from robot_change.scene import SceneModel
+    return obj if isinstance(obj, SceneModel) else None
+
+
+def _check_scene_models(reference: Any, current: Any) -> None:
+    """scene.check_compatible for two SceneModels, when scene.py provides it."""
+    from robot_change.scene import SceneModel, check_compatible
+    if isinstance(reference, SceneModel) and isinstance(current, SceneModel):
+        check_compatible(reference, current)
+
+
+def _finish(method, params, ref, cur, app, dis, app_post, app_mix, dis_post, dis_mix,
+            trace_a, trace_d, k_ref, k_cur, timings, t_start) -> ChangeSet:
+    t0 = time.perf_counter()
+    regions_a = group_regions("appeared", cur, app, params, app_post,
+                              trace_a.change if trace_a is not None else None)
+    regions_d = group_regions("disappeared", ref, dis, params, dis_post,
+                              trace_d.change if trace_d is not None else None) \
+        if dis is not None else ()
+    rows_a = (np.sort(np.concatenate([r.point_index for r in regions_a]))
+              if regions_a else np.zeros(0, np.int64))
+    rows_d = (np.sort(np.concatenate([r.point_index for r in regions_d]))
+              if regions_d else np.zeros(0, np.int64))
+    timings["regions_ms"] = (time.perf_counter() - t0) * 1e3
+    timings["detect_ms"] = (time.perf_counter() - t_start) * 1e3
+    return ChangeSet(
+        changed=bool(regions_a or regions_d),
+        appeared=regions_a, disappeared=regions_d,
+        appeared_points=cur.points[rows_a].astype(np.float32),
+        disappeared_points=ref.points[rows_d].astype(np.float32),
+        appeared_index=rows_a, disappeared_index=rows_d,
+        appeared_mask=_mask_of(cur, rows_a), disappeared_mask=_mask_of(ref, rows_d),
+        appeared_mixture=app_mix, disappeared_mixture=dis_mix,
+        k_reference=k_ref, k_current=k_cur,
+        greedy_appeared=trace_a, greedy_disappeared=trace_d,
+        method=method, params=params, timings_ms=timings)
+
+
+def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangeParams(), *,
+                   intrinsics: Intrinsics | None = None) -> ChangeSet:
+    """What appeared and what disappeared between the station's reference and now.
+
+    Parameters
+    ----------
+    reference : SceneModel or Epoch
+        The station's reference (fused depth, intrinsics, clean cloud, mixture).
+    current : SceneModel, Epoch, or (H, W) uint16 depth array
+        A depth array is cleaned with the reference's CloudParams (``intrinsics``: the
+        reference's when not given; they must match).
+    params : ChangeParams
+        ``novelty=False`` runs the plain method (:func:`detect_plain`).
+
+    Returns
+    -------
+    ChangeSet
+
+    Raises
+    ------
+    SceneMismatchError (robot_change.scene)
+        Other image size, intrinsics or cloud parameters than the reference.
+    EmptySceneError (robot_change.errors)
+        Either clean cloud has fewer than ``params.min_cloud_points`` points: the camera sees
+        nothing to compare.  Deliberately an error, not a "no change" result: with no
+        readings we cannot tell an unchanged room from something right in front of the lens
+        (nearer than the sensor's minimum range), a covered lens or a dead camera.  The
+        caller decides (watch mode: a fault, pause the base).
+    """
+    if not isinstance(params, ChangeParams):
+        raise InputError(f"params must be a ChangeParams, got {type(params).__name__}")
+    if not params.novelty:
+        return detect_plain(reference, current, params, intrinsics=intrinsics)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    _check_scene_models(reference, current)
+    ref = _as_epoch(reference, "reference")
+    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
+    _check_pair(ref, cur, params)
+    ref_mix = ref.mixture
+    if ref_mix is None:
+        t0 = time.perf_counter()
+        ref_mix = _fit_own(ref, params)
+        timings["reference_fit_ms"] = (time.perf_counter() - t0) * 1e3
+    free_a = _timed_free(cur, ref, params, timings, "appeared_")
+    app, app_mix, app_post, trace_a = _novelty_direction("appeared", ref, cur, ref_mix, params,
+                                                         timings, "appeared_", free_a)
+    app = _geometric_filters(cur, ref, app, params, timings, "appeared_", free_a)
+    dis = dis_mix = dis_post = trace_d = None
+    k_cur = 0
+    if params.disappeared:
+        cur_mix = cur.mixture
+        if cur_mix is None:
+            t0 = time.perf_counter()
+            cur_mix = _current_mixture(cur, ref_mix, params)
+            timings["current_fit_ms"] = (time.perf_counter() - t0) * 1e3
+        k_cur = cur_mix.n_components
+        free_d = _timed_free(ref, cur, params, timings, "disappeared_")
+        dis, dis_mix, dis_post, trace_d = _novelty_direction("disappeared", cur, ref, cur_mix,
+                                                             params, timings, "disappeared_",
+                                                             free_d)
+        dis = _geometric_filters(ref, cur, dis, params, timings, "disappeared_", free_d)
+    return _finish("novelty", params, ref, cur, app, dis, app_post, app_mix, dis_post,
+                   dis_mix, trace_a, trace_d, ref_mix.n_components, k_cur, timings, t_start)
+
+
+def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+        novelty=False, free_space=False), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
+    """The plain method (the paper's): independent fits of both clouds, greedy EMD over all
+    components both ways, posterior segmentation; the free-space / NN checks only if
+    ``params`` switches them on (off by default here)."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    _check_scene_models(reference, current)
+    ref = _as_epoch(reference, "reference")
+    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
+    _check_pair(ref, cur, params)
+    mixes = []
+    for name, ep in (("reference", ref), ("current", cur)):
+        m = ep.mixture
+        if m is None:
+            t0 = time.perf_counter()
+            m = _fit_own(ep, params)
+            timings[f"{name}_fit_ms"] = (time.perf_counter() - t0) * 1e3
+        mixes.append(m)
+    ref_mix, cur_mix = mixes
+    app, app_mix, app_post, trace_a = _plain_direction(ref_mix, cur, cur_mix, params, timings,
+                                                       "appeared_")
+    app = _geometric_filters(cur, ref, app, params, timings, "appeared_")
+    dis = dis_mix = dis_post = trace_d = None
+    if params.disappeared:
+        dis, dis_mix, dis_post, trace_d = _plain_direction(cur_mix, ref, ref_mix, params,
+                                                           timings, "disappeared_")
+        dis = _geometric_filters(ref, cur, dis, params, timings, "disappeared_")
+    return _finish("plain", params, ref, cur, app, dis, app_post, app_mix, dis_post, dis_mix,
+                   trace_a, trace_d, ref_mix.n_components, cur_mix.n_components, timings,
+                   t_start)
+
+
+def _timed_free(other, base, params, timings, prefix):
+    if not (params.free_space or params.novelty_seed == "density+free_space"):
+        return None
+    t0 = time.perf_counter()
+    free = _free_mask(other, base, params)
+    timings[f"{prefix}free_space_ms"] = (time.perf_counter() - t0) * 1e3
+    return free
+
+
+def _nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
+    dist, _ = tree.query(points, k=1, distance_upper_bound=d)
+    return ~np.isfinite(dist)
+
+
+def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+        free_space=False, nn_check_m=0.05), *, intrinsics: Intrinsics | None = None
+) -> ChangeSet:
+    """Baseline: a current point is appeared when no reference point is within
+    ``params.nn_check_m`` (a reference point disappeared likewise); no mixture, and the
+    free-space check only when ``params.free_space``.  Same region grouping as ours."""
+    if params.nn_check_m <= 0 and not params.free_space:
+        raise InputError("detect_nn_threshold needs params.nn_check_m > 0 (the threshold, m) "
+                         "or the free-space check")
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    _check_scene_models(reference, current)
+    ref = _as_epoch(reference, "reference")
+    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
+    _check_pair(ref, cur, params)
+    t0 = time.perf_counter()
+    if params.nn_check_m > 0:
+        app = _nn_far(cKDTree(ref.points), cur.points, params.nn_check_m)
+        dis = _nn_far(cKDTree(cur.points), ref.points, params.nn_check_m) \
+            if params.disappeared else None
+    else:  # free-space check alone
+        app = np.ones(cur.n_points, dtype=bool)
+        dis = np.ones(ref.n_points, dtype=bool) if params.disappeared else None
+    timings["nn_ms"] = (time.perf_counter() - t0) * 1e3
+    no_nn = params.replace(nn_check_m=0.0)
+    app = _geometric_filters(cur, ref, app, no_nn, timings, "appeared_")
+    if dis is not None:
+        dis = _geometric_filters(ref, cur, dis, no_nn, timings, "disappeared_")
+    method = ("free_space" if params.nn_check_m <= 0 else "geometric") if params.free_space \
+        else "nn"
+    return _finish(method, params, ref, cur, app, dis, None, None, None, None, None, None,
+                   ref.mixture.n_components if ref.mixture is not None else 0,
+                   cur.mixture.n_components if cur.mixture is not None else 0,
+                   timings, t_start)
+
+
+def detect_geometric(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+        nn_check_m=0.05), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
+    """Baseline without a mixture: the 5 cm nearest-reference-point check plus the free-space
+    check on every point (ALGORITHM.md section 3's bar for the mixture method)."""
+    return detect_nn_threshold(reference, current, params.replace(free_space=True),
+                               intrinsics=intrinsics)

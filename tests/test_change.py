@@ -1,0 +1,312 @@
+"""robot_change.change: change detection on simulated scenes, the switches, bad input, and the
+numba kernels against NumPy twins.  Kept fast: four scenes, each built once per module."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from robot_change import change as ch
+from robot_change.change import (
+    ChangeParams,
+    ChangeSet,
+    detect_changes,
+    detect_geometric,
+    detect_nn_threshold,
+    detect_plain,
+    free_space_votes,
+    label_voxel_components,
+)
+from robot_change.cloud import CloudParams
+from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change.filters import pack_keys
+from robot_change.scene import SceneParams, build_scene
+from sim_fixtures import load_scene
+
+SCENES = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_crate_moved")
+
+
+@pytest.fixture(scope="module")
+def models():
+    out = {}
+    for name in SCENES:
+        sc = load_scene(name)
+        ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+        cur = build_scene(sc.current_frames(), intrinsics=sc.intrinsics)
+        out[name] = (sc, ref, cur)
+    return out
+
+
+@pytest.fixture(scope="module")
+def results(models):
+    return {name: detect_changes(ref, cur) for name, (_, ref, cur) in models.items()}
+
+
+def _near(region, centroid, tol=0.15):
+    return float(np.linalg.norm(region.centroid - np.asarray(centroid))) < tol
+
+
+# --------------------------------------------------------------------------- behaviour
+
+
+def test_box_added_is_one_appeared_region_at_the_box(models, results):
+    sc, ref, cur = models["office_box_added"]
+    cs = results["office_box_added"]
+    assert isinstance(cs, ChangeSet) and cs.changed
+    assert len(cs.appeared) == 1 and cs.disappeared == ()
+    r = cs.appeared[0]
+    assert _near(r, sc.changes[0]["after"]["visible_centroid_m"])
+    assert r.kind == "appeared" and r.n_points == len(r.point_index) > 50
+    assert np.all(r.extent > 0.1) and np.all(r.extent < 0.8)
+    assert r.components and all(c >= cs.k_reference for c in r.components)  # novelty comps
+    assert cs.appeared_points.dtype == np.float32 and cs.appeared_points.shape == (r.n_points, 3)
+    assert cs.appeared_mask.shape == cur.depth.shape and cs.appeared_mask.sum() == r.n_pixels
+    # the pixels reported are the box's
+    assert (cs.appeared_mask & sc.truth_appeared).sum() / cs.appeared_mask.sum() > 0.95
+    assert cs.k_reference == ref.mixture.n_components
+    assert cs.timings_ms["detect_ms"] > 0
+
+
+def test_removal_is_disappeared(models, results):
+    sc, ref, _ = models["lounge_chair_removed"]
+    cs = results["lounge_chair_removed"]
+    assert cs.changed and cs.appeared == () and cs.disappeared
+    assert _near(cs.disappeared[0], sc.changes[0]["before"]["visible_centroid_m"], 0.25)
+    assert cs.disappeared_mask.shape == ref.depth.shape
+    assert (cs.disappeared_mask & sc.truth_disappeared).sum() / cs.disappeared_mask.sum() > 0.95
+
+
+def test_moved_is_both(models, results):
+    sc, _, _ = models["lab_crate_moved"]
+    cs = results["lab_crate_moved"]
+    assert len(cs.appeared) == 1 and len(cs.disappeared) == 1
+    assert _near(cs.appeared[0], sc.changes[0]["after"]["visible_centroid_m"], 0.25)
+    assert _near(cs.disappeared[0], sc.changes[0]["before"]["visible_centroid_m"], 0.25)
+
+
+def test_no_change_reports_nothing(results):
+    cs = results["office_no_change"]
+    assert not cs.changed and cs.regions == ()
+    assert cs.appeared_points.shape == (0, 3) and cs.disappeared_points.shape == (0, 3)
+    assert not cs.appeared_mask.any() and not cs.disappeared_mask.any()
+    s = cs.summary()
+    assert s["changed"] is False and s["regions"] == []
+
+
+def test_current_as_depth_array_matches_scene_model(models):
+    sc, ref, cur = models["office_box_added"]
+    frame = sc.current_frames()[0]
+    cs = detect_changes(ref, frame, intrinsics=sc.intrinsics)
+    assert len(cs.appeared) == 1 and cs.disappeared == ()
+    assert "current_cloud_ms" in cs.timings_ms and "current_fit_ms" in cs.timings_ms
+    assert _near(cs.appeared[0], sc.changes[0]["after"]["visible_centroid_m"])
+
+
+def test_summary_is_json_ready(results):
+    import json
+
+    s = json.loads(json.dumps(results["lab_crate_moved"].summary()))
+    assert {r["kind"] for r in s["regions"]} == {"appeared", "disappeared"}
+    assert s["greedy_appeared"]["emd_after"]
+
+
+# --------------------------------------------------------------------------- switches
+
+
+def test_free_space_off_reports_uncovered_background(models, results):
+    # Behind the removed chair the wall is now seen: novelty components cover it, and only the
+    # free-space check knows the reference never saw through it.
+    _, ref, cur = models["lounge_chair_removed"]
+    assert results["lounge_chair_removed"].appeared == ()
+    cs = detect_changes(ref, cur, ChangeParams(free_space=False, novelty_seed="density"))
+    assert cs.appeared
+
+
+def test_plain_method_uses_independent_fits(models):
+    _, ref, cur = models["office_box_added"]
+    cs = detect_changes(ref, cur, ChangeParams(novelty=False, free_space=False))
+    assert cs.method == "plain"
+    assert cs.appeared_mixture is cur.mixture and cs.disappeared_mixture is ref.mixture
+    assert cs.greedy_appeared.candidates.size == cur.mixture.n_components
+    assert detect_plain(ref, cur).method == "plain"
+
+
+def test_greedy_switch_uses_the_acceptance_rule(models, results):
+    _, ref, cur = models["office_box_added"]
+    off = results["office_box_added"].greedy_appeared
+    assert np.array_equal(off.change, off.candidates)  # greedy off: every novelty component
+    on = detect_changes(ref, cur, ChangeParams(greedy=True)).greedy_appeared
+    assert np.array_equal(np.sort(on.order[:on.accepted]), on.change)
+    strict = detect_changes(ref, cur, ChangeParams(greedy=True, accept_min_drop_m=10.0))
+    assert strict.greedy_appeared.accepted == 0 and not strict.changed
+
+
+def test_accept_trajectory_rule():
+    p = ChangeParams(accept_min_drop_m=0.01, accept_min_drop_rel=0.1, min_region_points=5)
+    w = np.array([0.5, 0.3, 0.1, 0.1])
+    emd_after = np.array([1.0, 0.5, 0.45, 0.1])  # drops 0.5, 0.05 (< 0.1 * 1.0), 0.35
+    assert ch.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 100, p) == 1
+    assert ch.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 10, p) == 0  # 3 points
+
+
+def test_ground_distance_changes_the_emd(models):
+    _, ref, cur = models["office_box_added"]
+    e = detect_changes(ref, cur, ChangeParams(ground_distance="euclidean"))
+    w = detect_changes(ref, cur, ChangeParams(ground_distance="wasserstein2"))
+    assert e.greedy_appeared.emd_after[0] < w.greedy_appeared.emd_after[0]
+
+
+def test_disappeared_off_min_region_and_connectivity(models):
+    _, ref, cur = models["lab_crate_moved"]
+    cs = detect_changes(ref, cur, ChangeParams(disappeared=False))
+    assert cs.appeared and cs.disappeared == () and cs.greedy_disappeared is None
+    assert not detect_changes(ref, cur, ChangeParams(min_region_points=10**6)).changed
+    loose = detect_changes(ref, cur, ChangeParams(region_connectivity=2))
+    assert len(loose.appeared) == 1
+
+
+def test_baselines(models):
+    _, ref, cur = models["office_box_added"]
+    nn = detect_nn_threshold(ref, cur)
+    geo = detect_geometric(ref, cur)
+    assert nn.method == "nn" and geo.method == "geometric"
+    assert len(geo.appeared) == 1 and geo.appeared_mixture is None
+    assert nn.appeared_points.shape[0] >= geo.appeared_points.shape[0]
+    fs = detect_nn_threshold(ref, cur, ChangeParams(nn_check_m=0.0, free_space=True))
+    assert fs.method == "free_space" and len(fs.appeared) == 1
+    with pytest.raises(InputError):
+        detect_nn_threshold(ref, cur, ChangeParams(nn_check_m=0.0, free_space=False))
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_params_are_validated():
+    for bad in (dict(novelty_quantile=0.0), dict(ground_distance="l1"), dict(greedy=1),
+                dict(posterior_threshold=1.5), dict(region_connectivity=0),
+                dict(free_space_margin_m=-0.01), dict(novelty_seed="x")):
+        with pytest.raises(InputError, match="ChangeParams"):
+            ChangeParams(**bad)
+    with pytest.raises(InputError):
+        detect_changes(None, None, params="fast")  # type: ignore[arg-type]
+
+
+def test_mismatched_intrinsics_or_params_raise(models):
+    sc, ref, cur = models["office_box_added"]
+    frame = sc.current_frames()[0]
+    other = dataclasses.replace(sc.intrinsics, fx=500.0, fy=500.0)
+    with pytest.raises(SceneMismatchError, match="intrinsics"):
+        detect_changes(ref, frame, intrinsics=other)
+    with pytest.raises(SceneMismatchError):
+        detect_changes(ref, frame[:240], intrinsics=dataclasses.replace(
+            sc.intrinsics, height=240, cy=119.5))
+    leaf = ref.params.cloud.leaf_m * 1.5
+    coarse = build_scene([frame], SceneParams(cloud=CloudParams(leaf_m=leaf)),
+                         intrinsics=sc.intrinsics)
+    with pytest.raises(SceneMismatchError, match="leaf_m"):
+        detect_changes(ref, coarse)
+
+
+def test_camera_sees_nothing_is_a_typed_error(models):
+    # Deliberately an error, not "no change": an all-zero frame may be a covered lens or
+    # something closer than the sensor's minimum range.
+    sc, ref, _ = models["office_box_added"]
+    blank = np.zeros((480, 640), np.uint16)
+    with pytest.raises(EmptySceneError, match="current"):
+        detect_changes(ref, blank, intrinsics=sc.intrinsics)
+    too_close = np.full((480, 640), 300, np.uint16)  # 0.3 m, below min_depth_m
+    with pytest.raises(EmptySceneError):
+        detect_changes(ref, too_close, intrinsics=sc.intrinsics)
+
+
+# --------------------------------------------------------------------------- numba twins
+
+
+def _window_twin(depth, radius, take_min):
+    size = 2 * radius + 1
+    if take_min:
+        d = np.where(depth > 0, depth.astype(np.int64), 65535)
+        out = ndimage.minimum_filter(d, size=size, mode="nearest")
+        return np.where(out == 65535, 0, out).astype(np.uint16)
+    return ndimage.maximum_filter(depth, size=size, mode="nearest").astype(np.uint16)
+
+
+@pytest.mark.parametrize("radius", [1, 3])
+def test_window_filter_matches_numpy(radius):
+    rng = np.random.default_rng(radius)
+    depth = rng.integers(500, 4000, size=(37, 53)).astype(np.uint16)
+    depth[rng.random(depth.shape) < 0.3] = 0
+    depth[5:20, 10:30] = 0  # a hole wider than the window
+    for take_min in (True, False):
+        np.testing.assert_array_equal(ch._window_filter(depth, radius, take_min),
+                                      _window_twin(depth, radius, take_min))
+
+
+def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero):
+    near = _window_twin(other, pose_r, True) if pose_r else other
+    far = _window_twin(other, hole_r, False) if hole_r else other
+    d1 = np.where(near > 0, near, far).astype(np.float64) * 1e-3
+    z = own.astype(np.float64) * 1e-3
+    seen = np.where(d1 == 0, free_zero, d1 > z + margin_m + per_m2 * z * z)
+    ok = pv >= 0
+    votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
+    total = np.bincount(pv[ok], minlength=n).astype(np.int32)
+    return votes, total
+
+
+@pytest.mark.parametrize("pose_r,hole_r,free_zero", [(0, 0, True), (2, 4, False), (3, 0, True)])
+def test_free_space_matches_numpy(pose_r, hole_r, free_zero):
+    rng = np.random.default_rng(7)
+    h, w, n = 30, 40, 50
+    own = rng.integers(800, 3000, size=(h, w)).astype(np.uint16)
+    other = (own.astype(np.int64) + rng.integers(-200, 400, size=(h, w))).astype(np.uint16)
+    other[rng.random((h, w)) < 0.2] = 0
+    other[10:22, 5:20] = 0
+    pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
+    got = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
+    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_voxel_components_match_ndimage_label(radius):
+    rng = np.random.default_rng(radius)
+    grid = rng.random((14, 12, 10)) < 0.25
+    idx = np.argwhere(grid) - 5  # negative indices too
+    keys = pack_keys(idx)
+    perm = rng.permutation(len(keys))
+    labels = label_voxel_components(keys[perm], radius)
+    structure = np.ones((2 * radius + 1,) * 3, dtype=bool)
+    if radius == 1:
+        ref_lab, _ = ndimage.label(grid, structure=structure)
+    else:  # radius 2: dilate-free check by brute force union of pairs within 2
+        pts = idx.astype(np.int64)
+        parent = list(range(len(pts)))
+
+        def find(i):
+            while parent[i] != i:
+                i = parent[i]
+            return i
+
+        for i in range(len(pts)):
+            near = np.flatnonzero(np.abs(pts - pts[i]).max(axis=1) <= radius)
+            for j in near:
+                a, b = find(i), find(int(j))
+                if a != b:
+                    parent[b] = a
+        ref_lab = np.zeros(grid.shape, np.int64)
+        for i, p in enumerate(pts + 5):
+            ref_lab[tuple(p)] = find(i) + 1
+    want = ref_lab[tuple((idx + 5).T)][perm]
+    # same partition: a bijection between label sets
+    pairs = set(zip(labels.tolist(), want.tolist()))
+    assert len(pairs) == len(set(labels.tolist())) == len(set(want.tolist()))
+
+
+def test_voxel_components_reject_duplicates():
+    with pytest.raises(InputError, match="unique"):
+        label_voxel_components(np.array([5, 5], dtype=np.int64))
