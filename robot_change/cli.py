@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -193,6 +194,132 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_scene_file(target: str) -> bool:
+    """A saved SceneModel (``*.npz`` on disk) rather than a depth URI."""
+    return target.lower().endswith(".npz") and Path(target).is_file()
+
+
+def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
+    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter)."""
+    if frames < 1:
+        raise InputError(f"--frames {frames}: read at least one frame")
+    read: list[DepthFrame] = []
+    with open_depth(uri) as source:
+        for frame in source:
+            read.append(frame)
+            if len(read) == frames:
+                break
+    if not read:
+        raise InputError(f"{uri}: the source delivered no frame")
+    return read
+
+
+def _scene_params(args: argparse.Namespace):
+    from robot_change.scene import SceneParams
+
+    return SceneParams(cloud=_cloud_params(args))
+
+
+def _reference_scene(args: argparse.Namespace):
+    """The reference as a SceneModel: loaded from a file, or built from frames of a URI."""
+    from robot_change.scene import SceneModel, build_scene
+
+    if _is_scene_file(args.reference):
+        return SceneModel.load(args.reference)
+    frames = _read_frames(args.reference, args.frames)
+    override = None
+    if args.intrinsics:
+        first = frames[0].intrinsics
+        override = Intrinsics.parse(args.intrinsics, first.width, first.height)
+    return build_scene(frames, _scene_params(args), intrinsics=override, source=args.reference)
+
+
+def _current_input(args: argparse.Namespace, reference):
+    """The current epoch: a saved SceneModel, or the fused depth of a URI's frames and the
+    intrinsics to read it with."""
+    from robot_change.filters import fuse_depth
+    from robot_change.scene import SceneModel
+
+    if _is_scene_file(args.current):
+        scene = SceneModel.load(args.current)
+        return scene, scene.depth, scene.intrinsics
+    frames = _read_frames(args.current, args.frames)
+    camera = frames[0].intrinsics
+    if args.intrinsics:
+        camera = Intrinsics.parse(args.intrinsics, camera.width, camera.height)
+    stack = np.stack([frame.depth for frame in frames])
+    depth = fuse_depth(stack, min_valid=reference.params.min_valid(len(frames)))
+    return depth, depth, camera
+
+
+def cmd_capture(args: argparse.Namespace) -> int:
+    """Build a SceneModel (a station reference) from N frames and save it."""
+    from robot_change.scene import build_scene
+
+    frames = _read_frames(args.source, args.frames)
+    override = None
+    if args.intrinsics:
+        first = frames[0].intrinsics
+        override = Intrinsics.parse(args.intrinsics, first.width, first.height)
+    scene = build_scene(frames, _scene_params(args), intrinsics=override, source=args.source)
+    scene.save(args.out)
+    print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
+          f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s")
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    """Compare a reference with now: what appeared, what disappeared, where."""
+    from robot_change import change
+
+    started = time.perf_counter()
+    reference = _reference_scene(args)
+    current, current_depth, camera = _current_input(args, reference)
+    detector = {"novelty": change.detect_changes, "plain": change.detect_plain,
+                "geometric": change.detect_geometric, "nn": change.detect_nn_threshold}
+    changes = detector[args.method](reference, current, intrinsics=camera)
+    seconds = time.perf_counter() - started
+    summary = changes.summary()
+    summary.update({
+        "reference": args.reference, "current": args.current, "seconds": round(seconds, 3),
+    })
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        np.save(out / "appeared.npy", np.asarray(changes.appeared_points, np.float32))
+        np.save(out / "disappeared.npy", np.asarray(changes.disappeared_points, np.float32))
+        summary["files"] = [str(out / name) for name in
+                            ("appeared.npy", "disappeared.npy", "report.json")]
+        if not args.no_picture:
+            from robot_change.report import draw_change
+
+            draw_change(reference.depth, current_depth, camera, changes, out / "report.png",
+                        title=f"{args.reference} -> {args.current}")
+            summary["files"].append(str(out / "report.png"))
+        from hw.atomic import write_atomically
+
+        write_atomically(out / "report.json",
+                         (json.dumps(summary, indent=2) + "\n").encode("utf-8"))
+    if args.json:
+        _print_json(summary)
+    else:
+        _print_change_summary(summary)
+    return 0
+
+
+def _print_change_summary(summary: dict[str, Any]) -> None:
+    verdict = "CHANGED" if summary["changed"] else "no change"
+    print(f"{verdict}: {summary['reference']} -> {summary['current']} "
+          f"(K {summary['k_reference']} / {summary['k_current']}, {summary['seconds']:.2f} s)")
+    for number, region in enumerate(summary["regions"], 1):
+        x, y, z = region["centroid_m"]
+        print(f"  {region['kind']:11s} {number}: {region['n_points']:5d} points at "
+              f"x {x:+.2f} y {y:+.2f} z {z:.2f} m, extent "
+              + " x ".join(f"{v:.2f}" for v in region["extent_m"]) + " m")
+    for path in summary.get("files", []):
+        print(f"wrote {path}")
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     """Record any depth source (a live camera, images, another .oni) to an .oni file."""
     from hw.openni2 import record
@@ -282,6 +409,36 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--source", help="depth URI to benchmark instead of the bundled frame")
     bench.set_defaults(func=cmd_bench)
 
+    capture = commands.add_parser("capture", help="build a station reference (SceneModel) from "
+                                  "N frames and save it")
+    capture.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
+    capture.add_argument("--out", required=True, help="the file to write, e.g. kitchen.scene.npz")
+    capture.add_argument("--frames", type=int, default=5, help="frames to fuse (default 5)")
+    capture.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's)")
+    capture.add_argument("--leaf", type=float, help="voxel size in metres (default 0.03)")
+    capture.set_defaults(func=cmd_capture)
+
+    detect = commands.add_parser("detect", help="compare a reference with now: what appeared, "
+                                 "what disappeared, where")
+    detect.add_argument("--reference", required=True,
+                        help="a saved scene (*.npz from capture) or a depth URI")
+    detect.add_argument("--current", required=True,
+                        help="a saved scene (*.npz) or a depth URI (.oni, images, camera)")
+    detect.add_argument("--frames", type=int, default=5,
+                        help="frames to fuse from a depth URI (default 5, fewer if it is shorter)")
+    detect.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, "
+                        "else OpenNI's VGA default)")
+    detect.add_argument("--leaf", type=float,
+                        help="voxel size in metres for a reference built from a URI")
+    detect.add_argument("--method", choices=("novelty", "plain", "geometric", "nn"),
+                        default="novelty", help="ours (default), the paper's plain method, or a "
+                        "baseline without a mixture")
+    detect.add_argument("--out", help="folder for appeared.npy, disappeared.npy ((M,3) float32, "
+                        "camera frame, m), report.json and report.png")
+    detect.add_argument("--no-picture", action="store_true", help="with --out: skip report.png")
+    detect.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    detect.set_defaults(func=cmd_detect)
+
     record = commands.add_parser("record", help="record a depth source to an .oni file")
     record.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
     record.add_argument("--out", required=True, help="the .oni file to write")
@@ -340,6 +497,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # e.g. piped into head: the reader has gone, nothing to report
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

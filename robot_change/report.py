@@ -12,6 +12,7 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.cloud import PIXEL_KEPT, PIXEL_OUTLIER, PIXEL_PLANE, CleanCloud
+from robot_change.geometry import project_points
 from robot_change.errors import InputError
 
 
@@ -122,6 +123,94 @@ def draw_cloud(
     axes[2].grid(alpha=0.3)
     if title:
         figure.suptitle(title)
+    try:
+        return _save(figure, Path(path))
+    finally:
+        plt.close(figure)
+
+
+#: Colours of the change picture: appeared (current image), disappeared (reference image).
+APPEARED_COLOUR = (0.90, 0.15, 0.15)
+DISAPPEARED_COLOUR = (0.15, 0.40, 0.95)
+
+
+def _grey(depth: np.ndarray) -> np.ndarray:
+    """(H, W) uint16 mm -> (H, W, 3) float grey image, near = bright, no reading = black."""
+    metres = depth.astype(np.float64) / 1000.0
+    valid = depth > 0
+    low, high = (np.percentile(metres[valid], [1, 99]) if valid.any() else (0.0, 1.0))
+    shade = 1.0 - 0.75 * np.clip((metres - low) / max(high - low, 1e-6), 0.0, 1.0)
+    picture = np.repeat(np.where(valid, shade, 0.0)[..., None], 3, axis=2)
+    return picture
+
+
+def _region_box(axis, region, intrinsics: Intrinsics, colour, label: str) -> None:
+    """Draw the image rectangle around a region's 3-D bounding box, with a label."""
+    corners = np.array([[x, y, z] for x in (region.bbox_min[0], region.bbox_max[0])
+                        for y in (region.bbox_min[1], region.bbox_max[1])
+                        for z in (region.bbox_min[2], region.bbox_max[2])])
+    uv = project_points(corners.astype(np.float64), intrinsics)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    if not len(uv):
+        return
+    (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+    axis.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], color=colour, linewidth=1.5)
+    axis.text(u0, v0 - 4, label, color="white", fontsize=8, va="bottom",
+              bbox=dict(facecolor=colour, edgecolor="none", alpha=0.85, pad=1.5))
+
+
+def _ellipses(axis, mixture, intrinsics: Intrinsics, highlight: set[int], colour) -> None:
+    """Every component of ``mixture`` as a thin outline; those in ``highlight`` bold."""
+    if mixture is None:
+        return
+    outlines = mixture_ellipses(mixture.means, mixture.covariances, intrinsics)
+    for index, outline in enumerate(outlines):
+        if len(outline):
+            bold = index in highlight
+            axis.plot(outline[:, 0], outline[:, 1], color=colour if bold else (1.0, 0.85, 0.2),
+                      linewidth=2.0 if bold else 0.6, alpha=1.0 if bold else 0.55)
+
+
+def draw_change(
+    reference_depth: np.ndarray, current_depth: np.ndarray, intrinsics: Intrinsics, changes,
+    path: str | Path, title: str = "",
+) -> Path:
+    """The picture of what changed, like the paper's Fig. 8: the reference depth image with
+    what disappeared (blue) and the current one with what appeared (red), each with its
+    mixture's Gaussians as 2-sigma outlines (the change components bold) and a labelled box
+    per region.
+
+    ``reference_depth`` / ``current_depth``: (H, W) uint16 mm; ``changes``: a
+    :class:`robot_change.change.ChangeSet`.  Returns the PNG's path.
+    """
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, 2, figsize=(14, 5.6), constrained_layout=True)
+    panels = (
+        (axes[0], reference_depth, changes.disappeared_mask, changes.disappeared,
+         changes.disappeared_mixture, DISAPPEARED_COLOUR, "reference: what disappeared"),
+        (axes[1], current_depth, changes.appeared_mask, changes.appeared,
+         changes.appeared_mixture, APPEARED_COLOUR, "current: what appeared"),
+    )
+    for axis, depth, mask, regions, mixture, colour, caption in panels:
+        picture = _grey(depth)
+        if mask is not None and mask.shape == depth.shape:
+            picture[mask] = 0.35 * picture[mask] + 0.65 * np.array(colour)
+        axis.imshow(picture, interpolation="nearest")
+        highlight = {c for region in regions for c in region.components}
+        _ellipses(axis, mixture, intrinsics, highlight, colour)
+        for number, region in enumerate(regions, 1):
+            size = max(region.extent) * 100.0
+            _region_box(axis, region, intrinsics, colour,
+                        f"{region.kind[:3]} {number}: {region.n_points} pts, {size:.0f} cm, "
+                        f"z {region.centroid[2]:.2f} m")
+        k = mixture.n_components if mixture is not None else 0
+        axis.set_title(f"{caption} ({len(regions)} region(s); K = {k})")
+        axis.set_xlim(0, depth.shape[1] - 1)
+        axis.set_ylim(depth.shape[0] - 1, 0)
+        axis.set_xticks([])
+        axis.set_yticks([])
+    verdict = "CHANGED" if changes.changed else "no change"
+    figure.suptitle(f"{title}  —  {verdict}" if title else verdict)
     try:
         return _save(figure, Path(path))
     finally:

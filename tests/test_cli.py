@@ -134,3 +134,61 @@ def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tm
     result = run("check-config", str(bad))
     assert result.returncode == 78
     assert "cloud.leaf_m = -1" in result.stderr and "Traceback" not in result.stderr
+
+
+SCENES = REPO / "sim_fixtures" / "scenes"
+
+
+def test_detect_finds_the_added_box_and_writes_points_report_and_picture(tmp_path):
+    scene = SCENES / "office_box_added"
+    result = run("detect", "--reference", str(scene / "reference.oni"),
+                 "--current", str(scene / "current.oni"), "--out", str(tmp_path), "--json")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["changed"] is True and summary["seconds"] > 0
+    [region] = summary["regions"]
+    assert region["kind"] == "appeared"
+    truth = json.loads((scene / "scene.json").read_text())["changes"][0]["after"]
+    # the visible surface's centroid: what a depth camera can locate
+    assert np.linalg.norm(np.subtract(region["centroid_m"], truth["visible_centroid_m"])) < 0.1
+    appeared = np.load(tmp_path / "appeared.npy")
+    assert appeared.dtype == np.float32 and appeared.shape[1] == 3 and len(appeared) > 100
+    assert np.load(tmp_path / "disappeared.npy").shape == (0, 3)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["k_reference"] >= 1 and "detect_ms" in report["timings_ms"]
+    assert (tmp_path / "report.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_capture_then_detect_against_the_saved_reference_on_an_unchanged_scene(tmp_path):
+    scene = SCENES / "office_no_change"
+    saved = tmp_path / "office.scene.npz"
+    result = run("capture", "--source", str(scene / "reference.oni"), "--out", str(saved))
+    assert result.returncode == 0, result.stderr
+    assert saved.is_file() and "fused" in result.stdout
+    result = run("detect", "--reference", str(saved), "--current", str(scene / "current.oni"))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("no change")
+
+
+def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):
+    scene = SCENES / "office_box_added"
+    result = run("detect", "--reference", str(scene / "reference.oni"),
+                 "--current", str(scene / "current.oni"), "--intrinsics", "500,500,320,240")
+    # the override applies to both: consistent, so it runs
+    assert result.returncode == 0, result.stderr
+    saved = tmp_path / "ref.scene.npz"
+    assert run("capture", "--source", str(scene / "reference.oni"), "--out",
+               str(saved)).returncode == 0
+    result = run("detect", "--reference", str(saved), "--current", str(scene / "current.oni"),
+                 "--intrinsics", "500,500,320,240")
+    assert result.returncode == 2
+    assert "intrinsics" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_detect_refuses_a_truncated_reference_file(tmp_path):
+    bad = tmp_path / "bad.scene.npz"
+    bad.write_bytes(b"PK\x03\x04 not really a zip")
+    scene = SCENES / "office_box_added"
+    result = run("detect", "--reference", str(bad), "--current", str(scene / "current.oni"))
+    assert result.returncode == 2
+    assert "bad.scene.npz" in result.stderr and "Traceback" not in result.stderr
