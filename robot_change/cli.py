@@ -29,6 +29,8 @@ EXIT_CONFIG = 78
 SIM_FIXTURES = Path(__file__).resolve().parents[1] / "sim_fixtures"
 #: The VGA frame of a furnished room (Kinect noise model) used by ``demo`` and ``bench``.
 DEMO_FRAME = SIM_FIXTURES / "frames" / "room_vga.png"
+#: The bundled scene ``bench`` times change detection on (a box appears in an office).
+DETECT_SCENE = "office_box_added"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -164,7 +166,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
-    from robot_change.benchmark import bench_emd, bench_preprocess, benchmark_em, machine_info
+    from robot_change.benchmark import (bench_detect, bench_emd, bench_preprocess, benchmark_em,
+                                        machine_info)
     from robot_change.cloud import clean_cloud
 
     source = args.source or _bundled(DEMO_FRAME)
@@ -182,6 +185,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
         "fit_k": mixture["fit_k"],
         "fit_points": mixture["n_points"],
     })
+    # change detection: a reference of a bundled scene (3 fused frames) and one current frame
+    from hw.oni import read_oni_frames
+
+    scene_dir = SIM_FIXTURES / "scenes" / DETECT_SCENE
+    reference_frames = read_oni_frames(_bundled(scene_dir / "reference.oni"))
+    current = read_oni_frames(_bundled(scene_dir / "current.oni"))[0]
+    result["detect_scene"] = DETECT_SCENE
+    result.update(bench_detect([f.depth for f in reference_frames], current.depth,
+                               current.intrinsics, runs=max(5, args.runs // 3)))
     emd_figures = bench_emd(runs=max(20, args.runs * 4), n_scenes=3)
     result["emd_10x10_us"] = emd_figures["emd_10x10_us"]
     result["greedy_both_ways_k30_ms"] = emd_figures["greedy_both_ways_k30_ms"]

@@ -55,11 +55,12 @@ def test_bench_json_has_the_promised_keys():
     figures = json.loads(result.stdout)
     for key in ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms",
                 "n_points_in", "n_points_out", "em_iter_ms", "fit_ms", "fit_k", "emd_10x10_us",
-                "greedy_both_ways_k30_ms", "machine"):
+                "greedy_both_ways_k30_ms", "detect_ms", "machine"):
         assert key in figures
     assert figures["n_points_in"] > figures["n_points_out"] > 0
     assert figures["preprocess_ms"] > 0
     assert figures["fit_points"] == figures["n_points_out"] and figures["fit_k"] >= 1
+    assert figures["detect_regions"] == 1  # the box that appears in office_box_added
 
 
 def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):
