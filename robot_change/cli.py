@@ -52,25 +52,23 @@ def _read_depth(uri: str, frames: int, intrinsics: str | None) -> tuple[np.ndarr
     Returns ((H, W) uint16 mm, intrinsics, number of frames read).
     """
     from robot_change.filters import fuse_depth
+    from robot_change.scene import SceneParams
 
-    if frames < 1:
-        raise InputError(f"--frames {frames}: read at least one frame")
-    read: list[DepthFrame] = []
-    with open_depth(uri) as source:
-        for frame in source:
-            read.append(frame)
-            if len(read) == frames:
-                break
-    if not read:
-        raise InputError(f"{uri}: the source delivered no frame")
-    camera = read[0].intrinsics
-    if intrinsics:
-        camera = Intrinsics.parse(intrinsics, camera.width, camera.height)
+    read = _read_frames(uri, frames)
+    camera = _camera(read, intrinsics)
     if len(read) == 1:
         return read[0].depth, camera, 1
-    # a pixel needs a reading in at least half of the frames: flicker at edges stays out
+    # as a scene is fused: a pixel needs readings in enough frames, so edge flicker stays out
     stack = np.stack([frame.depth for frame in read])
-    return fuse_depth(stack, min_valid=(len(read) + 1) // 2), camera, len(read)
+    return fuse_depth(stack, min_valid=SceneParams().min_valid(len(read))), camera, len(read)
+
+
+def _camera(frames: list[DepthFrame], intrinsics: str | None) -> Intrinsics:
+    """The frames' intrinsics, or ``--intrinsics fx,fy,cx,cy`` for their image size."""
+    camera = frames[0].intrinsics
+    if intrinsics:
+        camera = Intrinsics.parse(intrinsics, camera.width, camera.height)
+    return camera
 
 
 def _cloud_params(args: argparse.Namespace):
@@ -239,11 +237,8 @@ def _reference_scene(args: argparse.Namespace):
     if _is_scene_file(args.reference):
         return SceneModel.load(args.reference)
     frames = _read_frames(args.reference, args.frames)
-    override = None
-    if args.intrinsics:
-        first = frames[0].intrinsics
-        override = Intrinsics.parse(args.intrinsics, first.width, first.height)
-    return build_scene(frames, _scene_params(args), intrinsics=override, source=args.reference)
+    return build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
+                       source=args.reference)
 
 
 def _current_input(args: argparse.Namespace, reference):
@@ -256,9 +251,7 @@ def _current_input(args: argparse.Namespace, reference):
         scene = SceneModel.load(args.current)
         return scene, scene.depth, scene.intrinsics
     frames = _read_frames(args.current, args.frames)
-    camera = frames[0].intrinsics
-    if args.intrinsics:
-        camera = Intrinsics.parse(args.intrinsics, camera.width, camera.height)
+    camera = _camera(frames, args.intrinsics)
     stack = np.stack([frame.depth for frame in frames])
     depth = fuse_depth(stack, min_valid=reference.params.min_valid(len(frames)))
     return depth, depth, camera
@@ -269,11 +262,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
     from robot_change.scene import build_scene
 
     frames = _read_frames(args.source, args.frames)
-    override = None
-    if args.intrinsics:
-        first = frames[0].intrinsics
-        override = Intrinsics.parse(args.intrinsics, first.width, first.height)
-    scene = build_scene(frames, _scene_params(args), intrinsics=override, source=args.source)
+    scene = build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
+                        source=args.source)
     scene.save(args.out)
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
           f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s")
