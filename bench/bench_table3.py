@@ -55,7 +55,7 @@ sys.path.insert(0, str(ROOT))
 from robot_change.benchmark import machine_info  # noqa: E402
 from robot_change.cloud import CloudParams, clean_cloud  # noqa: E402
 from robot_change.filters import fuse_depth  # noqa: E402
-from robot_change.mixture import CRITERIA, N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
+from robot_change.mixture import N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
 from sim_fixtures import load_scene  # noqa: E402
 
 PAPER_SCENES = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")

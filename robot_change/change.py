@@ -37,7 +37,7 @@ Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  Ker
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 import time
 from typing import Any
 
@@ -48,6 +48,7 @@ from scipy.spatial import cKDTree
 from hw.depth import Intrinsics
 from robot_change.cloud import CloudParams, clean_cloud
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change import validate
 from robot_change.filters import KEY_BITS
 from robot_change.mixture import Mixture, fit_mixture
 
@@ -75,28 +76,10 @@ NOVELTY_SEEDS = ("density", "density+free_space")
 
 # --------------------------------------------------------------------------- parameters
 
-
-def _num(name, value, low, high, *, low_open=False, unit=""):
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    if ok:
-        v = float(value)
-        ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
-    if not ok:
-        rel = "<" if low_open else "<="
-        raise InputError(f"ChangeParams.{name}={value!r}: must be a number with {low} {rel} "
-                         f"{name} <= {high}{unit}")
-
-
-def _int(name, value, low, high):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or \
-            not low <= value <= high:
-        raise InputError(f"ChangeParams.{name}={value!r}: must be a whole number in "
-                         f"{low}..{high}")
-
-
-def _bool(name, value):
-    if not isinstance(value, bool):
-        raise InputError(f"ChangeParams.{name}={value!r}: must be True or False")
+_num = functools.partial(validate.number, "ChangeParams")
+_int = functools.partial(validate.whole, "ChangeParams")
+_bool = functools.partial(validate.flag, "ChangeParams")
+_choice = functools.partial(validate.choice, "ChangeParams")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,21 +173,15 @@ class ChangeParams:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.novelty_seed not in NOVELTY_SEEDS:
-            raise InputError(f"ChangeParams.novelty_seed={self.novelty_seed!r}: must be one of "
-                             f"{NOVELTY_SEEDS}")
-        if self.current_mixture not in ("fit", "from_reference"):
-            raise InputError(f"ChangeParams.current_mixture={self.current_mixture!r}: must be "
-                             f"'fit' or 'from_reference'")
+        _choice("novelty_seed", self.novelty_seed, NOVELTY_SEEDS)
+        _choice("current_mixture", self.current_mixture, ("fit", "from_reference"))
         for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
                      "free_space_no_reading_is_free", "disappeared"):
             _bool(name, getattr(self, name))
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
         _int("max_novelty_components", self.max_novelty_components, 1, 64)
-        if self.ground_distance not in GROUND_DISTANCES:
-            raise InputError(f"ChangeParams.ground_distance={self.ground_distance!r}: must be "
-                             f"one of {GROUND_DISTANCES}")
+        _choice("ground_distance", self.ground_distance, GROUND_DISTANCES)
         _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
         _num("accept_min_drop_rel", self.accept_min_drop_rel, 0.0, 1.0)
         _num("posterior_threshold", self.posterior_threshold, 0.0, 1.0, low_open=True)

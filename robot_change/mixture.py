@@ -16,7 +16,6 @@ import hashlib
 import io
 import json
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass, field
