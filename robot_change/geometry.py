@@ -31,28 +31,49 @@ def _depth_to_points_kernel(depth, fx, fy, cx, cy, min_mm, max_mm):
 
     A pixel is kept when ``min_mm <= depth <= max_mm`` and ``depth > 0``.  Arithmetic in
     float64: ``z = d / 1000``, ``x = (u - cx) * z / fx``, ``y = (v - cy) * z / fy``.
+
+    A counting pass sizes the output (one spare row); then per image row the coordinates of
+    every pixel go into row buffers in a branch-free loop the compiler vectorises (the two
+    divisions per pixel dominate), and a second branch-free loop appends each pixel and
+    advances the output position only for kept pixels (the spare row absorbs the last write).
     """
     height, width = depth.shape
     count = 0
     for v in range(height):
+        row = depth[v]
         for u in range(width):
-            d = depth[v, u]
-            if d > 0 and d >= min_mm and d <= max_mm:
-                count += 1
-    points = np.empty((count, 3), dtype=np.float32)
-    pixels = np.empty(count, dtype=np.int32)
+            d = row[u]
+            count += (d > 0) & (d >= min_mm) & (d <= max_mm)
+    points = np.empty((count + 1, 3), dtype=np.float32)
+    pixels = np.empty(count + 1, dtype=np.int32)
+    du = np.empty(width, dtype=np.float64)
+    xs = np.empty(width, dtype=np.float32)
+    ys = np.empty(width, dtype=np.float32)
+    zs = np.empty(width, dtype=np.float32)
+    keep = np.empty(width, dtype=np.int64)
+    for u in range(width):
+        du[u] = u - cx
     i = 0
     for v in range(height):
+        if i == count:
+            break
+        row = depth[v]
+        dv = v - cy
         for u in range(width):
-            d = depth[v, u]
-            if d > 0 and d >= min_mm and d <= max_mm:
-                z = d / 1000.0
-                points[i, 0] = (u - cx) * z / fx
-                points[i, 1] = (v - cy) * z / fy
-                points[i, 2] = z
-                pixels[i] = v * width + u
-                i += 1
-    return points, pixels
+            d = row[u]
+            z = d / 1000.0
+            xs[u] = du[u] * z / fx
+            ys[u] = dv * z / fy
+            zs[u] = z
+            keep[u] = (d > 0) & (d >= min_mm) & (d <= max_mm)
+        base = v * width
+        for u in range(width):
+            points[i, 0] = xs[u]
+            points[i, 1] = ys[u]
+            points[i, 2] = zs[u]
+            pixels[i] = base + u
+            i += keep[u]
+    return points[:count], pixels[:count]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -275,6 +275,33 @@ def test_knn_no_false_neighbours_across_key_fields():
     np.testing.assert_array_equal(got, twin_knn_mean(grid.points, grid.keys, 2, 3.0))
 
 
+@pytest.mark.parametrize("k", [3, 4])
+def test_knn_no_false_neighbours_across_column_fields(k):
+    """The column walk's targets (x, y + 1) and (x + 1, y - 1) carry or borrow between the y
+    and x fields for y at the ends of its range, and (x, y, z + 1) would carry from z into y;
+    such voxels are not neighbours.  The points sit close together whatever their keys, so a
+    false neighbour would show in the statistic.  k = 4 runs the kernel's copy compiled for
+    that constant, k = 3 the general one."""
+    lo, hi = KEY_MIN_INDEX, KEY_MAX_INDEX
+    idx = np.array(
+        [
+            [0, lo, 0], [0, hi, 0],  # (x + 1, y - 1) of the first borrows into the second
+            [5, hi, 0], [6, lo, 1],  # (x, y + 1) of the first carries into the second
+            [8, 0, hi], [8, 1, lo],  # (x, y, z + 1) of the first carries into the second
+            [10, lo, 0], [10, lo + 1, 1],  # true neighbours
+        ]
+    )
+    keys = pack_keys(idx)
+    order = np.argsort(keys)
+    keys = keys[order]
+    points = (np.arange(len(keys))[:, None] * np.array([0.01, 0.02, 0.03])).astype(np.float32)
+    got = knn_mean_distance(points, keys, k, 3.0)
+    want = twin_knn_mean(points, keys, k, 3.0)
+    np.testing.assert_array_equal(got, want)
+    true_pair = np.isin(order, [6, 7])
+    assert np.all(got[true_pair] < 3.0) and np.all(got[~true_pair] == 3.0)
+
+
 @pytest.mark.parametrize("alpha", [0.0, 1.0, 2.0])
 def test_statistical_outliers_matches_twin(alpha):
     grid = clustered_cloud()

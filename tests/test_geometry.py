@@ -85,6 +85,23 @@ def test_known_pixel_geometry():
     assert pixels.tolist() == [4 * 5 + 3]
 
 
+@pytest.mark.parametrize("rows", [0, 1, 7, 240, 479])
+def test_depth_to_points_trailing_invalid_rows(rows):
+    """Valid pixels only in the first ``rows`` rows (the rest 0 or out of range): the kernel
+    stops early and its spare output row never shows."""
+    intr = Intrinsics.openni_default()
+    depth = random_depth(480, 640, invalid=0.5)
+    depth[rows:] = 0
+    depth[rows:, ::3] = 9000  # out of range
+    if rows:
+        depth[rows - 1, -1] = 1500  # the very last valid pixel at the end of a row
+    points, pixels = depth_to_points(depth, intr, min_depth_m=0.3, max_depth_m=5.0)
+    want = twin_depth_to_points(depth, intr, 0.3, 5.0)
+    np.testing.assert_array_equal(points, want[0])
+    np.testing.assert_array_equal(pixels, want[1])
+    assert points.flags.c_contiguous and pixels.flags.c_contiguous
+
+
 def test_all_invalid_frame_gives_empty_arrays():
     intr = Intrinsics.openni_default()
     points, pixels = depth_to_points(np.zeros((480, 640), np.uint16), intr)
