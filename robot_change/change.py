@@ -1009,8 +1009,10 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
 def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangeParams(
         novelty=False, free_space=False), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
     """The plain method (the paper's): independent fits of both clouds, greedy EMD over all
-    components both ways, posterior segmentation; the free-space / NN checks only if
-    ``params`` switches them on (off by default here)."""
+    components both ways deciding what changed (``params.greedy`` is forced on: without it
+    every component would count as changed), posterior segmentation; the free-space / NN
+    checks only if ``params`` switches them on (off by default here)."""
+    params = params.replace(greedy=True)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     _check_scene_models(reference, current)
