@@ -3,6 +3,7 @@
     .venv/bin/python bench/bench_table3.py [--quick] [--json] [--json-file F] [--fuse]
                                            [--exact] [--runs 1] [--leaf 0.03]
                                            [--max-components 16] [--no-sweep | --sweep-only]
+                                           [--no-changed | --changed-only]
 
 Part 1, Table 3 (paper section 4.1): for each of the paper's scenes (``paper_sigma_1mm`` /
 ``_10mm`` / ``_100mm``: a box appears in a simulated room, plain Gaussian depth noise of
@@ -11,8 +12,28 @@ sigma 0.001 / 0.01 / 0.1 m) and each criterion (mdl, bic, aic): the reference cl
 paper did.  Clouds come from ``clean_cloud`` with ``CloudParams(leaf_m=--leaf)``, from the
 FIRST frame of each epoch (single noisy frames, as in the paper) unless ``--fuse`` (per-pixel
 median of the 3 frames, at least 2 valid, our default for references).  n1 / n2 are the cloud
-sizes (the paper's Table 2).  The paper's Table 4 (components the greedy EMD step marks as
-changed) needs the change step (issue 5) and is not computed here.
+sizes (the paper's Table 2).
+
+Part 1b, Table 4 (components the greedy EMD step marks as changed; skipped with
+``--no-changed``, alone with ``--changed-only``): per paper scene and criterion, the same
+single-frame clouds (or fused with ``--fuse``) as ``SceneModel``s built with that criterion and
+bound (``build_scene``, independent fits, the same leaf), then
+
+* **plain** (the paper's method): ``detect_plain`` with ``greedy=True`` (greedy EMD reference ->
+  current over all current components, appeared direction only, no free-space check).  Two
+  counts from its trajectory: ``paper`` = every removal the greedy loop made (it stops when no
+  removal lowers the EMD, the paper's Figure 5 rule) and ``rule`` = the removals our acceptance
+  rule keeps (``ChangeParams.accept_min_drop_m`` / ``_rel``, ``min_region_points``).  For each
+  set, the points it segments (posterior mass of the marked components > 0.5) against the truth:
+  P = fraction of them on the box, R = fraction of the box's points they hold.  ``box`` = how
+  many current components the box is spread over (components whose most-probable points are
+  mostly on the box and number >= ``min_region_points``);
+* **ours**: ``detect_changes`` with the default ``ChangeParams()`` and with ``greedy=True``:
+  novelty components, the removals the greedy loop made / our rule accepted, regions (appeared
+  + disappeared) and P / R of the appeared points.
+
+Truth: a current point is on the box when at least half of its pixels (``pixel_voxel``) are in
+``load_scene(name).truth_appeared`` (as bench/eval_change.py).  ~5 s.
 
 Part 2, the K sweep: K chosen and fit time against the bound ``max_components`` (8, 16, 32,
 64, 128) and the voxel leaf (2, 3, 5 cm; the default is 3 cm), for each criterion, on ``office_box_added``'s
@@ -53,9 +74,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robot_change.benchmark import machine_info  # noqa: E402
+from robot_change.change import ChangeParams, detect_changes, detect_plain  # noqa: E402
 from robot_change.cloud import CloudParams, clean_cloud  # noqa: E402
 from robot_change.filters import fuse_depth  # noqa: E402
 from robot_change.mixture import N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
+from robot_change.scene import SceneParams, build_scene  # noqa: E402
 from sim_fixtures import load_scene  # noqa: E402
 
 PAPER_SCENES = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
@@ -143,6 +166,109 @@ def table3(leaf: float, max_components: int, fuse: bool, runs: int,
     return out
 
 
+def point_truth(pixel_voxel: np.ndarray, truth: np.ndarray, n_points: int) -> np.ndarray:
+    """(n_points,) bool: at least half of the point's pixels lie in ``truth``."""
+    pv = pixel_voxel.ravel()
+    ok = pv >= 0
+    total = np.bincount(pv[ok], minlength=n_points)
+    inside = np.bincount(pv[ok], weights=truth.ravel()[ok].astype(np.float64),
+                         minlength=n_points)
+    return (total > 0) & (2 * inside >= total)
+
+
+def precision_recall(pred: np.ndarray, truth: np.ndarray) -> dict:
+    tp = int((pred & truth).sum())
+    n = int(pred.sum())
+    return {"points": n, "p": round(tp / n, 3) if n else None,
+            "r": round(tp / int(truth.sum()), 3) if truth.any() else None}
+
+
+def table4(leaf: float, max_components: int, fuse: bool, search_points: int | None) -> dict:
+    """Components marked as changed, per paper scene and criterion (see the docstring)."""
+    plain_params = ChangeParams(novelty=False, free_space=False, greedy=True, disappeared=False)
+    ours_params = ChangeParams()
+    out = {}
+    for name in PAPER_SCENES:
+        scene = load_scene(name)
+        frames = {"reference": scene.reference_frames(), "current": scene.current_frames()}
+        if not fuse:
+            frames = {k: v[:1] for k, v in frames.items()}
+        row = {}
+        for crit in ORDER:
+            sp = SceneParams(cloud=CloudParams(leaf_m=leaf), criterion=crit,
+                             max_components=max_components, search_points=search_points)
+            ref = build_scene(frames["reference"], sp, intrinsics=scene.intrinsics)
+            cur = build_scene(frames["current"], sp, intrinsics=scene.intrinsics)
+            truth = point_truth(cur.pixel_voxel, scene.truth_appeared, len(cur))
+            # the plain method: which components, and which points they segment
+            cs = detect_plain(ref, cur, plain_params)
+            tr = cs.greedy_appeared
+            post = cur.mixture.responsibilities(cur.points.astype(np.float64))
+            label = post.argmax(axis=1)
+            box = [k for k in range(cur.mixture.n_components)
+                   if (label == k).sum() >= plain_params.min_region_points
+                   and truth[label == k].mean() > 0.5]
+
+            def marked(comps):
+                comps = np.asarray(comps, dtype=np.int64)
+                seg = post[:, comps].sum(axis=1) > plain_params.posterior_threshold
+                return {"n": int(comps.size), "on_box": int(np.isin(comps, box).sum()),
+                        **precision_recall(seg, truth)}
+
+            plain = {"k1": ref.mixture.n_components, "k2": cur.mixture.n_components,
+                     "box_components": len(box), "paper": marked(tr.order),
+                     "rule": marked(tr.change),
+                     "emd_after": [round(float(v), 4) for v in tr.emd_after],
+                     "detect_ms": round(cs.timings_ms["detect_ms"], 1)}
+            ours = {}
+            for key, params in (("default", ours_params),
+                                ("greedy", ours_params.replace(greedy=True))):
+                o = detect_changes(ref, cur, params)
+                app = np.zeros(len(cur), dtype=bool)
+                app[o.appeared_index] = True
+                ours[key] = {"novelty": int(o.greedy_appeared.candidates.size),
+                             "greedy_removals": int(o.greedy_appeared.order.size),
+                             "marked": int(o.greedy_appeared.change.size),
+                             "regions_appeared": len(o.appeared),
+                             "regions_disappeared": len(o.disappeared),
+                             **precision_recall(app, truth),
+                             "detect_ms": round(o.timings_ms["detect_ms"], 1)}
+            row[crit] = {"truth_points": int(truth.sum()), "n2": len(cur), "plain": plain,
+                         "ours": ours}
+            print(f"  table 4: {name} {crit} done", file=sys.stderr, flush=True)
+        out[name] = row
+    return out
+
+
+def print_table4(t4: dict, leaf: float, bound: int, fuse: bool) -> None:
+    src = "3 frames fused (median)" if fuse else "first frame"
+    print(f"Table 4 on our fixtures: leaf {leaf * 100:g} cm, max_components {bound}, {src}.")
+    print("plain = detect_plain(greedy=True): marked components (paper loop / our acceptance "
+          "rule), of them on the box, P/R of the points they segment; box = components the box "
+          "is spread over.")
+    print("ours = detect_changes: novelty components, greedy loop removals / accepted "
+          "(greedy=True), appeared+disappeared regions and P/R, default | greedy=True")
+    print(f"{'scene':18s} crit K1/K2  box  {'plain paper: n box P/R':>24s}  "
+          f"{'plain rule: n box P/R':>22s}  paper  | ours nov rem acc  regions def|gr  "
+          f"P/R default | greedy")
+    for name, row in t4.items():
+        for crit in ORDER:
+            r = row[crit]
+            pl, od, og = r["plain"], r["ours"]["default"], r["ours"]["greedy"]
+            pa, ru = pl["paper"], pl["rule"]
+
+            def pr(d):
+                return f"{d['p']}/{d['r']}" if d["p"] is not None else "-/-"
+            print(f"{name:18s} {crit:4s} {pl['k1']:>2d}/{pl['k2']:<2d} {pl['box_components']:3d}  "
+                  f"{pa['n']:>6d} {pa['on_box']:>3d} {pr(pa):>12s}  "
+                  f"{ru['n']:>5d} {ru['on_box']:>3d} {pr(ru):>12s}  "
+                  f"{PAPER_TABLE4[crit][PAPER_SCENES.index(name)]:5d}  | "
+                  f"{od['novelty']:>7d} {od['greedy_removals']:>3d} {og['marked']:>3d}  "
+                  f"{od['regions_appeared']}+{od['regions_disappeared']} | "
+                  f"{og['regions_appeared']}+{og['regions_disappeared']}     "
+                  f"{pr(od)} | {pr(og)}")
+
+
 def sweep(leaves, bounds, fuse: bool, runs: int, search_points: int | None = 2000,
           scenes=SWEEP_SCENES) -> list[dict]:
     rows = []
@@ -208,6 +334,11 @@ def main(argv=None) -> int:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--no-sweep", action="store_true")
     group.add_argument("--sweep-only", action="store_true")
+    changed = parser.add_mutually_exclusive_group()
+    changed.add_argument("--no-changed", action="store_true",
+                         help="skip Table 4 (components the greedy step marks as changed)")
+    changed.add_argument("--changed-only", action="store_true",
+                         help="Table 4 alone (no Table 3 fits, no sweep)")
     args = parser.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -218,10 +349,15 @@ def main(argv=None) -> int:
                         "fuse": args.fuse, "runs": args.runs, "quick": args.quick,
                         "search_points": None if args.exact else 2000}}
     search = None if args.exact else 2000
-    if not args.sweep_only:
+    if args.changed_only:
+        args.sweep_only, args.no_sweep = False, True
+    if not args.sweep_only and not args.changed_only:
         t3 = table3(args.leaf, args.max_components, args.fuse, args.runs, search)
         out["table3"] = t3
         out["shape"] = shape_holds(t3)
+    if not args.sweep_only and not args.no_changed:
+        out["table4"] = table4(args.leaf, args.max_components, args.fuse, search)
+    if not args.sweep_only:
         out["paper"] = {"table2": PAPER_TABLE2, "table3": PAPER_TABLE3, "table4": PAPER_TABLE4}
     if not args.no_sweep:
         leaves = (0.02, 0.05) if args.quick else (0.02, 0.03, 0.05)
@@ -248,6 +384,8 @@ def main(argv=None) -> int:
         for key, s in out["shape"].items():
             print(f"  {key:28s} K(MDL)<=K(BIC)<=K(AIC): {s['k_order']!s:5s} "
                   f"(strict: {s['k_strict']!s:5s})  MDL fastest: {s['mdl_fastest']}")
+    if "table4" in out:
+        print_table4(out["table4"], args.leaf, args.max_components, args.fuse)
     if "sweep" in out:
         search_txt = "all points" if args.exact else "2000-point subsample"
         print(f"K sweep (reference clouds, split search on {search_txt}; "
