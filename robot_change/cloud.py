@@ -13,14 +13,14 @@ Numeric module: arrays in, arrays out; no I/O, no logging, no global state.
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 import time
-from typing import Any
 
 import numba
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change import validate
 from robot_change.errors import InputError
 from robot_change.filters import Plane, fit_plane_ransac, statistical_outliers, voxel_grid
 from robot_change.geometry import MAX_DEPTH_M, depth_to_points
@@ -42,23 +42,8 @@ PIXEL_PLANE = 2  # its voxel was on the removed plane
 PIXEL_KEPT = 3  # its voxel is in CleanCloud.points (row pixel_voxel)
 
 
-def _number(name: str, value: Any, low: float, high: float, *, low_open: bool = False,
-            unit: str = "") -> None:
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    if ok:
-        number = float(value)
-        ok = math.isfinite(number) and (number > low if low_open else number >= low)
-        ok = ok and number <= high
-    if not ok:
-        bound = f"{low} < {name}" if low_open else f"{low} <= {name}"
-        raise InputError(f"CloudParams.{name}={value!r}: must be a number with {bound} <= "
-                         f"{high}{unit}")
-
-
-def _whole(name: str, value: Any, low: int, high: int) -> None:
-    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
-            or not low <= value <= high):
-        raise InputError(f"CloudParams.{name}={value!r}: must be a whole number in {low}..{high}")
+_number = functools.partial(validate.number, "CloudParams")
+_whole = functools.partial(validate.whole, "CloudParams")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,9 +95,7 @@ class CloudParams:
                 if isinstance(self.min_depth_m, (int, float)) else 0.0, 1000.0, low_open=True,
                 unit=" metres (and above min_depth_m)")
         for name in ("remove_outliers", "remove_plane"):
-            if not isinstance(getattr(self, name), bool):
-                raise InputError(f"CloudParams.{name}={getattr(self, name)!r}: must be True or "
-                                 "False")
+            validate.flag("CloudParams", name, getattr(self, name))
         _whole("outlier_k", self.outlier_k, 1, 26)
         _number("outlier_alpha", self.outlier_alpha, 0.0, 100.0, unit=" standard deviations")
         _number("outlier_cap_leaves", self.outlier_cap_leaves, 0.0, 100.0, low_open=True,
