@@ -24,7 +24,9 @@ numbers; gaps in the numbers are counted in ``stats.dropped``.
 
 Recordings (``oni:file.oni``) play frame by frame in lockstep (playback speed -1, repeat off):
 no frame is dropped however slow the consumer, and :meth:`OpenNI2Source.read` returns ``None``
-after the last one.  The file is checked with :func:`hw.oni.read_oni_header` first, so a missing
+after the last one.  ``oni:file.oni?loop=1&rate=auto`` plays one like a camera instead: again
+from the start after the last frame (indices and timestamps keep increasing) and paced at the
+recording's fps (``rate=30`` for a given rate).  The file is checked with :func:`hw.oni.read_oni_header` first, so a missing
 or corrupt file raises :class:`DepthFileError` before the native player sees it.
 
 Debian's ``libopenni2-0`` ships drivers for PrimeSense / Asus Xtion (PS1080) cameras.  A
@@ -252,7 +254,8 @@ class _ChildReader:
         try:
             self.device = self.ni.Device(os.fsencode(path))
             self.device.playback.set_speed(-1.0)  # manual: one frame per read, none dropped
-            self.device.playback.set_repeat_enabled(False)
+            # looping: the player starts again after the last frame (indices keep counting)
+            self.device.playback.set_repeat_enabled(bool(self.spec.get("loop")))
             self.stream = self.device.create_depth_stream()
         except Exception as exc:  # noqa: BLE001
             self._fail("file", f"OpenNI2 cannot play {path}: {exc}")
@@ -366,6 +369,8 @@ class _ChildReader:
     def _loop(self) -> None:
         ni = self.ni
         skip = int(self.spec.get("skip", 0))  # frames a previous reader already delivered
+        loop = bool(self.spec.get("loop")) and self.is_file
+        lap_us = int(self.spec.get("lap_us") or 0)  # a looped recording's time per lap
         played = 0
         silence_limit = float(self.spec["stall_timeout" if self.is_file else "lost_after"])
         # a camera may take a few seconds for its first frame
@@ -397,6 +402,9 @@ class _ChildReader:
                 raw = frame._frame
                 index, stamp = int(raw.frameIndex), int(raw.timestamp)
                 played += 1
+                if loop and self.frames_total:  # later laps continue the count and the clock
+                    lap = (played - 1) // self.frames_total
+                    index, stamp = played, stamp + lap * lap_us
                 if self.is_file and played <= skip:
                     continue
                 if not self.free:
@@ -418,7 +426,7 @@ class _ChildReader:
             finally:
                 frame.close()
             self.conn.send(("frame", slot, index, stamp))
-            if self.is_file and self.frames_total and played >= self.frames_total:
+            if self.is_file and not loop and self.frames_total and played >= self.frames_total:
                 self.conn.send(("end",))
                 while True:  # wait for "stop"; frees are irrelevant now
                     try:
@@ -442,14 +450,21 @@ class OpenNI2Source(DepthSource):
     device in the reader, 10), ``stall_timeout`` (s of silence from a reader before it is
     killed and restarted, 5), ``lost_after`` (s without a camera frame before the camera counts
     as lost, 2), ``max_restarts`` (reader crashes without progress before a recording counts as
-    corrupt, 3).
+    corrupt, 3).  Recordings only: ``loop`` (start again after the last frame, for ever; frame
+    indices and timestamps keep increasing across laps, so a daemon fed by a recording runs like
+    one fed by a camera) and ``rate`` (frames per second to pace delivery at, like a camera;
+    ``"auto"`` for the recording's own fps; default: as fast as they are read).
     """
 
     def __init__(self, kind: str, target: str, *, slots: int = 4, start_timeout: float = 10.0,
-                 stall_timeout: float = 5.0, lost_after: float = 2.0, max_restarts: int = 3) -> None:
+                 stall_timeout: float = 5.0, lost_after: float = 2.0, max_restarts: int = 3,
+                 loop: bool = False, rate: float | str | None = None) -> None:
         super().__init__()
         if kind not in ("file", "device"):
             raise ValueError(f"kind must be 'file' or 'device', not {kind!r}")
+        if kind != "file" and (loop or rate is not None):
+            raise UriError("the loop and rate options are for recordings (oni:FILE.oni); a live "
+                           "camera runs at its own rate")
         self.kind = kind
         self.target = target
         self.uri = f"oni:{target}" if kind == "file" else f"openni2://{target}"
@@ -475,9 +490,18 @@ class OpenNI2Source(DepthSource):
         self._restart_due: float | None = None  # live: when to try reconnecting
         self._backoff = 0.5
         self._failed_restarts = 0
+        self.loop = bool(loop)
+        self._due: float | None = None  # rate: when the next frame may be handed out
         if kind == "file":
             self._header = read_oni_header(target)
             self._intrinsics = self._header.intrinsics()
+            if rate in ("auto", "fps"):
+                rate = float(self._header.fps)
+        if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate)
+                                     and rate > 0):
+            raise UriError(f"OpenNI2 option rate={rate!r}: frames per second > 0, or 'auto' for "
+                           "the recording's own fps")
+        self.rate = None if rate is None else float(rate)
 
     # --- DepthSource ---------------------------------------------------------------------------
     @property
@@ -503,6 +527,7 @@ class OpenNI2Source(DepthSource):
         self._lib_dir = library_dir()
         self._ended = False
         self._last_index = None
+        self._due = None
         self._delivered = 0  # frames of this opening (a restarted reader skips them)
         self._start_reader(skip=0)
         self._open = True
@@ -534,6 +559,8 @@ class OpenNI2Source(DepthSource):
         if self._ended:
             return None
         deadline = math.inf if timeout is None else time.monotonic() + max(0.0, float(timeout))
+        if self.rate is not None:
+            self._wait_until_due(timeout)
         if self._proc is None:
             self._reconnect(deadline)
         while True:
@@ -571,6 +598,22 @@ class OpenNI2Source(DepthSource):
                 raise DeviceLost(f"{self.uri}: the OpenNI2 reader {why}; it was killed, reconnecting")
             if time.monotonic() >= deadline:
                 raise FrameTimeout(f"{self.uri}: no depth frame within {timeout:.2f} s")
+
+    def _wait_until_due(self, timeout: float | None) -> None:
+        """``rate``: wait until the next frame is due, as a camera would deliver it; more than
+        ``timeout`` s away: wait ``timeout`` and raise :class:`FrameTimeout` (as the images
+        backend does).  A late reader gets the next frame at once, not a burst."""
+        assert self.rate is not None
+        now = time.monotonic()
+        due = now if self._due is None else self._due
+        wait = due - now
+        if wait > 0:
+            if timeout is not None and wait > timeout:
+                time.sleep(max(float(timeout), 0.0))
+                raise FrameTimeout(f"{self.uri}: no frame within {timeout} s; the recording is "
+                                   f"paced at {self.rate:g} fps (option rate)")
+            time.sleep(wait)
+        self._due = max(due, now) + 1.0 / self.rate
 
     # --- test hooks ----------------------------------------------------------------------------
     def simulate_device_loss(self) -> None:
@@ -678,8 +721,14 @@ class OpenNI2Source(DepthSource):
     def _start_reader(self, skip: int) -> None:
         """Start a reader process and wait until it has opened the source; ``skip``: frames of
         a recording to pass over (already delivered by a previous reader)."""
+        lap_us = 0
+        if self.kind == "file":
+            header = self._header
+            lap_us = (header.last_timestamp_us - header.first_timestamp_us
+                      + round(1e6 / max(header.fps, 1)))
         spec = {"kind": self.kind, "target": self.target, "lib_dir": self._lib_dir,
                 "skip": skip, "frames": self._header.frames if self.kind == "file" else 0,
+                "loop": self.loop, "lap_us": lap_us,
                 "stall_timeout": self.stall_timeout, "lost_after": self.lost_after}
         parent_conn, child_conn = _CONTEXT.Pipe(duplex=True)
         proc = _CONTEXT.Process(target=_child_main, args=(child_conn, spec), daemon=True,
@@ -775,16 +824,45 @@ def _describe_exit(code: int | None) -> str:
 def _options(options: dict[str, Any]) -> dict[str, Any]:
     """URI query options arrive as strings; convert the known ones."""
     kinds = {"slots": int, "start_timeout": float, "stall_timeout": float, "lost_after": float,
-             "max_restarts": int}
+             "max_restarts": int, "loop": _flag, "rate": _rate}
     out = {}
     for key, value in options.items():
         if key not in kinds:
             raise UriError(f"unknown OpenNI2 option {key!r}; known: {', '.join(sorted(kinds))}")
+        if key in ("loop", "rate"):
+            out[key] = kinds[key](value)
+            continue
         try:
             out[key] = kinds[key](value)
         except (TypeError, ValueError):
             raise UriError(f"OpenNI2 option {key}={value!r} must be a number") from None
     return out
+
+
+def _flag(value: Any) -> bool:
+    if isinstance(value, bool) or (isinstance(value, int) and value in (0, 1)):
+        return bool(value)
+    text = str(value).strip().lower()
+    if text in ("1", "true", "yes", "on"):
+        return True
+    if text in ("0", "false", "no", "off", ""):
+        return False
+    raise UriError(f"OpenNI2 option loop={value!r}: expected 1 or 0 (true/false, yes/no)")
+
+
+def _rate(value: Any) -> float | str | None:
+    if value is None or value == "":
+        return None
+    if isinstance(value, str) and value.strip().lower() in ("auto", "fps"):
+        return "auto"
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and number > 0):
+        raise UriError(f"OpenNI2 option rate={value!r}: frames per second > 0, or 'auto' for "
+                       "the recording's own fps")
+    return number
 
 
 def open_device(target: str = "", **options: Any) -> OpenNI2Source:

@@ -298,3 +298,54 @@ def test_record_a_live_camera_for_n_frames(tmp_path: Path) -> None:
     info = read_oni_header(out)
     assert (info.width, info.height, info.frames, info.first_timestamp_us) == (320, 240, 5, 0)
     assert info.codec == "16zT"  # record() defaults to 16zt
+
+
+# --- loop and rate: a recording played like a camera (the daemon's demo and tests) -----------
+def test_looped_recording_keeps_counting_indices_and_time(recording: tuple[Path, list[np.ndarray]]) -> None:
+    path, originals = recording
+    with open_depth(f"oni:{path}?loop=1") as source:
+        frames = [source.read(5.0) for _ in range(30)]  # two and a half laps, never None
+    assert [f.index for f in frames] == list(range(1, 31))
+    stamps = [f.timestamp_us for f in frames]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert stamps[12] == round(12 * 1e6 / 30)  # the second lap follows one frame period on
+    for i, frame in enumerate(frames):
+        np.testing.assert_array_equal(frame.depth, originals[i % 12])
+
+
+def test_rate_paces_delivery_like_a_camera(recording: tuple[Path, list[np.ndarray]]) -> None:
+    path, _ = recording
+    with open_recording(str(path), rate="auto", loop=True) as source:
+        source.read(5.0)  # the first frame comes at once
+        start = time.monotonic()
+        for _ in range(15):
+            source.read(1.0)
+        elapsed = time.monotonic() - start
+    assert 0.4 < elapsed < 2.0  # 15 frames at 30 fps = 0.5 s, not as fast as possible
+
+
+def test_rate_shorter_timeout_gives_frame_timeout(recording: tuple[Path, list[np.ndarray]]) -> None:
+    path, _ = recording
+    with open_depth(f"oni:{path}?rate=2") as source:
+        first = source.read(5.0)
+        with pytest.raises(FrameTimeout, match="paced at 2 fps"):
+            source.read(0.05)
+        assert source.read(1.0).index == first.index + 1  # the frame stayed next
+
+
+@pytest.mark.parametrize("option, match", [("loop=maybe", "loop"), ("rate=-3", "rate"),
+                                           ("rate=fast", "rate")])
+def test_bad_loop_and_rate_options_are_uri_errors(recording: tuple[Path, list[np.ndarray]],
+                                                  option: str, match: str) -> None:
+    from hw.errors import UriError
+
+    path, _ = recording
+    with pytest.raises(UriError, match=match):
+        open_depth(f"oni:{path}?{option}")
+
+
+def test_loop_and_rate_are_refused_for_a_live_camera() -> None:
+    from hw.errors import UriError
+
+    with pytest.raises(UriError, match="for recordings"):
+        open_device("Oz", loop="1")
