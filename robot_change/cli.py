@@ -156,42 +156,72 @@ def _print_cloud_summary(summary: dict[str, Any]) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """The README's main job on bundled depth: one room frame -> clean cloud -> summary + PNG."""
-    args.source = _bundled(DEMO_FRAME)
-    args.frames, args.intrinsics, args.json, args.no_picture, args.leaf = 1, None, False, False, None
-    return cmd_cloud(args)
+    """The README's main job on a bundled recording: the real daemon in a subprocess, the
+    simulated base on a pty pair; capture a reference, the scene changes, check, PAUSE and
+    CHANGE_REPORT, and report.png of what changed (robot_change.demo)."""
+    from robot_change.demo import run_demo
+
+    return run_demo(Path(args.out), SIM_FIXTURES)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The daemon (robot_change.service): camera, serial line and store from the configuration,
+    until SIGTERM; SIGHUP reloads the configuration.  Exit 78 for a configuration error."""
+    import logging
+
+    from hw.serial_port import ReopeningPort
+    from robot_change.config import load_config
+    from robot_change.service import Service, ServiceOptions, run_service
+    from robot_change.store import ReferenceStore
+
+    config = load_config(args.config)
+    logging.basicConfig(level=config.service.log_level.upper(), stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+
+    def make_camera(cfg: Any) -> Any:  # the one place a depth source is built
+        return lambda: open_depth(cfg.camera.source)
+
+    port = ReopeningPort(config.serial.port, config.serial.baud, timeout=0.01)
+    try:
+        store = ReferenceStore(config.store.references)
+        options = ServiceOptions(report_dir=Path(config.store.state_dir) / "reports")
+        service = Service(config, make_camera(config), port, store, options)
+        return run_service(service, load=lambda: load_config(args.config), make_camera=make_camera)
+    finally:
+        port.close()
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
     from robot_change.benchmark import (bench_detect, bench_emd, bench_preprocess, benchmark_em,
                                         machine_info)
-    from robot_change.cloud import clean_cloud
 
     source = args.source or _bundled(DEMO_FRAME)
     depth, camera, _ = _read_depth(source, 1, None)
     params = _cloud_params(args)
     result: dict[str, Any] = {"frame": source, "runs": args.runs}
     result.update(bench_preprocess(depth, camera, params, runs=args.runs))
-    # the mixture on this frame's clean cloud: one EM iteration at K = 8, the whole MDL fit
-    cloud = clean_cloud(depth, camera, params)
-    mixture = benchmark_em(cloud.points, runs=max(3, args.runs // 4), leaf=params.leaf_m)
+    # the mixture and change detection on a bundled room scene: its reference (3 fused frames,
+    # a room-sized cloud of ~20k points) and one current frame
+    from hw.oni import read_oni_frames
+    from robot_change.scene import build_scene
+
+    scene_dir = SIM_FIXTURES / "scenes" / DETECT_SCENE
+    reference_frames = read_oni_frames(_bundled(scene_dir / "reference.oni"))
+    current = read_oni_frames(_bundled(scene_dir / "current.oni"))[0]
+    reference = build_scene(reference_frames)
+    mixture = benchmark_em(reference.points, runs=max(3, args.runs // 4),
+                           leaf=reference.params.cloud.leaf_m)
     result.update({
+        "scene": DETECT_SCENE,
         "em_iter_ms": round(mixture["em_iter_ms"], 3),
         "em_iter_points": mixture["iter_points"],
         "fit_ms": round(mixture["fit_ms"], 2),
         "fit_k": mixture["fit_k"],
         "fit_points": mixture["n_points"],
     })
-    # change detection: a reference of a bundled scene (3 fused frames) and one current frame
-    from hw.oni import read_oni_frames
-
-    scene_dir = SIM_FIXTURES / "scenes" / DETECT_SCENE
-    reference_frames = read_oni_frames(_bundled(scene_dir / "reference.oni"))
-    current = read_oni_frames(_bundled(scene_dir / "current.oni"))[0]
-    result["detect_scene"] = DETECT_SCENE
-    result.update(bench_detect([f.depth for f in reference_frames], current.depth,
-                               current.intrinsics, runs=max(5, args.runs // 3)))
+    result.update(bench_detect(reference, current.depth, current.intrinsics,
+                               runs=max(5, args.runs // 3)))
     emd_figures = bench_emd(runs=max(20, args.runs * 4), n_scenes=3)
     result["emd_10x10_us"] = emd_figures["emd_10x10_us"]
     result["greedy_both_ways_k30_ms"] = emd_figures["greedy_both_ways_k30_ms"]
@@ -401,9 +431,16 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     cloud.set_defaults(func=cmd_cloud)
 
-    demo = commands.add_parser("demo", help="run the main job on depth bundled in the repository")
+    demo = commands.add_parser("demo", help="the daemon and a simulated base on a bundled "
+                               "recording: capture, change, check, PAUSE + report.png")
     demo.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     demo.set_defaults(func=cmd_demo)
+
+    run = commands.add_parser("run", help="the daemon (systemd Type=notify; SIGHUP reloads, "
+                              "SIGTERM stops; exit 78 for a configuration error)")
+    run.add_argument("--config", required=True, metavar="FILE",
+                     help="TOML file, e.g. /etc/robot-change/robot-change.toml")
+    run.set_defaults(func=cmd_run)
 
     bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
     bench.add_argument("--json", action="store_true", help="print one JSON object")

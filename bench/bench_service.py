@@ -1,0 +1,454 @@
+"""The daemon's targets (issue 7): PAUSE latency, start to READY, CPU in watch mode, soak.
+
+    .venv/bin/python bench/bench_service.py [--trials 20] [--ready-runs 3] [--cpu-seconds 20]
+                                            [--soak-seconds 600] [--only latency,ready,cpu,soak]
+                                            [--json]
+
+latency  In process: the real service, link and simulated base over a pty pair, fed by a
+         source that plays the reference frames of office_box_added at 30 fps and switches to
+         the frames with the box at a moment the bench picks (a random phase of the watch's
+         check cycle).  Measured: from the source handing out the first changed frame to the
+         base receiving PAUSE on the pty.  WATCH with watch_m = watch_n = 1 (the detector's own
+         latency) and with the defaults 3 of 5 (what persistence adds); CHECK for comparison
+         (command sent -> PAUSE received).  Target: p95 <= 150 ms for WATCH, M = N = 1.
+ready    ``robot-change run`` as a subprocess with a test NOTIFY_SOCKET: exec -> READY=1, with
+         a warm numba cache (one run first to warm it).  Target <= 3 s.
+cpu      The daemon subprocess watching the looped reference.oni at 30 fps with the default
+         parameters: (utime + stime) / wall time from /proc, the daemon alone and with its
+         OpenNI2 reader child.  Target <= 1 core.
+soak     In process, watching the looped reference.oni at 30 fps for --soak-seconds: RSS of
+         the process (and of the reader child) sampled every second, growth from the end of
+         the first 10 % to the end; the longest gap between heartbeats at the base (a stall);
+         frames received == processed + dropped + queued, and received == the source's
+         delivered count.  Targets: RSS growth <= 5 %, no stall, every frame accounted for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import random
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tty
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from hw.depth import DepthFrame, DepthSource, Intrinsics, open_depth  # noqa: E402
+from hw.serial_port import open_port  # noqa: E402
+from robot_change.basesim import BaseSim  # noqa: E402
+from robot_change.config import Config  # noqa: E402
+from robot_change.service import Service, warm_up  # noqa: E402
+from robot_change.store import ReferenceStore  # noqa: E402
+
+SCENE = ROOT / "sim_fixtures" / "scenes" / "office_box_added"
+
+
+class PtyPort:
+    """The master end of a pty as a port."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        os.set_blocking(fd, False)
+
+    def fileno(self) -> int:
+        return self.fd
+
+    in_waiting = 4096
+
+    def read(self, n: int) -> bytes:
+        try:
+            return os.read(self.fd, n)
+        except (BlockingIOError, OSError):
+            return b""
+
+    def write(self, data: bytes) -> int:
+        try:
+            return os.write(self.fd, data)
+        except BlockingIOError:
+            return 0
+
+
+class SwitchingSource(DepthSource):
+    """Frames of two epochs at ``rate`` fps, like a camera; :meth:`switch` makes the next frame
+    come from the other epoch and records when the first such frame is handed out."""
+
+    def __init__(self, epochs: dict[str, list[np.ndarray]], intrinsics: Intrinsics,
+                 rate: float = 30.0) -> None:
+        super().__init__()
+        self.epochs, self._intrinsics, self.period = epochs, intrinsics, 1.0 / rate
+        self.epoch = "reference"
+        self.uri = "bench:switching"
+        self.index = 0
+        self._due = 0.0
+        self._want: str | None = None
+        self.switched_at: float | None = None
+        self.switched_index: int | None = None
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    def open(self) -> None:
+        self._due = time.monotonic()
+
+    def close(self) -> None:
+        pass
+
+    def switch(self, epoch: str) -> None:
+        self.switched_at = self.switched_index = None
+        self._want = epoch
+
+    def read(self, timeout: float | None = 1.0) -> DepthFrame | None:
+        wait = self._due - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        self._due = max(self._due, time.monotonic() - self.period) + self.period
+        if self._want is not None:
+            self.epoch, self._want = self._want, None
+            first = True
+        else:
+            first = False
+        frames = self.epochs[self.epoch]
+        self.index += 1
+        frame = DepthFrame(frames[self.index % len(frames)], self.index * 33_333, self.index,
+                           self._intrinsics)
+        self.stats.delivered += 1
+        if first:
+            self.switched_at, self.switched_index = time.monotonic(), self.index
+        return frame
+
+
+class InProcess:
+    """A service and a simulated base on a pty pair, in this process."""
+
+    def __init__(self, camera, tmp: Path, config: Config | None = None) -> None:
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+        self.master, self.slave = master, slave
+        self.port = open_port(os.ttyname(slave), timeout=0.01)
+        self.service = Service(config or Config(), camera, self.port,
+                               ReferenceStore(tmp / "references"))
+        self.log = open(tmp / "base.log", "w")
+        self.sim = BaseSim(PtyPort(master), out=self.log)
+
+    def __enter__(self) -> "InProcess":
+        self.service.start()
+        assert self.sim.pump(10.0, until=lambda: self.sim.link.state.value == "up"), "no link"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.service.close()
+        self.port.close()
+        self.log.close()
+        os.close(self.slave)
+        os.close(self.master)
+
+    def do(self, line: str) -> None:
+        self.sim.command(line)
+
+    def expect(self, what: str, seconds: float, **filters: str):
+        entry = self.sim.expect(what, filters, seconds)
+        if entry is None:
+            raise RuntimeError(f"no {what} within {seconds} s")
+        return entry
+
+
+def _frames(epoch: str) -> list[np.ndarray]:
+    with open_depth(f"oni:{SCENE / (epoch + '.oni')}") as source:
+        return [f.depth.copy() for f in source]
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+
+
+def summary(values: list[float]) -> dict[str, float]:
+    return {"n": len(values), "median_ms": round(statistics.median(values), 1),
+            "p95_ms": round(percentile(values, 95), 1), "max_ms": round(max(values), 1)}
+
+
+# --------------------------------------------------------------------------------------------
+# latency
+
+
+def bench_latency(trials: int, seed: int = 0) -> dict:
+    rng = random.Random(seed)
+    warm_up()
+    epochs = {"reference": _frames("reference"), "current": _frames("current")}
+    with open_depth(f"oni:{SCENE / 'reference.oni'}") as s:
+        camera = s.intrinsics
+    source = SwitchingSource(epochs, camera)
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp, InProcess(source, Path(tmp)) as rig:
+        rig.do("capture office")
+        rig.expect("CAPTURED", 10)
+        gated = rig.service.options
+        for label, m, n in (("watch_1_of_1", 1, 1), ("watch_1_of_1_without_gate", 1, 1),
+                            ("watch_3_of_5", 3, 5)):
+            # without the gate only the scheduled checks (every check_interval_ms) see it
+            rig.service.options = dataclasses.replace(
+                gated, gate_pixels=10**9 if "without" in label else gated.gate_pixels)
+            rig.do(f"set watch_m {min(m, 1)}")
+            rig.do(f"set watch_n {n}")
+            rig.do(f"set watch_m {m}")
+            rig.expect("PARAM_VALUE", 2, value=str(m))
+            times: list[float] = []
+            for _ in range(trials if label == "watch_1_of_1" else max(3, trials // 4)):
+                rig.do("watch office")
+                rig.sim.pump(rng.uniform(0.6, 1.1))  # a random phase of the check cycle
+                rig.sim.cursor = len(rig.sim.log)
+                source.switch("current")
+                pause = rig.expect("PAUSE", 10)
+                times.append((pause.t - source.switched_at) * 1e3)
+                rig.do("stop")
+                source.switch("reference")
+                rig.do("resume")
+                rig.expect("HEARTBEAT", 2, state="IDLE", paused="0")
+            out[label] = summary(times)
+        rig.do("set watch_m 1")
+        rig.do("set watch_n 5")
+        times = []
+        source.switch("current")
+        rig.sim.pump(0.3)
+        for _ in range(max(3, trials // 2)):
+            rig.sim.cursor = len(rig.sim.log)
+            sent = time.monotonic()
+            rig.do("check office")
+            pause = rig.expect("PAUSE", 10)
+            times.append((pause.t - sent) * 1e3)
+            rig.do("resume")
+            rig.expect("HEARTBEAT", 2, paused="0")
+        out["check_command_to_pause"] = summary(times)
+        counts = rig.service.frame_counts()
+        out["frames"] = counts
+        out["gate_triggers"] = rig.service.counters["gate_triggers"]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the daemon as a subprocess: READY time and CPU
+
+
+class Daemon:
+    """``robot-change run`` on the looped reference.oni, a pty pair, a test notify socket."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+        self.master, self.slave = master, slave
+        config = tmp / "robot-change.toml"
+        config.write_text(
+            f'[camera]\nsource = "oni:{SCENE / "reference.oni"}?loop=1&rate=auto"\n'
+            f'[serial]\nport = "{os.ttyname(slave)}"\n[store]\nstate_dir = "{tmp / "state"}"\n'
+            '[service]\nwatchdog = false\nlog_level = "warning"\n')
+        self.notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock = tmp / f"notify-{time.monotonic_ns()}.sock"
+        self.notify.bind(str(sock))
+        self.ready = threading.Event()
+        self._done = threading.Event()
+        # read all along, as systemd does: an unread datagram queue would block sd_notify
+        threading.Thread(target=self._read_notes, daemon=True).start()
+        env = dict(os.environ, NOTIFY_SOCKET=str(sock))
+        self.started = time.monotonic()
+        self.proc = subprocess.Popen([sys.executable, "-m", "robot_change.cli", "run", "--config",
+                                      str(config)], cwd=ROOT, env=env,
+                                     stdout=open(tmp / "daemon.log", "a"), stderr=subprocess.STDOUT)
+
+    def _read_notes(self) -> None:
+        self.notify.settimeout(0.1)
+        while not self._done.is_set():
+            try:
+                data = self.notify.recv(4096).decode()
+            except (socket.timeout, OSError):
+                continue
+            if "READY=1" in data.splitlines() and not self.ready.is_set():
+                self.ready_at = time.monotonic()
+                self.ready.set()
+
+    def wait_ready(self, timeout: float = 60.0) -> float:
+        while not self.ready.wait(0.2):
+            if self.proc.poll() is not None:
+                raise RuntimeError("the daemon exited; see daemon.log")
+            if time.monotonic() - self.started > timeout:
+                raise RuntimeError("no READY=1")
+        return self.ready_at - self.started
+
+    def stop(self) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(15)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self._done.set()
+            time.sleep(0.15)
+            self.notify.close()
+            os.close(self.master)
+            os.close(self.slave)
+
+
+def bench_ready(runs: int) -> dict:
+    times = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(runs + 1):  # the first one warms the numba cache
+            daemon = Daemon(Path(tmp))
+            try:
+                seconds = daemon.wait_ready()
+            finally:
+                daemon.stop()
+            if i:
+                times.append(seconds)
+    return {"runs": runs, "median_s": round(statistics.median(times), 2),
+            "max_s": round(max(times), 2)}
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def bench_cpu(seconds: float) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        daemon = Daemon(Path(tmp))
+        try:
+            daemon.wait_ready()
+            sim = BaseSim(PtyPort(daemon.master), out=open(Path(tmp) / "base.log", "w"))
+            assert sim.pump(10, until=lambda: sim.link.state.value == "up")
+            sim.command("capture office")
+            assert sim.expect("CAPTURED", {}, 10)
+            sim.command("watch office")
+            assert sim.expect("HEARTBEAT", {"state": "WATCHING"}, 5)
+            sim.pump(2.0)  # settle
+            pids = [daemon.proc.pid] + _children(daemon.proc.pid)
+            before = {pid: _cpu_seconds(pid) for pid in pids}
+            t0 = time.monotonic()
+            sim.pump(seconds)
+            wall = time.monotonic() - t0
+            used = {pid: _cpu_seconds(pid) - before[pid] for pid in pids}
+            sim.command("status")
+            status = sim.expect("STATUS", {}, 3).obj
+        finally:
+            daemon.stop()
+    return {"seconds": round(wall, 1), "daemon_cores": round(used[pids[0]] / wall, 3),
+            "with_reader_cores": round(sum(used.values()) / wall, 3),
+            "fps": status.fps_x10 / 10, "frames_dropped": status.frames_dropped,
+            "load_avg_1min": os.getloadavg()[0]}
+
+
+# --------------------------------------------------------------------------------------------
+# soak
+
+
+def bench_soak(seconds: float) -> dict:
+    warm_up()
+    uri = f"oni:{SCENE / 'reference.oni'}?loop=1&rate=auto"
+    sources: list[DepthSource] = []
+
+    def camera() -> DepthSource:
+        source = open_depth(uri)
+        sources.append(source)
+        return source
+
+    rss: list[tuple[float, float, float]] = []
+    gaps: list[float] = []
+    with tempfile.TemporaryDirectory() as tmp, InProcess(camera, Path(tmp)) as rig:
+        rig.do("capture office")
+        rig.expect("CAPTURED", 10)
+        rig.do("watch office")
+        rig.expect("HEARTBEAT", 5, state="WATCHING")
+        t0 = last_print = time.monotonic()
+        beats_seen = len(rig.sim.log)
+        last_beat = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            rig.sim.pump(1.0)
+            now = time.monotonic()
+            beats = [e.t for e in rig.sim.log[beats_seen:] if e.name == "HEARTBEAT"]
+            stamps = [last_beat] + beats
+            gaps.append(max(b - a for a, b in zip(stamps, stamps[1:] + [now])))
+            if beats:
+                last_beat = beats[-1]
+            del rig.sim.log[:]  # the base's log would grow for ever
+            rig.sim.cursor = beats_seen = 0
+            reader = getattr(sources[-1], "pid", None)
+            rss.append((now - t0, _rss_mb(os.getpid()), _rss_mb(reader) if reader else 0.0))
+            if now - last_print > 60:
+                last_print = now
+                print(f"  soak {now - t0:.0f} s: rss {rss[-1][1]:.1f} MB, frames "
+                      f"{rig.service.frame_counts()}", file=sys.stderr, flush=True)
+        counts = rig.service.frame_counts()
+        delivered = sum(s.stats.delivered for s in sources)
+        checks = rig.service.counters["watch_checks"]
+    start = next(r for r in rss if r[0] >= seconds * 0.1)
+    growth = 100.0 * (rss[-1][1] - start[1]) / start[1]
+    return {"seconds": round(seconds), "rss_start_mb": round(start[1], 1),
+            "rss_end_mb": round(rss[-1][1], 1), "rss_growth_pct": round(growth, 2),
+            "reader_rss_start_mb": round(start[2], 1), "reader_rss_end_mb": round(rss[-1][2], 1),
+            "longest_heartbeat_gap_s": round(max(gaps), 3), "frames": counts,
+            "source_delivered": delivered,
+            "accounted": counts["received"] == counts["processed"] + counts["dropped"]
+            + counts["queued"] and counts["received"] == delivered,
+            "watch_checks": checks, "camera_losses": rig.service.camera_losses}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--trials", type=int, default=20)
+    parser.add_argument("--ready-runs", type=int, default=3)
+    parser.add_argument("--cpu-seconds", type=float, default=20.0)
+    parser.add_argument("--soak-seconds", type=float, default=0.0,
+                        help="soak duration (0: no soak; the issue's target is 600)")
+    parser.add_argument("--only", default="latency,ready,cpu,soak")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.ERROR)  # the service's PAUSE warnings are expected here
+    only = set(args.only.split(","))
+    result: dict = {"load_avg_1min_start": os.getloadavg()[0]}
+    if "latency" in only:
+        result["latency"] = bench_latency(args.trials)
+    if "ready" in only:
+        result["ready"] = bench_ready(args.ready_runs)
+    if "cpu" in only:
+        result["cpu"] = bench_cpu(args.cpu_seconds)
+    if "soak" in only and args.soak_seconds > 0:
+        result["soak"] = bench_soak(args.soak_seconds)
+    result["load_avg_1min_end"] = os.getloadavg()[0]
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

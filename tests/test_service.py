@@ -1,0 +1,461 @@
+"""robot_change.service in process: the real link over a pty pair, the simulated base, a real
+images source paced like a camera, a real store.
+
+The "camera" is a folder of 16-bit PNGs read at 30 fps in a loop; the scene changes when the
+files are replaced in place by the frames of the changed scene (office_box_added), and the
+camera is lost when the folder goes away.  Every wait is bounded (basesim's expect timeouts,
+the service's own timeouts); the whole file runs in about half a minute.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import threading
+import time
+import tty
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hw.depth import open_depth
+from hw.serial_port import open_port
+from robot_change import protocol as p
+from robot_change.basesim import BaseSim
+from robot_change.config import Config, config_from_dict
+from robot_change.errors import ConfigError
+from robot_change.service import (
+    FrameQueue,
+    Service,
+    ServiceOptions,
+    _reload,
+    depth_gate,
+    warm_up,
+)
+from robot_change.store import ReferenceStore
+from tests.test_link import FdPort
+
+SCENE = "office_box_added"
+
+
+@pytest.fixture(scope="module")
+def scene_frames() -> dict[str, list[Path]]:
+    """The PNG frames of both epochs (decoded once from the .oni fixtures), kernels warm."""
+    from sim_fixtures import load_scene
+
+    scene = load_scene(SCENE)
+    out = {}
+    for epoch in ("reference", "current"):
+        folder = Path(scene.uri(epoch, "images").removeprefix("images:"))
+        out[epoch] = sorted(folder.glob("*.png"))
+    warm_up()
+    return out
+
+
+def show(scene_frames: dict[str, list[Path]], camera: Path, epoch: str) -> None:
+    """Make the camera folder show ``epoch`` (files replaced in place, atomically)."""
+    camera.mkdir(exist_ok=True)
+    for i, src in enumerate(scene_frames[epoch]):
+        tmp = camera / f".{i:03d}.tmp"
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, camera / f"{i:03d}.png")
+
+
+class Rig:
+    """A service and a simulated base on the two ends of a pty pair."""
+
+    def __init__(self, tmp: Path, scene_frames: dict[str, list[Path]], camera: Any = None,
+                 options: ServiceOptions | None = None, config: Config | None = None) -> None:
+        self.tmp, self.frames = tmp, scene_frames
+        self.camera_dir = tmp / "camera"
+        show(scene_frames, self.camera_dir, "reference")
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        tty.setraw(master)
+        self.master, self.slave = master, slave
+        self.port = open_port(os.ttyname(slave), timeout=0.01)
+        self.store = ReferenceStore(tmp / "state" / "references")
+        uri = f"images:{self.camera_dir}?rate=30&loop=1"
+        camera = camera if camera is not None else (lambda: open_depth(uri))
+        options = options or ServiceOptions(report_dir=tmp / "reports")
+        self.service = Service(config or Config(), camera, self.port, self.store, options)
+        self.out = io.StringIO()
+        self.sim = BaseSim(FdPort(master), out=self.out)
+
+    def __enter__(self) -> "Rig":
+        self.service.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.service.close()
+        self.port.close()
+        os.close(self.slave)
+        os.close(self.master)
+
+    def show(self, epoch: str) -> None:
+        show(self.frames, self.camera_dir, epoch)
+
+    def run(self, text: str) -> None:
+        """Run basesim script lines; fail with the transcript when one does not hold."""
+        lines = [(n, line) for n, line in enumerate(text.strip().splitlines(), 1) if line.strip()]
+        code = self.sim.run_script(lines)
+        assert code == 0, self.out.getvalue()[-4000:]
+
+
+@pytest.fixture
+def rig(tmp_path: Path, scene_frames):
+    with Rig(tmp_path, scene_frames) as r:
+        yield r
+
+
+# --- units --------------------------------------------------------------------------------------
+
+
+def test_frame_queue_drops_the_oldest_and_accounts_for_every_frame(scene_frames) -> None:
+    with open_depth(str(scene_frames["reference"][0])) as source:
+        frame = source.read()
+    q = FrameQueue(size=3)
+    for _ in range(10):
+        q.put(frame)
+    assert q.counts() == {"received": 10, "processed": 0, "dropped": 7, "queued": 3}
+    _, _, seq = q.get()
+    assert seq == 7  # the newest three were kept, in order
+    assert len(q.drain()) == 2 and q.get(0.01) is None
+    counts = q.counts()
+    assert counts["received"] == counts["processed"] + counts["dropped"] + counts["queued"]
+
+
+def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
+    from hw.png import read_png
+
+    ref = [read_png(f) for f in scene_frames["reference"]]
+    cur = [read_png(f) for f in scene_frames["current"]]
+    from robot_change.filters import fuse_depth
+
+    fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
+    quiet = max(depth_gate(fused, f) for f in ref)
+    moved = min(depth_gate(fused, f) for f in cur)
+    options = ServiceOptions()
+    assert moved - quiet > 4 * (options.gate_pixels + options.gate_fraction * quiet)
+
+
+# --- commands -----------------------------------------------------------------------------------
+
+
+def test_capture_then_check_without_change_answers_clear(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED station=office 5
+        check office
+        expect CLEAR station=office 5
+        expect-none PAUSE 0.3
+        status
+        expect STATUS state=IDLE paused=0 armed=1 fault=0 station=office
+    """)
+    assert rig.store.stations() == ["office"]
+    assert (rig.tmp / "reports" / "office.last-check.npz").is_file()
+
+
+def test_check_with_a_change_pauses_reports_and_resume_clears_the_latch(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+    """)
+    rig.show("current")
+    rig.run("""
+        check office
+        expect PAUSE cause=CHANGE_CHECK 5
+        expect REPORT station=office regions=1 2
+        expect HEARTBEAT state=PAUSED paused=1 1
+        expect BASE paused=1 1
+        resume
+        expect HEARTBEAT state=IDLE paused=0 1
+        expect BASE paused=0 1
+    """)
+    report = next(e.obj for e in rig.sim.log if e.name == "REPORT")
+    region = report.regions[0]
+    assert region.kind == p.RegionKind.APPEARED
+    assert 1800 < region.centroid_mm[2] < 2700  # the box stands about 2.2 m ahead
+    assert 300 < max(region.extent_mm) < 700
+    saved = np.load(rig.tmp / "reports" / "office.last-check.npz")
+    assert saved["appeared_mask"].sum() > 500 and saved["region_kinds"].tolist() == [1]
+
+
+def test_disarmed_check_reports_without_pause(rig: Rig) -> None:
+    rig.run("capture office\nexpect CAPTURED 5")
+    rig.show("current")
+    rig.run("""
+        disarm
+        expect HEARTBEAT armed=0 1
+        check office
+        expect REPORT regions=1 5
+        expect-none PAUSE 0.3
+        set pause_on_change 0
+        expect PARAM_VALUE value=0
+        arm
+        check office
+        expect REPORT regions=1 5
+        expect-none PAUSE 0.3
+    """)
+
+
+def test_check_without_a_reference_is_a_fault(rig: Rig) -> None:
+    rig.run("""
+        check nowhere
+        expect FAULT code=REFERENCE_MISSING 5
+        expect HEARTBEAT state=IDLE 1
+    """)
+
+
+def test_corrupt_reference_is_quarantined_and_reported_not_a_crash(rig: Rig) -> None:
+    rig.run("capture office\nexpect CAPTURED 5")
+    path = rig.store.path("office")
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    rig.run("""
+        check office
+        expect FAULT code=REFERENCE_MISSING 5
+        watch office
+        expect FAULT code=REFERENCE_MISSING 5
+        status
+        expect STATUS state=IDLE
+        capture office
+        expect CAPTURED 5
+        check office
+        expect CLEAR 5
+    """)
+    assert len(list(rig.store.quarantine_dir.glob("office.scene.npz.*"))) == 2  # file + note
+
+
+def test_exception_inside_a_command_is_internal_error_and_the_service_goes_on(
+        rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    import robot_change.scene
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr(robot_change.scene, "build_scene", broken)
+    rig.run("capture office\nexpect FAULT code=INTERNAL_ERROR 5")
+    monkeypatch.undo()
+    rig.run("capture office\nexpect CAPTURED 5\nstatus\nexpect STATUS state=IDLE")
+
+
+def test_parameters_get_set_bounds_and_the_refused_cross_check(rig: Rig) -> None:
+    rig.run("""
+        get watch_m
+        expect PARAM_VALUE param=1 value=3
+        set watch_n 2
+        expect FAULT code=COMMAND_REFUSED 1
+        expect PARAM_VALUE param=2 value=5 1
+        set watch_m 2
+        expect PARAM_VALUE param=1 value=2
+        set watch_n 2
+        expect PARAM_VALUE param=2 value=2
+        set check_interval_ms 100
+        expect PARAM_VALUE param=3 value=100
+    """)
+    assert rig.service.params["watch_m"] == 2 and rig.service.params["watch_n"] == 2
+    # out of bounds and unknown ids never reach the service: the link NAKs them
+    body = bytes([1, 0x49, 0x70, 0, 0]) + bytes([3]) + (50).to_bytes(4, "little", signed=True)
+    out_of_range = p.cobs_encode(body + p.crc16(body).to_bytes(2, "big")) + b"\0"
+    body = bytes([1, 0x4A, 0x71, 0, 0, 99])
+    unknown = p.cobs_encode(body + p.crc16(body).to_bytes(2, "big")) + b"\0"
+    rig.run(f"raw {out_of_range.hex(' ')}\nraw {unknown.hex(' ')}\nwait 0.3")
+    assert rig.service.link.stats.naks_sent >= 2
+    assert rig.service.params["check_interval_ms"] == 100
+
+
+def test_watch_pauses_only_when_the_change_persists_then_clears(tmp_path: Path, scene_frames) -> None:
+    with Rig(tmp_path, scene_frames) as rig:
+        rig.run("""
+            capture office
+            expect CAPTURED 5
+            set check_interval_ms 100
+            expect PARAM_VALUE value=100
+            watch office
+            expect HEARTBEAT state=WATCHING 1
+            expect-none PAUSE 0.8
+        """)
+        checks_before = rig.service.counters["watch_checks"]
+        assert checks_before >= 3  # it was checking all along, and found nothing
+        rig.show("current")
+        shown = time.monotonic()
+        rig.run("""
+            expect PAUSE cause=CHANGE_WATCH 5
+            expect REPORT regions=1 2
+            expect HEARTBEAT state=WATCHING paused=1 1
+        """)
+        paused_at = next(e.t for e in rig.sim.log if e.name == "PAUSE")
+        log = [e for e in rig.service.watch_log if e["t"] >= shown]
+        changed_before_pause = [e for e in log if e["changed"] and e["t"] <= paused_at]
+        assert len(changed_before_pause) >= 3, log  # watch_m = 3 of watch_n = 5
+        assert next(e for e in log if e.get("action") == "pause")["changed_in_window"] >= 3
+        rig.show("reference")
+        rig.run("""
+            expect CLEAR station=office 5
+            expect HEARTBEAT state=WATCHING paused=1 1
+            stop
+            expect HEARTBEAT state=PAUSED paused=1 1
+            resume
+            expect HEARTBEAT state=IDLE paused=0 1
+        """)
+        counts = rig.service.frame_counts()
+        assert counts["received"] == counts["processed"] + counts["dropped"] + counts["queued"]
+
+
+def test_camera_loss_faults_pauses_a_watch_and_recovers(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+        watch office
+        expect HEARTBEAT state=WATCHING 1
+    """)
+    away = rig.tmp / "camera-away"
+    rig.camera_dir.rename(away)
+    rig.run("""
+        expect FAULT code=CAMERA_LOST 5
+        expect PAUSE cause=CAMERA_LOST 2
+        expect HEARTBEAT state=FAULT fault=1 1
+        check office
+        expect FAULT code=CAMERA_LOST 5
+    """)
+    away.rename(rig.camera_dir)
+    rig.run("""
+        expect FAULT code=CLEARED 15
+        expect HEARTBEAT fault=0 1
+        resume
+        capture office
+        expect CAPTURED 5
+    """)
+    assert rig.service.camera_losses == 1
+
+
+def test_dummy_device_loss_and_recovery(tmp_path: Path, scene_frames) -> None:
+    from hw.openni2 import open_device
+
+    source = open_device("Oz", lost_after=0.5)
+    with Rig(tmp_path, scene_frames, camera=source) as rig:
+        rig.run("expect HEARTBEAT fault=0 5")
+        seen = rig.service.last_frame_index
+        source.simulate_device_loss()
+        rig.run("""
+            expect FAULT code=CAMERA_LOST 5
+            expect FAULT code=CLEARED 10
+            status
+            expect STATUS state=IDLE fault=0
+        """)
+        assert rig.service.camera_losses == 1 and seen > 0
+
+
+def test_a_busy_controller_drops_frames_and_counts_them(tmp_path: Path, scene_frames) -> None:
+    rig = Rig(tmp_path, scene_frames, options=ServiceOptions(queue_frames=2))
+    # unpaced: the camera delivers as fast as PNGs decode, faster than captures consume
+    rig.service._camera = lambda: open_depth(f"images:{rig.camera_dir}?loop=1")
+    with rig:
+        rig.run("""
+            capture office
+            expect CAPTURED 5
+            capture office
+            expect CAPTURED 5
+            status
+            expect STATUS
+        """)
+        counts = rig.service.frame_counts()
+        assert counts["dropped"] > 0
+        assert counts["received"] == counts["processed"] + counts["dropped"] + counts["queued"]
+        status = next(e.obj for e in rig.sim.log if e.name == "STATUS")
+        assert 0 < status.frames_dropped <= counts["dropped"]
+
+
+def test_garbage_on_the_line_while_watching(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+        set check_interval_ms 100
+        set watch_m 1
+        set watch_n 1
+        watch office
+        expect HEARTBEAT state=WATCHING 1
+        garbage 3000
+        raw 04 01 7f 05 01 03 00 00 00
+        raw 03 02 7f 01 01 00
+        garbage 500
+        raw 00
+        wait 0.5
+        status
+        expect STATUS state=WATCHING 2
+    """)
+    link = rig.service.link.counters()
+    assert link["bytes_in"] > 3500
+    assert sum(v for k, v in link.items() if k.startswith("decode_")) > 0
+    rig.show("current")
+    rig.run("expect PAUSE cause=CHANGE_WATCH 5")
+
+
+def test_reload_takes_a_new_camera_and_keeps_the_old_config_when_the_new_one_fails(
+        rig: Rig, tmp_path: Path) -> None:
+    rig.run("capture office\nexpect CAPTURED 5\nset watch_m 2\nexpect PARAM_VALUE value=2")
+    old = rig.service.config
+
+    def bad() -> Config:
+        raise ConfigError("x.toml: watch.watch_m = 11: must be a whole number in 1..10")
+
+    _reload(rig.service, bad, None)
+    assert rig.service.config is old and rig.service.params["watch_m"] == 2
+    other = tmp_path / "other"
+    show(rig.frames, other, "current")
+    new = config_from_dict({"camera": {"source": f"images:{other}?rate=30&loop=1"},
+                            "watch": {"watch_m": 1, "watch_n": 1}})
+    _reload(rig.service, lambda: new, lambda c: (lambda: open_depth(c.camera.source)))
+    assert rig.service.params["watch_m"] == 1  # the table is reseeded from the new file
+    rig.run("check office\nexpect PAUSE 5\nexpect REPORT regions=1")
+
+
+def test_stop_during_a_capture_refuses_it(tmp_path: Path, scene_frames) -> None:
+    rig = Rig(tmp_path, scene_frames)
+    rig.service._camera = lambda: open_depth(f"images:{rig.camera_dir}?rate=5&loop=1")
+    with rig:
+        rig.run("""
+            set fuse_frames 30
+            expect PARAM_VALUE value=30
+            capture office
+            expect HEARTBEAT state=CAPTURING 2
+            stop
+            expect FAULT code=COMMAND_REFUSED 3
+            expect HEARTBEAT state=IDLE 1
+        """)
+    assert rig.store.stations() == []
+
+
+def test_threads_stop_cleanly(rig: Rig) -> None:
+    rig.run("status\nexpect STATUS")
+    assert rig.service.healthy() == (True, "ok")
+    rig.service.close()
+    assert not any(t.is_alive() for t in rig.service._threads)
+    assert threading.active_count() < 20
+
+
+def test_watch_checks_only_while_the_base_is_parked(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+        set check_interval_ms 100
+        set watch_m 1
+        set watch_n 1
+        watch office
+        expect HEARTBEAT state=WATCHING 1
+        motion moving
+        wait 0.3
+    """)
+    checks = rig.service.counters["watch_checks"]
+    rig.show("current")
+    rig.run("""
+        expect-none PAUSE 0.8
+        motion parked
+        expect PAUSE cause=CHANGE_WATCH 5
+    """)
+    assert rig.service.counters["watch_checks"] <= checks + 2  # nothing ran while it moved
