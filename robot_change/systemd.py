@@ -77,7 +77,8 @@ def notify(**fields: object) -> bool:
     message = ("\n".join(lines) + "\n").encode("utf-8")
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
-            sock.sendto(message, address)
+            # never block the daemon on a manager that does not read its socket
+            sock.sendto(message, socket.MSG_DONTWAIT, address)
     except OSError as exc:
         log.warning("sd_notify to %s failed: %s", target, exc)
         return False

@@ -218,3 +218,22 @@ def test_udev_rules_name_the_base_and_open_the_cameras_to_plugdev():
     for r in parsed:
         if r.get("SUBSYSTEM") == ("==", "usb"):
             assert r["GROUP"] == ("=", "plugdev") and r["MODE"] == ("=", "0660")
+
+
+def test_notify_never_blocks_on_a_socket_nobody_reads(tmp_path, monkeypatch):
+    import socket as socket_module
+    import time
+
+    from robot_change import systemd
+
+    path = tmp_path / "full.sock"
+    server = socket_module.socket(socket_module.AF_UNIX, socket_module.SOCK_DGRAM)
+    server.bind(str(path))
+    try:
+        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+        started = time.monotonic()
+        results = [systemd.notify(STATUS="x" * 1000) for _ in range(2000)]
+        assert time.monotonic() - started < 5.0
+        assert results[0] is True and results[-1] is False  # the queue filled up: dropped
+    finally:
+        server.close()
