@@ -325,3 +325,49 @@ def test_write_oni_keeps_depth_frames_timestamps(tmp_path: Path, good_file: Path
     for a, b in zip(again, originals):
         np.testing.assert_array_equal(a.depth, b.depth)
     assert os.path.getsize(copy) > os.path.getsize(good_file)  # "none" is the default codec
+
+
+def _decode_16z_twin(data: bytes, count: int) -> list[int]:
+    """Plain-Python twin of hw.oni._decode_16z (the 16zP stream -> pixel values)."""
+    out = [data[0] | (data[1] << 8)]
+    last, i = out[0], 2
+    while i < len(data) and len(out) < count:
+        c = data[i]
+        i += 1
+        if 0xE0 <= c < 0xFF:  # 0xE0 + n: n pairs equal to the last pixel
+            out += [last] * (2 * (c - 0xE0))
+            continue
+        if c != 0xFF:
+            last = (last - ((c >> 4) - 6)) & 0xFFFF
+            out.append(last)
+            low = c & 0x0F
+            if low == 0x0D:
+                continue
+            if low != 0x0F:
+                last = (last - (low - 6)) & 0xFFFF
+                out.append(last)
+                continue
+        b = data[i]
+        i += 1
+        if b & 0x80:
+            last = (last - (b - 192)) & 0xFFFF
+        else:
+            last = (b << 8) | data[i]
+            i += 1
+        out.append(last)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_16z_decoder_kernel_matches_its_python_twin(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    # smooth runs, small and large steps, equal runs, zeros, and values that need two bytes
+    depth = np.cumsum(rng.integers(-9, 10, size=(20, 31)), axis=1).astype(np.int64) + 1500
+    depth[rng.random(depth.shape) < 0.1] = 0
+    depth[3, 5:25] = 2000
+    depth[7, ::3] = rng.integers(0, 32767, size=depth[7, ::3].shape)
+    depth = np.clip(depth, 0, 32767).astype(np.uint16)
+    payload = encode_16z(depth)
+    got = decode_frame(payload, depth.shape, "16z")
+    np.testing.assert_array_equal(got.ravel(), _decode_16z_twin(payload, depth.size))
+    np.testing.assert_array_equal(got, depth)
