@@ -48,38 +48,16 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from hw.depth import DepthFrame, DepthSource, Intrinsics, open_depth  # noqa: E402
-from hw.serial_port import open_port  # noqa: E402
+from hw.serial_port import (
+    FdPort,  # noqa: E402
+    open_port,  # noqa: E402
+)
 from robot_change.basesim import BaseSim  # noqa: E402
 from robot_change.config import Config  # noqa: E402
 from robot_change.service import Service, warm_up  # noqa: E402
 from robot_change.store import ReferenceStore  # noqa: E402
 
 SCENE = ROOT / "sim_fixtures" / "scenes" / "office_box_added"
-
-
-class PtyPort:
-    """The master end of a pty as a port."""
-
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
-        os.set_blocking(fd, False)
-
-    def fileno(self) -> int:
-        return self.fd
-
-    in_waiting = 4096
-
-    def read(self, n: int) -> bytes:
-        try:
-            return os.read(self.fd, n)
-        except (BlockingIOError, OSError):
-            return b""
-
-    def write(self, data: bytes) -> int:
-        try:
-            return os.write(self.fd, data)
-        except BlockingIOError:
-            return 0
 
 
 class SwitchingSource(DepthSource):
@@ -144,7 +122,7 @@ class InProcess:
         self.service = Service(config or Config(), camera, self.port,
                                ReferenceStore(tmp / "references"))
         self.log = open(tmp / "base.log", "w")
-        self.sim = BaseSim(PtyPort(master), out=self.log)
+        self.sim = BaseSim(FdPort(master), out=self.log)
 
     def __enter__(self) -> "InProcess":
         self.service.start()
@@ -346,7 +324,7 @@ def bench_cpu(seconds: float) -> dict:
         daemon = Daemon(Path(tmp))
         try:
             daemon.wait_ready()
-            sim = BaseSim(PtyPort(daemon.master), out=open(Path(tmp) / "base.log", "w"))
+            sim = BaseSim(FdPort(daemon.master), out=open(Path(tmp) / "base.log", "w"))
             assert sim.pump(10, until=lambda: sim.link.state.value == "up")
             sim.command("capture office")
             assert sim.expect("CAPTURED", {}, 10)

@@ -12,6 +12,7 @@ while it is gone, and it is reopened with backoff.  Framing and sessions live el
 from __future__ import annotations
 
 import errno
+import os
 import time
 from typing import Any, Callable
 
@@ -190,3 +191,36 @@ class ReopeningPort:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class FdPort:
+    """A raw, non-blocking file descriptor as a port: the master end of a pseudo-terminal pair
+    (``os.openpty()``), as the demo, the benchmarks and the tests hand one end of a pty to the
+    simulated base while the daemon opens the other end by its path.
+
+    Offers what the link runner uses: ``read(n)`` (``b""`` when nothing is waiting, or once
+    the other end has closed), ``write(data)`` (bytes written; 0 when the pty buffer is full),
+    ``in_waiting`` and ``fileno()``.  The caller owns the descriptor and closes it.
+    """
+
+    #: Upper bound of one read; the runner waits on fileno() before it reads.
+    in_waiting = 4096
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        os.set_blocking(fd, False)
+
+    def fileno(self) -> int:
+        return self.fd
+
+    def read(self, n: int) -> bytes:
+        try:
+            return os.read(self.fd, n)
+        except (BlockingIOError, OSError):  # OSError (EIO): the other end has gone
+            return b""
+
+    def write(self, data: bytes) -> int:
+        try:
+            return os.write(self.fd, data)
+        except BlockingIOError:
+            return 0

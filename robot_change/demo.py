@@ -24,37 +24,11 @@ import tty
 from pathlib import Path
 from typing import Any, TextIO
 
+from hw.serial_port import FdPort
 from robot_change.errors import InputError
 
 SCENE = "office_box_added"
 STATION = "office"
-
-
-class _PtyPort:
-    """The master end of a pty pair as a port (read / write / in_waiting / fileno)."""
-
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
-        os.set_blocking(fd, False)
-
-    def fileno(self) -> int:
-        return self.fd
-
-    @property
-    def in_waiting(self) -> int:
-        return 4096
-
-    def read(self, n: int) -> bytes:
-        try:
-            return os.read(self.fd, n)
-        except (BlockingIOError, OSError):
-            return b""
-
-    def write(self, data: bytes) -> int:
-        try:
-            return os.write(self.fd, data)
-        except BlockingIOError:
-            return 0
 
 
 def _toml(source: str, port: str, state: Path) -> str:
@@ -99,7 +73,7 @@ def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
                               stdin=subprocess.DEVNULL)
     code = 1
     try:
-        sim = BaseSim(_PtyPort(master), out=base_log)
+        sim = BaseSim(FdPort(master), out=base_log)
         _say(out, "robot-change demo: the daemon on a recorded office, a simulated base on a "
                   "pty pair")
         _say(out, f"  daemon  robot-change run --config {config}  (pid {daemon.pid})")

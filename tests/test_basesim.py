@@ -14,7 +14,7 @@ from robot_change import protocol as p
 from robot_change.basesim import parse_command, run_base_sim
 from robot_change.errors import InputError
 from robot_change.link import Link, LinkRunner, Received
-from tests.test_link import FdPort
+from hw.serial_port import FdPort
 
 
 class FakeModule:

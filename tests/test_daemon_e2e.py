@@ -23,7 +23,7 @@ import pytest
 
 from conftest import REPO, SIM_FIXTURES
 from robot_change.basesim import run_base_sim
-from tests.test_link import FdPort
+from hw.serial_port import FdPort
 
 SCENE = SIM_FIXTURES / "scenes" / "office_box_added"
 

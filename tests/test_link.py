@@ -9,6 +9,7 @@ import tty
 
 import pytest
 
+from hw.serial_port import FdPort
 from robot_change import protocol as p
 from robot_change.errors import LinkError
 from robot_change.link import (
@@ -397,30 +398,6 @@ def test_pause_gets_through_10_percent_byte_corruption_by_retries():
 
 
 # -- over a real pty pair -----------------------------------------------------------------------
-
-
-class FdPort:
-    """The master side of a pty as a minimal port (read/write/in_waiting/fileno)."""
-
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
-        os.set_blocking(fd, False)
-
-    def fileno(self) -> int:
-        return self.fd
-
-    @property
-    def in_waiting(self) -> int:
-        return 4096
-
-    def read(self, n: int) -> bytes:
-        try:
-            return os.read(self.fd, n)
-        except BlockingIOError:
-            return b""
-
-    def write(self, data: bytes) -> int:
-        return os.write(self.fd, data)
 
 
 def test_runner_over_a_pty_pair_delivers_pause_and_heartbeats():

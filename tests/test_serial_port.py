@@ -165,3 +165,36 @@ def test_hw_stays_a_leaf():
             "sys.exit(1 if bad else 0)")
     root = Path(__file__).resolve().parents[1]
     assert subprocess.run([sys.executable, "-c", code], cwd=root).returncode == 0
+
+
+def test_fd_port_carries_bytes_over_a_pty_pair_and_reads_nothing_once_the_other_end_closes():
+    import os
+    import tty
+
+    from hw.serial_port import FdPort, open_port
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    far = open_port(os.ttyname(slave), timeout=0.5)
+    os.close(slave)
+    near = FdPort(master)
+    try:
+        assert near.read(16) == b""  # nothing waiting: no exception, no block
+        assert near.write(b"\x01\x02\x00") == 3
+        assert far.read(3) == b"\x01\x02\x00"
+        far.write(b"pong")
+        far.flush()
+        deadline = 50
+        got = b""
+        while len(got) < 4 and deadline:
+            got += near.read(16)
+            deadline -= 1
+            if len(got) < 4:
+                import time
+
+                time.sleep(0.01)
+        assert got == b"pong"
+        far.close()
+        assert near.read(16) == b""  # EIO from a closed pty is "nothing", not a crash
+    finally:
+        os.close(master)

@@ -36,7 +36,7 @@ from robot_change.service import (
     warm_up,
 )
 from robot_change.store import ReferenceStore
-from tests.test_link import FdPort
+from hw.serial_port import FdPort
 
 SCENE = "office_box_added"
 
