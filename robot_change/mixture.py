@@ -278,8 +278,10 @@ class FitStep:
     """One EM run inside :func:`fit_mixture`.
 
     ``action`` is ``"start"`` (the initial EM), ``"split k"`` (component k of the current
-    mixture was split) or ``"seed"`` (a novelty component was added); ``accepted`` says whether
-    the result became the current mixture.
+    mixture was split), ``"seed"`` (a novelty component was added), ``"polish"`` (the final EM
+    on all points after a search on a subsample) or ``"prune"`` (free components left with
+    fewer than ``min_points`` points of mass by the polish were dropped and EM run again);
+    ``accepted`` says whether the result became the current mixture.
     """
 
     action: str
@@ -294,7 +296,12 @@ class FitStep:
 
 @dataclass(frozen=True)
 class FitRecord:
-    """How a mixture was fitted: settings, every EM run, and the totals."""
+    """How a mixture was fitted: settings, every EM run, and the totals.
+
+    ``n_pruned``: free components dropped after the polish because they held fewer than
+    ``min_points`` points of mass (0 when nothing was dropped, and in records written before
+    the prune existed).
+    """
 
     criterion: str
     n_points: int
@@ -304,6 +311,7 @@ class FitRecord:
     n_iter: int
     seconds: float
     stop_reason: str
+    n_pruned: int = 0
 
     @property
     def k_tried(self) -> tuple[int, ...]:
@@ -569,6 +577,9 @@ def fit_mixture(
     min_points : int
         A component is a split candidate only with >= 2 * min_points hard-assigned points, and a
         split is rejected if any free component ends with fewer than ``min_points`` (N w_k).
+        After the polish on all points (see ``search_points``) the same rule is enforced again:
+        free components below it are dropped and EM is re-run (``"prune"`` steps; fixed
+        components are never dropped).
     max_tries : int
         Candidates tried per round (in order of w_k J_k) before the search stops.
     entropy_k, entropy_subsample : int
@@ -679,9 +690,29 @@ def fit_mixture(
         if not improved:
             break
 
+    n_pruned = 0
     if xs is not x:
         cur, _ = run(cur, "polish", x)
         accept()
+        # The search kept every free component at >= min_points of mass on the subsample, but
+        # the polish on all points can leave some below it (high max_components, small
+        # subsample).  Drop those, renormalise and re-run EM until none is left; each round
+        # removes at least one component, so this ends.
+        while True:
+            keep = cur.fixed | (n * cur.weights >= min_points)
+            if keep.all():
+                break
+            if not keep.any():  # never drop everything: keep the heaviest free component
+                keep[int(np.argmax(cur.weights))] = True
+                if keep.all():
+                    break
+            w = cur.weights[keep]
+            start = _State(w / w.sum(), cur.means[keep], cur.covs[keep], cur.fixed[keep],
+                           cur.j[keep])
+            k_before = len(cur.weights)
+            cur, _ = run(start, "prune", x)
+            accept()
+            n_pruned += k_before - len(cur.weights)  # incl. any the re-run EM emptied
     n_iter = sum(s.n_iter for s in steps)
     if not all(s.converged for s in steps):
         warnings.warn(f"EM reached max_iter = {max_iter} without converging to tol = {tol} in "
@@ -689,7 +720,7 @@ def fit_mixture(
                       f"the result is the last iterate. Raise max_iter or tol.",
                       ConvergenceWarning, stacklevel=2)
     record = FitRecord(criterion, n, float(reg_covar), int(max_components), tuple(steps), n_iter,
-                       time.perf_counter() - t_start, stop)
+                       time.perf_counter() - t_start, stop, n_pruned)
     return Mixture(cur.weights / cur.weights.sum(), cur.means, _symmetric(cur.covs), record)
 
 

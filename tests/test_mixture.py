@@ -549,3 +549,53 @@ def test_search_subsample_polishes_on_all_points():
     assert m.record.steps[-1].action == "polish"
     full = fit_mixture(x, reg_covar=1e-6)
     assert m.score(x) == pytest.approx(full.score(x), abs=1e-3)
+
+
+# ----------------------------------------------------------------------------- prune after polish
+
+
+def blob_cloud(n, n_blobs=40, seed=0):
+    """n points around n_blobs random centres (sd 8 cm) in a 3 m cube: a split search with a
+    high bound and a small subsample overshoots on it."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0.0, 3.0, (n_blobs, 3))
+    return centres[rng.integers(0, n_blobs, n)] + rng.normal(0.0, 0.08, (n, 3))
+
+
+def test_polish_leaves_no_free_component_below_min_points():
+    # docs/algorithm.md, "How K behaves on our clouds": the search on an 800-point subsample
+    # runs to K = 64, and the polish on all 4000 points left (before the prune) three
+    # components with 4.8, 7.6 and 9.9 points of mass, below min_points = 10.
+    x = blob_cloud(4000)
+    m = fit_mixture(x, max_components=64, search_points=800)
+    rec = m.record
+    actions = [s.action for s in rec.steps]
+    polish = actions.index("polish")
+    assert rec.steps[polish].n_components == 64  # what the fit returned before the fix
+    assert actions[polish + 1:] and set(actions[polish + 1:]) == {"prune"}
+    assert all(s.accepted for s in rec.steps[polish:])
+    assert rec.n_pruned == 64 - m.n_components > 0
+    assert (len(x) * m.weights >= 10).all()
+    assert_finite(m)
+    # the pruned fit is a proper EM fit on all points: one more EM run from it barely moves
+    again = fit_mixture(x, init=m, split=False)
+    assert again.n_components == m.n_components
+    assert again.score(x) == pytest.approx(m.score(x), abs=1e-3)
+
+
+def test_prune_never_drops_fixed_components():
+    # a fixed component on 4 far points (mass ~4 < min_points) next to an overshooting search
+    x_far = np.array([10.0, 10.0, 10.0]) + np.random.default_rng(1).normal(0, 0.05, (4, 3))
+    x = np.vstack([blob_cloud(4000), x_far])
+    blobs = x[:-4]
+    init = Mixture([0.999, 0.001], [blobs.mean(axis=0), [10.0, 10.0, 10.0]],
+                   np.stack([np.cov(blobs, rowvar=False), np.eye(3) * 0.0025]))
+    m = fit_mixture(x, init=init, fixed=[1], max_components=64, search_points=800)
+    assert m.record.n_pruned > 0  # free components were pruned ...
+    kept = np.flatnonzero(np.all(m.means == init.means[1], axis=1))
+    assert len(kept) == 1  # ... the fixed one, with less than min_points of mass, was not
+    k = kept[0]
+    np.testing.assert_array_equal(m.covariances[k], init.covariances[1])
+    assert len(x) * m.weights[k] < 10
+    others = np.arange(m.n_components) != k
+    assert (len(x) * m.weights[others] >= 10).all()
