@@ -54,8 +54,9 @@ from hw.serial_port import (
 )
 from robot_change.basesim import BaseSim  # noqa: E402
 from robot_change.config import Config  # noqa: E402
-from robot_change.service import Service, warm_up  # noqa: E402
+from robot_change.service import Service  # noqa: E402
 from robot_change.store import ReferenceStore  # noqa: E402
+from robot_change.warmup import warm_up  # noqa: E402
 
 SCENE = ROOT / "sim_fixtures" / "scenes" / "office_box_added"
 

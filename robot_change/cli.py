@@ -171,7 +171,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from hw.serial_port import ReopeningPort
     from robot_change.config import load_config
-    from robot_change.service import Service, ServiceOptions, run_service
+    from robot_change.daemon import run_service
+    from robot_change.service import Service, ServiceOptions
     from robot_change.store import ReferenceStore
 
     config = load_config(args.config)

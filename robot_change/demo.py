@@ -182,7 +182,7 @@ def _picture(state: Path, out_dir: Path, config: Path) -> Path:
     from robot_change.change import detect_changes
     from robot_change.config import load_config
     from robot_change.report import draw_change
-    from robot_change.service import change_params
+    from robot_change.params import change_params
     from robot_change.store import ReferenceStore
 
     settings = load_config(config)

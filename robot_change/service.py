@@ -23,26 +23,19 @@ reports CLEAR when the change is gone).  ``armed`` (ARM / DISARM, armed at start
 Commands: CAPTURE_REFERENCE, CHECK and WATCH queue for the controller thread and replace any
 watch in progress; the quick ones (STATUS_QUERY, ARM, DISARM, RESUME, STOP, SET_PARAM,
 GET_PARAM) are answered at once from the link thread.  CHECK fuses ``fuse_frames`` fresh
-frames (per-pixel median) and compares them with the station's reference; WATCH checks the
-newest frame every ``check_interval_ms`` and at once when a cheap per-frame depth gate sees the
-scene differ from what the last check saw, and raises PAUSE when a change is seen in
-``watch_m`` of the last ``watch_n`` checks (once per change: CLEAR when ``watch_m`` of the last
-``watch_n`` checks saw none, after which a new change pauses again).  A watch checks only while
-the base's heartbeat says PARKED or PAUSED.  A check that sees nothing to compare (no depth:
-covered lens, something against the camera) counts as a change in WATCH (PAUSE cause
-CAMERA_LOST) and is a FAULT CAMERA_LOST for CHECK.  A recording that ends counts as a lost
-camera (it is reopened, so it plays again); ``oni:...?loop=1&rate=auto`` plays one like a
-camera.  SET_PARAM ``max_depth_mm`` applies to references captured after it (a check cleans
-its frames with its reference's parameters); the other parameters apply at once.
+frames (per-pixel median) and compares them with the station's reference; a check that sees
+nothing to compare (no depth: covered lens, something against the camera) is a FAULT
+CAMERA_LOST.  WATCH (``robot_change.watch``) checks the newest frame again and again and
+raises PAUSE when a change persists.  SET_PARAM ``max_depth_mm`` applies to references
+captured after it (a check cleans its frames with its reference's parameters); the other
+parameters apply at once.
 
 Threads and queues (nothing grows without bound)::
 
-    camera    source.read() at camera rate -> FrameQueue (bounded, oldest dropped and counted);
-              on loss: FAULT via the controller, close, reopen with backoff 0.5 s .. 10 s
+    camera    (robot_change.frames) source.read() -> FrameQueue (bounded, oldest dropped)
     link      LinkRunner.run(): bytes <-> messages; quick commands answered here
     control   commands (bounded queue), frames, capture / check / watch, heartbeat contents
-    detector  <= 2 threads running WATCH checks (numba kernels release the GIL), so a change
-              that shows while a scheduled check runs is checked at once, not after it
+    detector  (robot_change.watch) <= 2 threads running WATCH checks
 
 Every frame the camera delivers is accounted for: ``received == processed + dropped +
 queued`` (:meth:`Service.frame_counts`).  Bad input never stops the service: garbage on the line
@@ -50,10 +43,7 @@ is NAKed by the link, a corrupt reference is quarantined by the store and report
 REFERENCE_MISSING), and an exception inside a command is logged and answered with FAULT
 INTERNAL_ERROR while the service carries on.
 
-:func:`run_service` is the daemon's main loop around a :class:`Service`: systemd READY once the
-numba kernels are compiled or loaded (:func:`warm_up`), WATCHDOG while the threads are alive,
-SIGHUP reloads the configuration (a new camera source is reopened; a bad file keeps the old
-configuration), SIGTERM stops cleanly.
+``robot_change.daemon.run_service`` is the daemon's main loop around a :class:`Service`.
 """
 
 from __future__ import annotations
@@ -63,7 +53,6 @@ import concurrent.futures
 import dataclasses
 import logging
 import queue
-import signal
 import threading
 import time
 from pathlib import Path
@@ -72,18 +61,15 @@ from typing import Any, Callable
 import numpy as np
 
 import robot_change
-from hw.depth import DepthFrame, DepthSource, Intrinsics
-from hw.errors import DeviceLost, FrameTimeout, HwError
-from robot_change import systemd
+from hw.depth import DepthFrame, DepthSource
 from robot_change.config import Config
 from robot_change.errors import (
-    ConfigError,
     EmptySceneError,
-    InputError,
     ReferenceMissing,
     SceneMismatchError,
     StoreError,
 )
+from robot_change.frames import CameraThreadMixin, FrameQueue
 from robot_change.link import (
     Delivered,
     Link,
@@ -95,6 +81,7 @@ from robot_change.link import (
     SendFailed,
     StateChanged,
 )
+from robot_change.params import change_params, scene_params
 from robot_change.protocol import (
     PARAM_BY_ID,
     REGIONS_PER_PART,
@@ -125,13 +112,12 @@ from robot_change.protocol import (
     Watch,
     split_change_report,
 )
+from robot_change.watch import WatchMixin, _Watch
 
-__all__ = ["FrameQueue", "Service", "ServiceOptions", "run_service", "warm_up", "depth_gate"]
+__all__ = ["Service", "ServiceOptions"]
 
 log = logging.getLogger(__name__)
 
-#: Camera reopen backoff: first wait and cap, seconds.
-CAMERA_BACKOFF = (0.5, 10.0)
 #: Most CHANGE_REPORT regions sent for one report (the largest first): 255 parts of 11.
 MAX_REPORT_REGIONS = 255 * REGIONS_PER_PART
 _FAULT_TEXT = 200
@@ -163,84 +149,7 @@ class ServiceOptions:
 
 
 # ---------------------------------------------------------------------------------------------
-# the frame queue
-
-
-class FrameQueue:
-    """A bounded queue of depth frames: ``put`` never blocks (a full queue drops its oldest
-    frame and counts it), ``get`` waits at most its timeout.
-
-    ``received == processed + dropped + len(queue)`` at every moment (:meth:`counts`).
-    """
-
-    def __init__(self, size: int = 4, on_put: Callable[[], None] | None = None) -> None:
-        if size < 1:
-            raise ValueError(f"FrameQueue size {size}: at least 1")
-        self._frames: collections.deque[tuple[DepthFrame, float, int]] = collections.deque()
-        self._size = size
-        self._cond = threading.Condition()
-        self._on_put = on_put
-        self.received = 0
-        self.processed = 0
-        self.dropped = 0
-
-    def put(self, frame: DepthFrame) -> None:
-        """Queue a frame with its arrival time and sequence number (``received`` so far: it
-        keeps increasing when a reopened camera counts its frames from 0 again); drop the
-        oldest when full."""
-        with self._cond:
-            if len(self._frames) >= self._size:
-                self._frames.popleft()
-                self.dropped += 1
-            self._frames.append((frame, time.monotonic(), self.received))
-            self.received += 1
-            self._cond.notify_all()
-        if self._on_put is not None:
-            self._on_put()
-
-    def get(self, timeout: float = 0.0) -> tuple[DepthFrame, float, int] | None:
-        """The oldest (frame, arrival time, sequence number), waiting at most ``timeout`` s; None if none."""
-        end = time.monotonic() + max(0.0, timeout)
-        with self._cond:
-            while not self._frames:
-                left = end - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
-            self.processed += 1
-            return self._frames.popleft()
-
-    def drain(self) -> list[tuple[DepthFrame, float, int]]:
-        """Every queued frame, oldest first (all counted as processed)."""
-        with self._cond:
-            frames = list(self._frames)
-            self._frames.clear()
-            self.processed += len(frames)
-            return frames
-
-    def counts(self) -> dict[str, int]:
-        """received, processed, dropped, queued: received == processed + dropped + queued."""
-        with self._cond:
-            return {"received": self.received, "processed": self.processed,
-                    "dropped": self.dropped, "queued": len(self._frames)}
-
-
-# ---------------------------------------------------------------------------------------------
 # helpers
-
-
-def depth_gate(reference: np.ndarray, depth: np.ndarray, step: int = 4) -> int:
-    """How many sampled pixels (every ``step``-th of every ``step``-th row) read nearer or
-    farther than the reference by more than the sensor's noise (30 mm + 4 mm per m^2).
-
-    A cheap per-frame trigger for WATCH checks, never a decision: a jump in this count means the
-    scene is no longer what the last check saw, so a check runs at once.  ~0.3 ms at VGA.
-    """
-    r = reference[::step, ::step].astype(np.float32)
-    c = depth[::step, ::step].astype(np.float32)
-    both = (r > 0) & (c > 0)
-    margin = 30.0 + 4e-6 * r * r
-    return int(np.count_nonzero(both & (np.abs(c - r) > margin)))
 
 
 def _clip(value: float, lo: int, hi: int) -> int:
@@ -264,108 +173,11 @@ def _short(text: str) -> str:
         "utf-8", "ignore") + "..."
 
 
-def change_params(config: Config, params: dict[str, int]):
-    """The :class:`robot_change.change.ChangeParams` of a check: the configuration's free-form
-    ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points``."""
-    from robot_change.change import ChangeParams
-
-    fields = {f.name for f in dataclasses.fields(ChangeParams)}
-    extra = {k: v for k, v in dict(config.change.extra).items() if k in fields}
-    extra["min_region_points"] = int(params["min_region_points"])
-    try:
-        return ChangeParams(**extra)
-    except InputError as exc:
-        raise ConfigError(f"[change]: {exc}") from None
-
-
-def scene_params(config: Config, params: dict[str, int]):
-    """SceneParams of a new reference: the configuration's, with the wire's ``max_depth_mm``.
-    (A check cleans its frames with its reference's parameters, so a changed ``max_depth_mm``
-    applies to references captured after the change.)"""
-    base = config.scene_params()
-    cloud = dataclasses.replace(base.cloud, max_depth_m=params["max_depth_mm"] / 1000.0)
-    if cloud.min_depth_m >= cloud.max_depth_m:
-        cloud = base.cloud
-    return dataclasses.replace(base, cloud=cloud)
-
-
-def _synthetic_room(width: int = 160, height: int = 120, box: bool = False) -> np.ndarray:
-    """A small synthetic depth image: floor, back wall, a side wall, optionally a box."""
-    cam = Intrinsics.openni_default(width, height)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    x = (u - cam.cx) / cam.fx
-    y = (v - cam.cy) / cam.fy
-    z = np.full((height, width), 3.0)  # back wall 3 m ahead
-    floor = np.where(y > 1e-6, 1.0 / np.maximum(y, 1e-6), np.inf)  # floor 1 m below the camera
-    z = np.minimum(z, floor)
-    side = np.where(x > 1e-6, 1.2 / np.maximum(x, 1e-6), np.inf)  # wall 1.2 m to the right
-    z = np.minimum(z, side)
-    if box:
-        px, py = x * 2.0, y * 2.0  # a 40 cm box standing 2 m ahead
-        inside = (np.abs(px + 0.2) < 0.2) & (py > 0.6) & (py < 1.0)
-        z = np.where(inside, np.minimum(z, 2.0), z)
-    ripple = 0.002 * np.sin(u * 0.7) * np.cos(v * 0.5)
-    return np.clip((z + ripple) * 1000.0, 0, 65535).astype(np.uint16)
-
-
-def warm_up(config: Config | None = None) -> float:
-    """Compile (or load from the numba cache) every kernel a capture and a check use, on a tiny
-    synthetic scene; returns the seconds it took."""
-    from robot_change.change import detect_changes
-    from robot_change.scene import build_scene
-
-    config = config or Config()
-    t0 = time.perf_counter()
-    width, height = 160, 120
-    cam = Intrinsics.openni_default(width, height)
-    params = config.scene_params()
-    # regions of any size, so that every stage runs on the tiny scene (both directions)
-    change = change_params(config, config.parameters()).replace(min_region_points=1)
-    rooms = (_synthetic_room(width, height), _synthetic_room(width, height, box=True))
-    for before, after in (rooms, rooms[::-1]):
-        try:
-            reference = build_scene(np.stack([before] * 2), params, intrinsics=cam,
-                                    source="warm-up")
-            detect_changes(reference, after, change)
-        except (EmptySceneError, InputError):
-            pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
-    return time.perf_counter() - t0
-
-
 # ---------------------------------------------------------------------------------------------
 # the service
 
 
-@dataclasses.dataclass
-class _WatchJob:
-    seq: int  # the frame's sequence number in the FrameQueue
-    frame_index: int
-    future: concurrent.futures.Future
-    submitted: float
-
-
-class _Watch:
-    """What a WATCH keeps: the station's reference, the persistence window, jobs in flight."""
-
-    def __init__(self, station: str, reference: Any, n: int) -> None:
-        self.station = station
-        self.reference = reference
-        self.window: collections.deque[bool] = collections.deque(maxlen=n)
-        self.jobs: list[_WatchJob] = []
-        self.last_submitted = -1
-        self.last_recorded = -1
-        self.next_check = 0.0
-        self.gate_baseline: int | None = None
-        self.episode = False  # a change is being reported (PAUSE sent or report made)
-        self.blind_reported = False
-        self.error_reported = False
-        self.checks = 0
-        self.latest: DepthFrame | None = None
-        self.latest_seq = -1
-        self.latest_gate = 0
-
-
-class Service:
+class Service(CameraThreadMixin, WatchMixin):
     """The daemon's state machine (module docstring).  Make it, :meth:`start` it, and
     :meth:`close` it; everything else arrives over the link.
 
@@ -688,84 +500,6 @@ class Service:
                              min(0xFFFF, round(self.fps() * 10)), self.last_frame_index & 0xFFFF_FFFF)
         self.runner.set_heartbeat(beat)
 
-    # -- camera thread --------------------------------------------------------------------------
-
-    def _make_source(self) -> DepthSource:
-        if self._camera_swap is not None:
-            self._camera, self._camera_swap = self._camera_swap, None
-        cam = self._camera
-        source = cam if isinstance(cam, DepthSource) else cam()
-        source.open()
-        self.camera_uri = getattr(source, "uri", "") or type(source).__name__
-        log.info("camera %s open", self.camera_uri)
-        return source
-
-    def _camera_main(self) -> None:
-        backoff = CAMERA_BACKOFF[0]
-        source: DepthSource | None = None
-        try:
-            while not self._stop.is_set():
-                self._alive["camera"] = time.monotonic()
-                if self._camera_swap is not None and source is not None:
-                    self._close_source(source)
-                    source = None
-                    backoff = CAMERA_BACKOFF[0]
-                if source is None:
-                    try:
-                        source = self._make_source()
-                    except Exception as exc:  # noqa: BLE001 -- any failure to open is a lost camera
-                        self._camera_down(f"cannot open the camera: {exc}")
-                        self._sleep(backoff)
-                        backoff = min(backoff * 2, CAMERA_BACKOFF[1])
-                        continue
-                try:
-                    frame = source.read(timeout=self.config.camera.read_timeout_s)
-                except (FrameTimeout, DeviceLost, HwError, OSError) as exc:
-                    why = str(exc)
-                    frame = None
-                else:
-                    why = f"{getattr(source, 'uri', 'the recording')}: the recording ended"
-                if frame is None:
-                    self._camera_down(why)
-                    self._close_source(source)
-                    source = None
-                    self._sleep(backoff)
-                    backoff = min(backoff * 2, CAMERA_BACKOFF[1])
-                    continue
-                backoff = CAMERA_BACKOFF[0]
-                self._arrivals.append(time.monotonic())
-                if not self.camera_ok:
-                    self.camera_ok, self.camera_error = True, ""
-                    log.info("camera delivering frames (frame %d)", frame.index)
-                    self._wake.set()
-                self.frames.put(frame)
-        finally:
-            if source is not None:
-                self._close_source(source)
-
-    def _camera_down(self, why: str) -> None:
-        if self.camera_ok or not self.camera_error:
-            self.camera_losses += 1
-            log.error("camera lost: %s", why)
-        self.camera_ok, self.camera_error = False, why
-        self._wake.set()
-
-    def _close_source(self, source: DepthSource) -> None:
-        try:
-            source.close()
-        except Exception:  # noqa: BLE001 -- closing a lost device may fail any way it likes
-            log.debug("closing the camera failed", exc_info=True)
-
-    def _sleep(self, seconds: float) -> None:
-        """Sleep in short steps, marking the thread alive (the watchdog keeps being fed)."""
-        end = time.monotonic() + seconds
-        while not self._stop.is_set() and self._camera_swap is None:
-            left = end - time.monotonic()
-            if left <= 0:
-                return
-            self._alive["camera"] = time.monotonic()
-            self._stop.wait(min(0.1, left))
-
     # -- controller thread ----------------------------------------------------------------------
 
     def _control_main(self) -> None:
@@ -954,143 +688,6 @@ class Service:
             log.warning("could not write the last check of %s to %s", station, folder,
                         exc_info=True)
 
-    # -- watch ----------------------------------------------------------------------------------
-
-    def _start_watch(self, station: str) -> None:
-        reference = self.store.load(station)
-        with self._lock:
-            self._watch = _Watch(station, reference, self.params["watch_n"])
-            self.activity = ModuleState.WATCHING
-        log.info("WATCH %s: a change in %d of %d checks, every %d ms", station,
-                 self.params["watch_m"], self.params["watch_n"], self.params["check_interval_ms"])
-        self._refresh_heartbeat(force=True)
-
-    def _end_watch(self) -> None:
-        with self._lock:
-            watch, self._watch = self._watch, None
-            if watch is not None:
-                self.activity = ModuleState.IDLE
-        if watch is not None:
-            for job in watch.jobs:
-                job.future.cancel()
-            log.info("watch of %s ended after %d checks", watch.station, watch.checks)
-
-    def _parked(self) -> bool:
-        return self.motion in (Motion.PARKED, Motion.PAUSED)
-
-    def _watch_frame(self, frame: DepthFrame, seq: int) -> None:
-        watch = self._watch
-        assert watch is not None
-        ref = watch.reference.depth
-        watch.latest, watch.latest_seq = frame, seq
-        if frame.depth.shape != ref.shape:
-            return  # the check itself reports the mismatch
-        watch.latest_gate = depth_gate(ref, frame.depth, self.options.gate_step)
-        base = watch.gate_baseline
-        if (base is not None and self._parked() and self.camera_ok
-                and abs(watch.latest_gate - base) > self.options.gate_pixels + self.options.gate_fraction * base
-                and len(watch.jobs) < self.options.detector_threads):
-            self.counters["gate_triggers"] += 1
-            self._submit(watch, frame, seq)
-
-    def _submit(self, watch: _Watch, frame: DepthFrame, seq: int) -> None:
-        from robot_change.change import detect_changes
-
-        assert self._pool is not None
-        params = change_params(self.config, self.params)
-        future = self._pool.submit(detect_changes, watch.reference, frame.depth, params,
-                                   intrinsics=frame.intrinsics)
-        future.add_done_callback(lambda _f: self._wake.set())
-        watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
-        watch.last_submitted = seq
-        watch.gate_baseline = depth_gate(watch.reference.depth, frame.depth, self.options.gate_step) \
-            if frame.depth.shape == watch.reference.depth.shape else None
-        watch.next_check = time.monotonic() + self.params["check_interval_ms"] / 1000.0
-
-    def _watch_step(self) -> None:
-        watch = self._watch
-        assert watch is not None
-        if self._cancel.is_set():
-            self._cancel.clear()
-            if self._commands.empty():
-                self._end_watch()
-                self._refresh_heartbeat(force=True)
-            return
-        done = sorted((j for j in watch.jobs if j.future.done()), key=lambda j: j.seq)
-        for job in done:
-            watch.jobs.remove(job)
-            if job.future.cancelled() or job.seq <= watch.last_recorded:
-                continue  # an older frame's check finished after a newer one's: stale
-            watch.last_recorded = job.seq
-            self._watch_result(watch, job)
-            if self._watch is not watch:
-                return
-        if not self._parked():
-            if watch.window:
-                watch.window.clear()
-                log.info("watch of %s suspended: the base is %s", watch.station, self.motion.name)
-            return
-        if (self.camera_ok and not watch.jobs and watch.latest is not None
-                and watch.latest_seq != watch.last_submitted
-                and time.monotonic() >= watch.next_check):
-            self._submit(watch, watch.latest, watch.latest_seq)
-
-    def _watch_result(self, watch: _Watch, job: _WatchJob) -> None:
-        exc = job.future.exception()
-        watch.checks += 1
-        self.counters["watch_checks"] += 1
-        blind = False
-        regions: list[Any] = []
-        changes = None
-        if exc is None:
-            changes = job.future.result()
-            regions = self._kept_regions(changes)
-            watch.error_reported = watch.blind_reported = False
-        elif isinstance(exc, EmptySceneError):
-            blind = True  # nothing to compare: as unsafe as a change
-            if not watch.blind_reported:
-                watch.blind_reported = True
-                self._fault(FaultCode.CAMERA_LOST, f"WATCH {watch.station}: the camera sees "
-                            f"nothing to compare ({exc})")
-        elif isinstance(exc, SceneMismatchError):
-            self._fault(FaultCode.REFERENCE_MISSING, f"WATCH {watch.station}: the reference "
-                        f"does not fit this camera ({exc}); capture it again")
-            self._end_watch()
-            return
-        else:
-            if not watch.error_reported:
-                watch.error_reported = True
-                log.error("WATCH %s: check failed", watch.station, exc_info=exc)
-                self._fault(FaultCode.INTERNAL_ERROR, f"WATCH {watch.station}: check failed "
-                            f"({type(exc).__name__}: {exc})")
-            return
-        changed = bool(regions) or blind
-        watch.window.append(changed)
-        m, n = self.params["watch_m"], self.params["watch_n"]
-        seen = sum(watch.window)
-        log.debug("watch %s frame %d: %s (%d of the last %d)", watch.station, job.frame_index,
-                  "change" if changed else "no change", seen, len(watch.window))
-        entry = {"t": time.monotonic(), "seq": job.seq, "frame_index": job.frame_index,
-                 "changed": changed, "changed_in_window": seen, "action": "",
-                 "check_ms": (time.monotonic() - job.submitted) * 1e3}
-        self.watch_log.append(entry)
-        if not watch.episode and seen >= m:
-            entry["action"] = "report"
-            watch.episode = True
-            log.warning("WATCH %s: change in %d of the last %d checks (frame %d)", watch.station,
-                        seen, len(watch.window), job.frame_index)
-            if self.armed and self.params["pause_on_change"] and not self.latched:
-                entry["action"] = "pause"
-                self._pause(PauseCause.CAMERA_LOST if blind and not regions
-                            else PauseCause.CHANGE_WATCH)
-            if changes is not None and regions:
-                self._report(watch.station, changes)
-        elif watch.episode and len(watch.window) - seen >= min(m, n) and not changed:
-            watch.episode = False
-            entry["action"] = "clear"
-            log.info("WATCH %s: the change is gone", watch.station)
-            self._send(Clear(watch.station))
-
 
 class _CameraLost(Exception):
     """No frames for a capture or check."""
@@ -1098,102 +695,3 @@ class _CameraLost(Exception):
 
 class _Cancelled(Exception):
     """STOP (or a newer command) ended a capture or check."""
-
-
-# ---------------------------------------------------------------------------------------------
-# the daemon's main loop
-
-
-def run_service(service: Service, *, load: Callable[[], Config] | None = None,
-                make_camera: Callable[[Config], Any] | None = None,
-                stop: threading.Event | None = None, warm: bool = True) -> int:
-    """Run ``service`` until SIGTERM/SIGINT (or ``stop``): warm-up, READY, WATCHDOG, SIGHUP.
-
-    ``load()`` reads the configuration again on SIGHUP (a :class:`ConfigError` keeps the old
-    one); ``make_camera(config)`` gives the new camera when ``[camera]`` changed.  Returns the
-    exit status (0).  Call from the main thread (signal handlers).
-    """
-    stop = stop or threading.Event()
-    hup = threading.Event()
-    wake = threading.Event()  # a signal ends the wait at once
-    in_main = threading.current_thread() is threading.main_thread()
-    previous: dict[int, Any] = {}
-    if in_main:
-        def on_term(signum: int, _frame: Any) -> None:
-            log.info("signal %s: stopping", signal.Signals(signum).name)
-            stop.set()
-            wake.set()
-
-        def on_hup(_signum: int, _frame: Any) -> None:
-            hup.set()
-            wake.set()
-
-        for sig, handler in ((signal.SIGTERM, on_term), (signal.SIGINT, on_term),
-                             (signal.SIGHUP, on_hup)):
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        t0 = time.perf_counter()
-        if warm:
-            systemd.extend_timeout(300)
-            systemd.status("compiling the numba kernels (or loading them from the cache)")
-            seconds = warm_up(service.config)
-            log.info("kernels ready in %.2f s", seconds)
-        service.start()
-        systemd.ready(status=f"ready in {time.perf_counter() - t0:.1f} s; idle")
-        log.info("READY (%.2f s after start)", time.perf_counter() - t0)
-        interval = systemd.watchdog_interval()
-        beat = min(interval, 1.0) if interval else 1.0
-        last_status = ""
-        while not stop.is_set():
-            wake.wait(beat)
-            wake.clear()
-            if stop.is_set():
-                break
-            if hup.is_set():
-                hup.clear()
-                _reload(service, load, make_camera)
-            ok, why = service.healthy()
-            if ok and service.config.service.watchdog and interval:
-                systemd.watchdog()
-            elif not ok:
-                log.error("not feeding the watchdog: %s", why)
-            text = _status_line(service)
-            if text != last_status:
-                systemd.status(text)
-                last_status = text
-        systemd.stopping()
-        log.info("stopping")
-        service.close()
-        return 0
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def _reload(service: Service, load: Callable[[], Config] | None,
-            make_camera: Callable[[Config], Any] | None) -> None:
-    systemd.reloading()
-    try:
-        if load is None:
-            log.warning("SIGHUP: no configuration file to reload")
-            return
-        try:
-            config = load()
-        except ConfigError as exc:
-            log.error("SIGHUP: the new configuration is refused, the old one stays: %s", exc)
-            return
-        logging.getLogger().setLevel(config.service.log_level.upper())
-        camera = None
-        if config.camera.source != service.config.camera.source and make_camera is not None:
-            camera = make_camera(config)
-        service.reload(config, camera)
-    finally:
-        systemd.ready(status="configuration reloaded")
-
-
-def _status_line(service: Service) -> str:
-    """systemd's STATUS=: changes only with the state (sent only when it changes)."""
-    state = service.reported_state().name.lower()
-    where = f" {service.station}" if service.station else ""
-    camera = "camera ok" if service.camera_ok else f"camera lost: {service.camera_error}"
-    return f"{state}{where}; {camera}; link {service.link.state.value}"[:200]

@@ -26,16 +26,13 @@ from hw.serial_port import open_port
 from robot_change import protocol as p
 from robot_change.basesim import BaseSim
 from robot_change.config import Config, config_from_dict
+from robot_change.daemon import _reload
 from robot_change.errors import ConfigError
-from robot_change.service import (
-    FrameQueue,
-    Service,
-    ServiceOptions,
-    _reload,
-    depth_gate,
-    warm_up,
-)
+from robot_change.frames import FrameQueue
+from robot_change.service import Service, ServiceOptions
 from robot_change.store import ReferenceStore
+from robot_change.warmup import warm_up
+from robot_change.watch import depth_gate
 from hw.serial_port import FdPort
 
 SCENE = "office_box_added"

@@ -1,0 +1,174 @@
+"""Depth frames from the camera to the controller: the camera thread and the bounded queue.
+
+::
+
+    camera    source.read() at camera rate -> FrameQueue (bounded, oldest dropped and counted);
+              on loss: FAULT via the controller, close, reopen with backoff 0.5 s .. 10 s
+
+Every frame the camera delivers is accounted for: ``received == processed + dropped +
+queued`` (:meth:`FrameQueue.counts`).  A recording that ends counts as a lost camera (it is
+reopened, so it plays again); ``oni:...?loop=1&rate=auto`` plays one like a camera.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import Callable
+
+from hw.depth import DepthFrame, DepthSource
+from hw.errors import DeviceLost, FrameTimeout, HwError
+
+__all__ = ["CAMERA_BACKOFF", "CameraThreadMixin", "FrameQueue"]
+
+log = logging.getLogger(__name__)
+
+#: Camera reopen backoff: first wait and cap, seconds.
+CAMERA_BACKOFF = (0.5, 10.0)
+
+
+class FrameQueue:
+    """A bounded queue of depth frames: ``put`` never blocks (a full queue drops its oldest
+    frame and counts it), ``get`` waits at most its timeout.
+
+    ``received == processed + dropped + len(queue)`` at every moment (:meth:`counts`).
+    """
+
+    def __init__(self, size: int = 4, on_put: Callable[[], None] | None = None) -> None:
+        if size < 1:
+            raise ValueError(f"FrameQueue size {size}: at least 1")
+        self._frames: collections.deque[tuple[DepthFrame, float, int]] = collections.deque()
+        self._size = size
+        self._cond = threading.Condition()
+        self._on_put = on_put
+        self.received = 0
+        self.processed = 0
+        self.dropped = 0
+
+    def put(self, frame: DepthFrame) -> None:
+        """Queue a frame with its arrival time and sequence number (``received`` so far: it
+        keeps increasing when a reopened camera counts its frames from 0 again); drop the
+        oldest when full."""
+        with self._cond:
+            if len(self._frames) >= self._size:
+                self._frames.popleft()
+                self.dropped += 1
+            self._frames.append((frame, time.monotonic(), self.received))
+            self.received += 1
+            self._cond.notify_all()
+        if self._on_put is not None:
+            self._on_put()
+
+    def get(self, timeout: float = 0.0) -> tuple[DepthFrame, float, int] | None:
+        """The oldest (frame, arrival time, sequence number), waiting at most ``timeout`` s; None if none."""
+        end = time.monotonic() + max(0.0, timeout)
+        with self._cond:
+            while not self._frames:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            self.processed += 1
+            return self._frames.popleft()
+
+    def drain(self) -> list[tuple[DepthFrame, float, int]]:
+        """Every queued frame, oldest first (all counted as processed)."""
+        with self._cond:
+            frames = list(self._frames)
+            self._frames.clear()
+            self.processed += len(frames)
+            return frames
+
+    def counts(self) -> dict[str, int]:
+        """received, processed, dropped, queued: received == processed + dropped + queued."""
+        with self._cond:
+            return {"received": self.received, "processed": self.processed,
+                    "dropped": self.dropped, "queued": len(self._frames)}
+
+
+class CameraThreadMixin:
+    """The camera thread of :class:`robot_change.service.Service`: open the source, read frames
+    into ``self.frames``, reopen with backoff after a loss.
+
+    Uses the service's ``_camera``, ``_camera_swap``, ``config``, ``frames``, ``_stop``,
+    ``_wake``, ``_alive`` and ``_arrivals``; writes ``camera_ok``, ``camera_error``,
+    ``camera_losses`` and ``camera_uri`` (the controller tells the base).
+    """
+
+    def _make_source(self) -> DepthSource:
+        if self._camera_swap is not None:
+            self._camera, self._camera_swap = self._camera_swap, None
+        cam = self._camera
+        source = cam if isinstance(cam, DepthSource) else cam()
+        source.open()
+        self.camera_uri = getattr(source, "uri", "") or type(source).__name__
+        log.info("camera %s open", self.camera_uri)
+        return source
+
+    def _camera_main(self) -> None:
+        backoff = CAMERA_BACKOFF[0]
+        source: DepthSource | None = None
+        try:
+            while not self._stop.is_set():
+                self._alive["camera"] = time.monotonic()
+                if self._camera_swap is not None and source is not None:
+                    self._close_source(source)
+                    source = None
+                    backoff = CAMERA_BACKOFF[0]
+                if source is None:
+                    try:
+                        source = self._make_source()
+                    except Exception as exc:  # noqa: BLE001 -- any failure to open is a lost camera
+                        self._camera_down(f"cannot open the camera: {exc}")
+                        self._sleep(backoff)
+                        backoff = min(backoff * 2, CAMERA_BACKOFF[1])
+                        continue
+                try:
+                    frame = source.read(timeout=self.config.camera.read_timeout_s)
+                except (FrameTimeout, DeviceLost, HwError, OSError) as exc:
+                    why = str(exc)
+                    frame = None
+                else:
+                    why = f"{getattr(source, 'uri', 'the recording')}: the recording ended"
+                if frame is None:
+                    self._camera_down(why)
+                    self._close_source(source)
+                    source = None
+                    self._sleep(backoff)
+                    backoff = min(backoff * 2, CAMERA_BACKOFF[1])
+                    continue
+                backoff = CAMERA_BACKOFF[0]
+                self._arrivals.append(time.monotonic())
+                if not self.camera_ok:
+                    self.camera_ok, self.camera_error = True, ""
+                    log.info("camera delivering frames (frame %d)", frame.index)
+                    self._wake.set()
+                self.frames.put(frame)
+        finally:
+            if source is not None:
+                self._close_source(source)
+
+    def _camera_down(self, why: str) -> None:
+        if self.camera_ok or not self.camera_error:
+            self.camera_losses += 1
+            log.error("camera lost: %s", why)
+        self.camera_ok, self.camera_error = False, why
+        self._wake.set()
+
+    def _close_source(self, source: DepthSource) -> None:
+        try:
+            source.close()
+        except Exception:  # noqa: BLE001 -- closing a lost device may fail any way it likes
+            log.debug("closing the camera failed", exc_info=True)
+
+    def _sleep(self, seconds: float) -> None:
+        """Sleep in short steps, marking the thread alive (the watchdog keeps being fed)."""
+        end = time.monotonic() + seconds
+        while not self._stop.is_set() and self._camera_swap is None:
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            self._alive["camera"] = time.monotonic()
+            self._stop.wait(min(0.1, left))
