@@ -21,9 +21,10 @@ Commands::
 
 WHAT is a message type (PAUSE, CHANGE_REPORT, HEARTBEAT, ...), REPORT (a whole change report),
 FAILED (one of our commands was not delivered), LINK (a link state change, e.g. ``new=up``) or
-BASE (the base's own pause state, ``paused=1``).  ``expect`` matches only events that arrived
-after the previous ``expect`` matched, so ``check kitchen`` then ``expect PAUSE`` finds a PAUSE
-that came during a ``wait`` in between.
+BASE (the base's own pause state, ``paused=1``).  ``expect`` matches an event no earlier
+``expect`` matched, that arrived after the last command (or the last match, if that came
+earlier): so ``check kitchen`` then ``expect PAUSE`` finds a PAUSE that came during a ``wait``
+in between, and the replies to one command may be expected in any order.
 """
 
 from __future__ import annotations
@@ -244,7 +245,9 @@ class BaseSim:
         self.port = port
         self.t0 = clock()
         self.log: list[Entry] = []
-        self.cursor = 0
+        self.cursor = 0  # just past the entry the last ``expect`` matched
+        self.mark = 0  # len(log) when the last script command was sent
+        self.consumed: set[int] = set()  # entries an ``expect`` already matched
         self.assembler = ReportAssembler()
         self.motion = Motion.PARKED
         self.paused = True  # until the module is heard
@@ -378,15 +381,21 @@ class BaseSim:
         return True
 
     def expect(self, what: str, filters: dict[str, str], timeout: float) -> Entry | None:
-        """Wait up to ``timeout`` s for an entry after the cursor; move the cursor past it."""
+        """Wait up to ``timeout`` s for a matching entry that no earlier ``expect`` matched and
+        that arrived after the last command was sent or after the last match, whichever came
+        first.  So the replies to one command may be expected in any order (a PAUSE, the
+        base's own pause state and a report arrive in an order the line decides), while
+        nothing from before both is matched again."""
         found: list[Entry] = []
 
         def seen() -> bool:
-            for i in range(self.cursor, len(self.log)):
+            for i in range(min(self.cursor, self.mark), len(self.log)):
                 entry = self.log[i]
-                if entry.name == what and _matches(entry.obj, filters):
+                if (i not in self.consumed and entry.name == what
+                        and _matches(entry.obj, filters)):
                     found.append(entry)
-                    self.cursor = i + 1
+                    self.consumed.add(i)
+                    self.cursor = max(self.cursor, i + 1)
                     return True
             return False
 
@@ -433,8 +442,10 @@ class BaseSim:
                              f"after {hit.t - self.clock() + seconds:.2f} s")
                     return 1
                 self.say(f"   line {number}: {line.strip()} -- ok")
-            elif not self.command(line):
-                break
+            else:
+                self.mark = len(self.log)
+                if not self.command(line):
+                    break
             self.pump(0.0)
         self.pump(1.0, until=lambda: self.link.in_flight == 0 and self.link.queued == 0)
         if self.failed:

@@ -193,3 +193,20 @@ def test_commands_become_messages():
     assert parse_command("set check_interval_ms 250")[2] == p.SetParam(3, 250)
     assert parse_command("resume  # lift the latch")[2] == p.Resume()
     assert parse_command("   # only a comment")[0] == ""
+
+
+def test_expect_takes_the_replies_to_one_command_in_any_order_and_never_twice():
+    import io
+
+    from robot_change.basesim import BaseSim, BaseState
+    from hw.serial_port import open_port
+
+    sim = BaseSim(open_port("loop://"), out=io.StringIO())
+    sim._record("PAUSE", p.Pause(p.PauseCause.CHANGE_CHECK))
+    sim._record("BASE", BaseState(True, "latch"))  # arrives before the heartbeat ...
+    sim._record("HEARTBEAT", p.Heartbeat(p.ModuleState.PAUSED, paused=True))
+    assert sim.expect("PAUSE", {}, 0.0) is not None
+    assert sim.expect("HEARTBEAT", {"paused": "1"}, 0.0) is not None
+    assert sim.expect("BASE", {"paused": "1"}, 0.0) is not None  # ... and is still found
+    assert sim.expect("BASE", {"paused": "1"}, 0.0) is None  # but only once
+    assert sim.expect("PAUSE", {}, 0.0) is None
