@@ -92,7 +92,8 @@ def library_dir() -> str:
 
     Uses ``$ROBOT_CHANGE_OPENNI2_DIR`` when set; otherwise the system library (Debian's
     ``libopenni2-0`` installs only the versioned ``libOpenNI2.so.0``), exposed through a private
-    folder of two symlinks in the temp directory.  Raises :class:`BackendUnavailable` naming the
+    folder of two symlinks in ``$XDG_CACHE_HOME/robot-change/openni2`` (``~/.cache`` by default;
+    a per-user folder in the temp directory when that cannot be written).  Raises :class:`BackendUnavailable` naming the
     package to install when the library is missing.
     """
     explicit = os.environ.get(LIBRARY_ENV)
@@ -119,8 +120,8 @@ def library_dir() -> str:
 
 
 def _symlink_folder(lib: Path, drivers_parent: Path) -> str:
-    """Private folder ``<tmp>/robot-change-openni2-<uid>`` with ``libOpenNI2.so`` and ``OpenNI2``
-    symlinks; (re)made atomically, so concurrent processes agree."""
+    """Private folder (see :func:`library_dir`) with ``libOpenNI2.so`` and ``OpenNI2`` symlinks;
+    (re)made atomically, so concurrent processes agree."""
     cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     folder = Path(cache) / "robot-change" / "openni2"
     try:
