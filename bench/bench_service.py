@@ -1,7 +1,8 @@
 """The daemon's targets (issue 7): PAUSE latency, start to READY, CPU in watch mode, soak.
 
     .venv/bin/python bench/bench_service.py [--trials 20] [--ready-runs 3] [--cpu-seconds 20]
-                                            [--soak-seconds 600] [--only latency,ready,cpu,soak]
+                                            [--soak-seconds 600]
+                                            [--only latency,ready,cpu,soak,soak-daemon]
                                             [--json]
 
 latency  In process: the real service, link and simulated base over a pty pair, fed by a
@@ -21,11 +22,17 @@ soak     In process, watching the looped reference.oni at 30 fps for --soak-seco
          the first 10 % to the end; the longest gap between heartbeats at the base (a stall);
          frames received == processed + dropped + queued, and received == the source's
          delivered count.  Targets: RSS growth <= 5 %, no stall, every frame accounted for.
+soak-daemon  The same soak with ``robot-change run`` as a subprocess (what tests/test_soak.py
+         runs for 60 s): RSS of the daemon and of its OpenNI2 reader child from /proc, heartbeat
+         gaps at the simulated base, and the frame counts and the source's delivered count that
+         the daemon writes when SIGTERM stops it (an observer around ``robot_change.cli.main``,
+         the console script's entry point: nothing else differs); plus its exit status.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import json
 import logging
@@ -41,6 +48,7 @@ import threading
 import time
 import tty
 from pathlib import Path
+from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -223,10 +231,47 @@ def bench_latency(trials: int, seed: int = 0) -> dict:
 # the daemon as a subprocess: READY time and CPU
 
 
-class Daemon:
-    """``robot-change run`` on the looped reference.oni, a pty pair, a test notify socket."""
+#: ``robot-change run`` (``robot_change.cli.main``, what the console script calls) with an
+#: observer: the sources the daemon opens and its service are kept, and once the daemon returns
+#: (SIGTERM) their counts go as JSON to the file named by the first argument.
+_OBSERVED_RUN = """
+import json, sys
+import robot_change.cli as cli, robot_change.daemon as daemon
+out = sys.argv.pop(1)
+sources, services = [], []
+real_open, real_run = cli.open_depth, daemon.run_service
+def open_depth(*args, **kwargs):
+    source = real_open(*args, **kwargs)
+    sources.append(source)
+    return source
+def run_service(service, **kwargs):
+    services.append(service)
+    return real_run(service, **kwargs)
+cli.open_depth, daemon.run_service = open_depth, run_service
+code = None
+try:
+    code = cli.main(sys.argv[1:])
+finally:
+    if services:
+        service = services[0]
+        with open(out, "w") as f:
+            json.dump({"exit": code, "frames": service.frame_counts(),
+                       "source_delivered": sum(s.stats.delivered for s in sources),
+                       "source_dropped": sum(s.stats.dropped for s in sources),
+                       "source_restarts": sum(s.stats.restarts for s in sources),
+                       "sources_opened": len(sources), "camera_losses": service.camera_losses,
+                       "counters": dict(service.counters)}, f)
+sys.exit(code)
+"""
 
-    def __init__(self, tmp: Path) -> None:
+
+class Daemon:
+    """``robot-change run`` on the looped reference.oni, a pty pair, a test notify socket.
+
+    ``observe``: a file the daemon writes its frame counts to when it stops (``_OBSERVED_RUN``).
+    """
+
+    def __init__(self, tmp: Path, observe: Path | None = None) -> None:
         self.tmp = tmp
         master, slave = os.openpty()
         tty.setraw(master)
@@ -246,8 +291,10 @@ class Daemon:
         threading.Thread(target=self._read_notes, daemon=True).start()
         env = dict(os.environ, NOTIFY_SOCKET=str(sock))
         self.started = time.monotonic()
-        self.proc = subprocess.Popen([sys.executable, "-m", "robot_change.cli", "run", "--config",
-                                      str(config)], cwd=ROOT, env=env,
+        entry = ["-m", "robot_change.cli"] if observe is None else ["-c", _OBSERVED_RUN,
+                                                                   str(observe)]
+        self.proc = subprocess.Popen([sys.executable, *entry, "run", "--config", str(config)],
+                                     cwd=ROOT, env=env,
                                      stdout=open(tmp / "daemon.log", "a"), stderr=subprocess.STDOUT)
 
     def _read_notes(self) -> None:
@@ -352,6 +399,60 @@ def bench_cpu(seconds: float) -> dict:
 # soak
 
 
+def _soak_loop(sim: BaseSim, seconds: float, rss: Callable[[], tuple[float, float]],
+               frames: Callable[[], object] = lambda: "") -> tuple[list, list[float], dict]:
+    """Pump the base for ``seconds``; every second: the longest gap between the module's
+    heartbeats (up to now) and ``rss()`` (MB of the process and of its reader).  Returns
+    [(t, rss, reader rss)], the gaps, and what the heartbeats and messages showed
+    (``states``: heartbeat state -> count; ``messages``: the other messages -> count)."""
+    rss_samples: list[tuple[float, float, float]] = []
+    gaps: list[float] = []
+    states: collections.Counter = collections.Counter()
+    messages: collections.Counter = collections.Counter()
+    t0 = last_print = time.monotonic()
+    beats_seen = len(sim.log)
+    last_beat = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        sim.pump(1.0)
+        now = time.monotonic()
+        beats = []
+        for e in sim.log[beats_seen:]:
+            if e.name == "HEARTBEAT":
+                beats.append(e.t)
+                states[e.obj.state.name] += 1
+            elif e.name not in ("BASE_HEARTBEAT", "LINK"):
+                messages[e.name] += 1
+        stamps = [last_beat] + beats
+        gaps.append(max(b - a for a, b in zip(stamps, stamps[1:] + [now])))
+        if beats:
+            last_beat = beats[-1]
+        del sim.log[:]  # the base's log would grow for ever
+        sim.consumed.clear()
+        sim.cursor = sim.mark = beats_seen = 0
+        rss_samples.append((now - t0, *rss()))
+        if now - last_print > 60:
+            last_print = now
+            print(f"  soak {now - t0:.0f} s: rss {rss_samples[-1][1]:.1f} MB, frames "
+                  f"{frames()}", file=sys.stderr, flush=True)
+    return rss_samples, gaps, {"states": dict(states), "messages": dict(messages)}
+
+
+def _rss_growth(rss: list[tuple[float, float, float]], warmup: float) -> dict:
+    """RSS from the first sample at or after ``warmup`` s to the last one."""
+    start = next(r for r in rss if r[0] >= warmup)
+    growth = 100.0 * (rss[-1][1] - start[1]) / start[1]
+    reader = 100.0 * (rss[-1][2] - start[2]) / start[2] if start[2] else 0.0
+    return {"rss_start_mb": round(start[1], 1), "rss_end_mb": round(rss[-1][1], 1),
+            "rss_growth_pct": round(growth, 2), "rss_peak_mb": round(max(r[1] for r in rss), 1),
+            "reader_rss_start_mb": round(start[2], 1), "reader_rss_end_mb": round(rss[-1][2], 1),
+            "reader_rss_growth_pct": round(reader, 2)}
+
+
+def _accounted(counts: dict[str, int], delivered: int) -> bool:
+    return (counts["received"] == counts["processed"] + counts["dropped"] + counts["queued"]
+            and counts["received"] == delivered)
+
+
 def bench_soak(seconds: float) -> dict:
     warm_up()
     uri = f"oni:{SCENE / 'reference.oni'}?loop=1&rate=auto"
@@ -362,45 +463,92 @@ def bench_soak(seconds: float) -> dict:
         sources.append(source)
         return source
 
-    rss: list[tuple[float, float, float]] = []
-    gaps: list[float] = []
+    def rss() -> tuple[float, float]:
+        reader = getattr(sources[-1], "pid", None)
+        return _rss_mb(os.getpid()), _rss_mb(reader) if reader else 0.0
+
     with tempfile.TemporaryDirectory() as tmp, InProcess(camera, Path(tmp)) as rig:
         rig.do("capture office")
         rig.expect("CAPTURED", 10)
         rig.do("watch office")
         rig.expect("HEARTBEAT", 5, state="WATCHING")
-        t0 = last_print = time.monotonic()
-        beats_seen = len(rig.sim.log)
-        last_beat = time.monotonic()
-        while time.monotonic() - t0 < seconds:
-            rig.sim.pump(1.0)
-            now = time.monotonic()
-            beats = [e.t for e in rig.sim.log[beats_seen:] if e.name == "HEARTBEAT"]
-            stamps = [last_beat] + beats
-            gaps.append(max(b - a for a, b in zip(stamps, stamps[1:] + [now])))
-            if beats:
-                last_beat = beats[-1]
-            del rig.sim.log[:]  # the base's log would grow for ever
-            rig.sim.cursor = beats_seen = 0
-            reader = getattr(sources[-1], "pid", None)
-            rss.append((now - t0, _rss_mb(os.getpid()), _rss_mb(reader) if reader else 0.0))
-            if now - last_print > 60:
-                last_print = now
-                print(f"  soak {now - t0:.0f} s: rss {rss[-1][1]:.1f} MB, frames "
-                      f"{rig.service.frame_counts()}", file=sys.stderr, flush=True)
+        samples, gaps, _ = _soak_loop(rig.sim, seconds, rss, rig.service.frame_counts)
         counts = rig.service.frame_counts()
         delivered = sum(s.stats.delivered for s in sources)
         checks = rig.service.counters["watch_checks"]
-    start = next(r for r in rss if r[0] >= seconds * 0.1)
-    growth = 100.0 * (rss[-1][1] - start[1]) / start[1]
-    return {"seconds": round(seconds), "rss_start_mb": round(start[1], 1),
-            "rss_end_mb": round(rss[-1][1], 1), "rss_growth_pct": round(growth, 2),
-            "reader_rss_start_mb": round(start[2], 1), "reader_rss_end_mb": round(rss[-1][2], 1),
+    growth = _rss_growth(samples, seconds * 0.1)
+    return {"seconds": round(seconds), **{k: v for k, v in growth.items()
+                                          if k in ("rss_start_mb", "rss_end_mb", "rss_growth_pct",
+                                                   "reader_rss_start_mb", "reader_rss_end_mb")},
             "longest_heartbeat_gap_s": round(max(gaps), 3), "frames": counts,
-            "source_delivered": delivered,
-            "accounted": counts["received"] == counts["processed"] + counts["dropped"]
-            + counts["queued"] and counts["received"] == delivered,
+            "source_delivered": delivered, "accounted": _accounted(counts, delivered),
             "watch_checks": checks, "camera_losses": rig.service.camera_losses}
+
+
+def _readers(pid: int) -> list[int]:
+    """The daemon's OpenNI2 reader children (multiprocessing spawn; not its resource tracker)."""
+    out = []
+    for child in _children(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+                out.append(child)
+        except OSError:
+            pass
+    return out
+
+
+def soak_daemon(seconds: float, warmup: float | None = None) -> dict:
+    """``robot-change run`` as a subprocess watching the looped reference.oni at 30 fps for
+    ``seconds`` (counted from WATCHING), then SIGTERM.  RSS growth is from ``warmup`` s
+    (default: 10 % of the run, at least 10 s) to the end.  Returns the figures as a dict
+    (``accounted``: received == processed + dropped + queued == the source's delivered)."""
+    warmup = max(10.0, 0.1 * seconds) if warmup is None else warmup
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        daemon = Daemon(tmp, observe=tmp / "counts.json")
+        code: int | None = None
+        readers: set[int] = set()
+        try:
+            ready_s = daemon.wait_ready()
+            log = open(tmp / "base.log", "w")
+            sim = BaseSim(FdPort(daemon.master), out=log)
+            if not sim.pump(10, until=lambda: sim.link.state.value == "up"):
+                raise RuntimeError("the link to the daemon did not come up in 10 s")
+            sim.command("capture office")
+            if not sim.expect("CAPTURED", {}, 15):
+                raise RuntimeError("no CAPTURED within 15 s")
+            sim.command("watch office")
+            if not sim.expect("HEARTBEAT", {"state": "WATCHING"}, 5):
+                raise RuntimeError("no HEARTBEAT state=WATCHING within 5 s")
+
+            def rss() -> tuple[float, float]:
+                now = _readers(daemon.proc.pid)
+                readers.update(now)
+                return _rss_mb(daemon.proc.pid), sum(_rss_mb(r) for r in now)
+
+            samples, gaps, seen = _soak_loop(sim, seconds, rss)
+            log.close()
+        finally:
+            stopped = time.monotonic()
+            code = daemon.stop()
+            stop_s = time.monotonic() - stopped
+        try:
+            counts = json.loads((tmp / "counts.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise RuntimeError(f"the daemon wrote no frame counts ({exc}); exit status {code}; "
+                               f"log: {(tmp / 'daemon.log').read_text()[-2000:]}") from None
+        daemon_log = (tmp / "daemon.log").read_text()
+    frames, delivered = counts["frames"], counts["source_delivered"]
+    return {"seconds": round(seconds), "warmup_s": warmup, "ready_s": round(ready_s, 2),
+            **_rss_growth(samples, warmup), "reader_pids": len(readers),
+            "longest_heartbeat_gap_s": round(max(gaps), 3),
+            "heartbeat_states": seen["states"], "messages": seen["messages"],
+            "frames": frames, "source_delivered": delivered,
+            "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
+            "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],
+            "watch_checks": counts["counters"].get("watch_checks"),
+            "exit_status": code, "stop_s": round(stop_s, 2),
+            "daemon_log_tail": daemon_log[-2000:]}
 
 
 def main() -> int:
@@ -424,6 +572,8 @@ def main() -> int:
         result["cpu"] = bench_cpu(args.cpu_seconds)
     if "soak" in only and args.soak_seconds > 0:
         result["soak"] = bench_soak(args.soak_seconds)
+    if "soak-daemon" in only and args.soak_seconds > 0:
+        result["soak_daemon"] = soak_daemon(args.soak_seconds)
     result["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
