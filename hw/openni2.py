@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import itertools
 import logging
 import math
 import multiprocessing
@@ -48,7 +49,7 @@ import tempfile
 import time
 from multiprocessing import shared_memory
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -65,7 +66,7 @@ from hw.errors import (
     HwError,
     UriError,
 )
-from hw.oni import OniWriter, intrinsics_from_fov, read_oni_header
+from hw.oni import intrinsics_from_fov, read_oni_header, write_oni
 
 log = logging.getLogger(__name__)
 
@@ -920,30 +921,27 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     if frames is not None and frames < 1:
         raise ValueError(f"frames={frames}: record at least one frame")
     source.open()
-    writer: OniWriter | None = None
-    first_stamp = 0
-    try:
-        while frames is None or (writer.frames if writer else 0) < frames:
-            try:
-                frame = source.read(timeout)
-            except KeyboardInterrupt:
-                break
-            if frame is None:
-                break
-            if writer is None:
-                height, width = frame.shape
-                fps = int(getattr(source, "info", {}).get("fps") or 30)
-                writer = OniWriter(out_path, width, height, fps=fps, codec=codec, intrinsics=frame.intrinsics)
-                first_stamp = frame.timestamp_us
-            writer.write(frame.depth, max(0, frame.timestamp_us - first_stamp))
-        if writer is None:
-            raise DepthFileError(f"{source.uri or 'the source'} delivered no frame; nothing recorded")
-        writer.close()
-        return writer.frames
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
+    stream = _frames_until_done(source, frames, timeout)
+    first = next(stream, None)
+    if first is None:
+        raise DepthFileError(f"{source.uri or 'the source'} delivered no frame; nothing recorded")
+    fps = int(getattr(source, "info", {}).get("fps") or 30)
+    return write_oni(out_path, itertools.chain([first], stream), fps=fps, codec=codec)
+
+
+def _frames_until_done(source: DepthSource, frames: int | None,
+                       timeout: float) -> Iterator[DepthFrame]:
+    """Frames of ``source`` until it ends, ``frames`` were read, or Ctrl-C (a live camera)."""
+    count = 0
+    while frames is None or count < frames:
+        try:
+            frame = source.read(timeout)
+        except KeyboardInterrupt:
+            return
+        if frame is None:
+            return
+        count += 1
+        yield frame
 
 
 __all__ = ["OpenNI2Source", "library_dir", "list_devices", "open_device", "open_recording", "record"]
