@@ -80,6 +80,7 @@ from robot_change.filters import fuse_depth  # noqa: E402
 from robot_change.mixture import N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
 from robot_change.scene import SceneParams, build_scene  # noqa: E402
 from sim_fixtures import load_scene  # noqa: E402
+from sim_fixtures.truth import point_truth  # noqa: E402
 
 PAPER_SCENES = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
 SWEEP_SCENES = ("office_box_added",) + PAPER_SCENES
@@ -164,16 +165,6 @@ def table3(leaf: float, max_components: int, fuse: bool, runs: int,
                                              search_points)}
         out[name] = row
     return out
-
-
-def point_truth(pixel_voxel: np.ndarray, truth: np.ndarray, n_points: int) -> np.ndarray:
-    """(n_points,) bool: at least half of the point's pixels lie in ``truth``."""
-    pv = pixel_voxel.ravel()
-    ok = pv >= 0
-    total = np.bincount(pv[ok], minlength=n_points)
-    inside = np.bincount(pv[ok], weights=truth.ravel()[ok].astype(np.float64),
-                         minlength=n_points)
-    return (total > 0) & (2 * inside >= total)
 
 
 def precision_recall(pred: np.ndarray, truth: np.ndarray) -> dict:

@@ -45,6 +45,7 @@ from robot_change.change import (  # noqa: E402
 )
 from robot_change.cloud import CloudParams  # noqa: E402
 from robot_change.scene import SceneParams, build_scene  # noqa: E402
+from sim_fixtures.truth import point_truth  # noqa: E402
 
 NO_CHANGE = ("office_no_change", "office_no_change_jitter", "storage_no_change_jitter")
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
@@ -85,16 +86,6 @@ def method_fns(params: ChangeParams) -> dict:
         "free_space_only": lambda r, c: detect_nn_threshold(r, c, params.replace(
             free_space=True, nn_check_m=0.0)),
     }
-
-
-def point_truth(pixel_voxel: np.ndarray, truth: np.ndarray, n_points: int) -> np.ndarray:
-    """(n_points,) bool: at least half of the point's pixels lie in ``truth``."""
-    pv = pixel_voxel.ravel()
-    ok = pv >= 0
-    total = np.bincount(pv[ok], minlength=n_points)
-    inside = np.bincount(pv[ok], weights=truth.ravel()[ok].astype(np.float64),
-                         minlength=n_points)
-    return (total > 0) & (2 * inside >= total)
 
 
 def score(cs, ref_model, cur_model, truth_app, truth_dis) -> dict:
