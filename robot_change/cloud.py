@@ -1,8 +1,10 @@
 """Depth image -> clean point cloud: the four stages of ALGORITHM.md section 1 in one call.
 
     depth (H, W) uint16 mm
-      -> points       :func:`robot_change.geometry.depth_to_points` (min/max depth)
-      -> voxel grid   :func:`robot_change.filters.voxel_grid` (one centroid per voxel)
+      -> points and voxel grid, in one pass
+                      :func:`robot_change.depth_voxels.depth_voxel_grid` (min/max depth, one
+                      centroid per voxel; the same as geometry.depth_to_points followed by
+                      filters.voxel_grid)
       -> outliers     :func:`robot_change.filters.statistical_outliers` (on the voxel cloud)
       -> plane        :func:`robot_change.filters.fit_plane_ransac` (dominant plane removed)
 
@@ -22,8 +24,9 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change import validate
 from robot_change.errors import InputError
-from robot_change.filters import Plane, fit_plane_ransac, statistical_outliers, voxel_grid
-from robot_change.geometry import MAX_DEPTH_M, depth_to_points
+from robot_change.depth_voxels import depth_voxel_grid
+from robot_change.filters import Plane, fit_plane_ransac, statistical_outliers
+from robot_change.geometry import MAX_DEPTH_M
 
 __all__ = [
     "PIXEL_KEPT",
@@ -137,8 +140,9 @@ class CleanCloud:
     removed plane; its ``inliers`` run over the voxels that survived outlier removal
     (``stage_counts["after_outliers"]`` of them). ``stage_counts``: ``pixels`` (valid depth
     readings), ``points`` (in the depth range), ``voxels``, ``after_outliers``,
-    ``plane_inliers``, ``kept``.  ``timings_ms``: ``points_ms``, ``voxel_ms``, ``outlier_ms``,
-    ``plane_ms`` and ``preprocess_ms`` (the whole call).
+    ``plane_inliers``, ``kept``.  ``timings_ms``: ``voxel_ms`` (depth to voxel grid, back-projection
+    included), ``outlier_ms``, ``plane_ms`` and ``preprocess_ms`` (the whole call, pixel maps
+    included).
     """
 
     points: np.ndarray
@@ -156,21 +160,21 @@ class CleanCloud:
 
 
 @numba.njit(cache=True, nogil=True)
-def _pixel_maps(n_pixels, pixels, inverse, voxel_to_final, voxel_stage):
-    """Per-pixel row in the final cloud (-1 = none) and stage code.
+def _pixel_maps(pixel_voxel, voxel_to_final, voxel_stage):
+    """Per-pixel row in the final cloud (-1 = none) and stage code, in one branch-free pass.
 
-    ``pixels`` (N,) int32 flat pixel index of each point; ``inverse`` (N,) int32 voxel of each
-    point (-1 = dropped); ``voxel_to_final`` (V,) int32; ``voxel_stage`` (V,) uint8.  Returns
-    ((n_pixels,) int32, (n_pixels,) uint8).
+    ``pixel_voxel`` (P,) int32 voxel of each pixel (-1 = no point); ``voxel_to_final`` (V,)
+    int32; ``voxel_stage`` (V,) uint8.  Returns ((P,) int32, (P,) uint8).
     """
-    pixel_voxel = np.full(n_pixels, -1, dtype=np.int32)
-    pixel_stage = np.full(n_pixels, PIXEL_NO_POINT, dtype=np.uint8)
-    for i in range(pixels.shape[0]):
-        v = inverse[i]
-        if v >= 0:
-            pixel_voxel[pixels[i]] = voxel_to_final[v]
-            pixel_stage[pixels[i]] = voxel_stage[v]
-    return pixel_voxel, pixel_stage
+    n = pixel_voxel.shape[0]
+    rows = np.empty(n, dtype=np.int32)
+    stages = np.empty(n, dtype=np.uint8)
+    for i in range(n):
+        v = pixel_voxel[i]
+        at = max(v, 0)  # a valid index whatever v is; its values are discarded when v < 0
+        rows[i] = voxel_to_final[at] if v >= 0 else -1
+        stages[i] = voxel_stage[at] if v >= 0 else PIXEL_NO_POINT
+    return rows, stages
 
 
 def clean_cloud(
@@ -194,11 +198,9 @@ def clean_cloud(
     if not isinstance(params, CloudParams):
         raise InputError(f"params must be a CloudParams, got {type(params).__name__}")
     start = time.perf_counter()
-    points, pixels = depth_to_points(depth, intrinsics, min_depth_m=params.min_depth_m,
-                                     max_depth_m=params.max_depth_m)
-    t_points = time.perf_counter()
-
-    grid = voxel_grid(points, params.leaf_m)
+    voxels = depth_voxel_grid(depth, intrinsics, params.leaf_m, min_depth_m=params.min_depth_m,
+                              max_depth_m=params.max_depth_m)
+    grid = voxels.grid
     t_voxel = time.perf_counter()
 
     if params.remove_outliers:
@@ -229,8 +231,11 @@ def clean_cloud(
     voxel_stage[kept_rows[plane.inliers]] = PIXEL_PLANE
     voxel_stage[final_rows] = PIXEL_KEPT
     height, width = depth.shape
-    pixel_voxel, pixel_stage = _pixel_maps(height * width, pixels, grid.inverse, voxel_to_final,
-                                           voxel_stage)
+    if len(grid):
+        pixel_voxel, pixel_stage = _pixel_maps(grid.inverse, voxel_to_final, voxel_stage)
+    else:
+        pixel_voxel = np.full(height * width, -1, dtype=np.int32)
+        pixel_stage = np.full(height * width, PIXEL_NO_POINT, dtype=np.uint8)
     end = time.perf_counter()
 
     return CleanCloud(
@@ -242,15 +247,14 @@ def clean_cloud(
         plane=plane,
         stage_counts={
             "pixels": int(np.count_nonzero(depth)),
-            "points": int(points.shape[0]),
+            "points": voxels.n_points,
             "voxels": len(grid),
             "after_outliers": int(len(kept_rows)),
             "plane_inliers": int(plane.n_inliers),
             "kept": int(len(final_rows)),
         },
         timings_ms={
-            "points_ms": (t_points - start) * 1e3,
-            "voxel_ms": (t_voxel - t_points) * 1e3,
+            "voxel_ms": (t_voxel - start) * 1e3,
             "outlier_ms": (t_outlier - t_voxel) * 1e3,
             "plane_ms": (t_plane - t_outlier) * 1e3,
             "preprocess_ms": (end - start) * 1e3,

@@ -29,7 +29,8 @@ __all__ = [
     "KEY_MAX_INDEX",
     "KEY_MIN_INDEX",
     "Plane",
-    "VOXEL_BAND",
+    "VOXEL_CHUNK",
+    "VOXEL_TABLE_MIN_SLOTS",
     "VoxelGrid",
     "fit_plane_ransac",
     "fuse_depth",
@@ -42,6 +43,7 @@ __all__ = [
     "statistical_outliers",
     "unpack_keys",
     "voxel_grid",
+    "voxel_table_size",
 ]
 
 #: Bits per axis in a packed voxel key.
@@ -108,16 +110,32 @@ class VoxelGrid:
         return int(self.points.shape[0])
 
 
-#: Points per band in :func:`_voxel_kernel`.  A band of a depth image's points (8192 = about 13
-#: VGA rows) touches a few thousand voxels, so its hash table (2 * 8192 slots of 16 bytes) stays
-#: in L2; a voxel seen by several bands leaves one partial record per band (measured 1.05-1.1
-#: per voxel on room frames at a 2 cm leaf), merged after sorting.
-VOXEL_BAND = 8192
+#: Points per chunk in :func:`_voxel_kernel`: keys and hash slots of a chunk are computed in one
+#: branch-free loop the compiler vectorises, then probed in order.  A chunk plays the part an
+#: image row plays in :func:`robot_change.depth_voxels.depth_voxel_grid`.
+VOXEL_CHUNK = 512
+
+#: Smallest hash table of a voxel band, in slots (int32 record numbers: 64 KiB).
+VOXEL_TABLE_MIN_SLOTS = 1 << 14
 
 #: Largest radix digit in :func:`_radix_order`: 2**12 counters (32 KiB) stay in L1, and a room's
 #: codes (22 bits at a 3 cm leaf, 23-24 at 2 cm) take two passes (at 2 cm, 11-bit digits took
 #: three).
 _RADIX_DIGIT = 12
+
+
+def voxel_table_size(row: int) -> tuple[int, int]:
+    """Hash table of the voxel kernels for rows (or chunks) of ``row`` points.
+
+    Returns ``(bits, limit)``: the table has ``2**bits`` slots, at least
+    :data:`VOXEL_TABLE_MIN_SLOTS` and at least ``4 * row``; a band of rows is closed at the start
+    of a row when it already holds more than ``limit - row`` records (``limit`` = slots / 8), so a
+    band holds at most ``max(limit, row)`` records and the table is at most a quarter full.
+    """
+    bits = 1
+    while (1 << bits) < max(VOXEL_TABLE_MIN_SLOTS, 4 * row):
+        bits += 1
+    return bits, (1 << bits) // 8
 
 
 @numba.njit(cache=True, nogil=True)
@@ -177,105 +195,63 @@ def _radix_order(codes, bits):
     return src, dst
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _voxel_slot(key, tshift):
+    """Home slot of a packed key: Fibonacci hashing (top bits of key * 2**64 / golden ratio)."""
+    return (np.uint64(key) * _HASH_MULT) >> tshift
+
+
 @numba.njit(cache=True, nogil=True)
-def _voxel_kernel(points, inv_leaf, band):
-    """(N, 3) float32, 1/leaf, band length -> (centroids (M, 3) float32, counts (M,) int32,
-    keys (M,) int64 sorted, inverse (N,) int32).
+def _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p):
+    """Slow path of the voxel kernels: find ``key`` among the records ``first..p-1`` of the
+    current band by linear probing from ``slot``, or append record ``p`` for it.
 
-    1. The points go in bands of ``band`` consecutive rows.  Per band, the keys are computed
-       first (a tight loop without branches), then an open-addressing hash
-       (Fibonacci hashing, linear probing, 2 * band slots, so at most half full) maps a key to
-       a partial record (sum x, y, z, count in float64) of that band; records are appended, so
-       a table slot whose record is older than the band counts as empty and the table is never
-       cleared.  The table stays in L2 where one table for the whole cloud would not.
-    2. The records' keys become bit-field codes over their bounding box (same order as the
-       keys) and are radix-sorted (stable: records of one voxel stay in band order).
-    3. Records with equal codes are merged in that order; the centroid is
-       ``float32(sum / count)`` in float64.  Per point, the record it went to is replaced by
-       its voxel's row.
-
-    Summation order: a voxel's sum is the sum over bands, in band order, of the sum over its
-    points in that band, in point order (the tests' twin does the same).
+    ``table`` (S,) int32 holds record numbers; a slot whose record is below ``first`` (an earlier
+    band, or -1) counts as empty, so a new band needs no clearing.  ``rec_keys`` (P,) int64 and
+    ``rec`` (P, 4) float64 (sum x, y, z, count) are the records.  Returns (record, new p).
     """
-    n = points.shape[0]
-    inverse = np.empty(n, dtype=np.int32)
-    tbits = 1
-    while (1 << tbits) < 2 * band:
-        tbits += 1
-    tmask = np.uint64((1 << tbits) - 1)
-    tshift = np.uint64(64 - tbits)
-    one = np.uint64(1)
-    two = np.uint64(2)
-    # slot s: key at 2s, record at 2s + 1 (-1: never used)
-    table = np.full(2 << tbits, -1, dtype=np.int64)
-    # at most one record per point; pages never touched cost nothing
-    rec_keys = np.empty(n, dtype=np.int64)
-    rec = np.empty((n, 4), dtype=np.float64)
-    lo = np.float64(-_KEY_OFFSET)
-    hi = np.float64(_KEY_OFFSET - 1)
-    lox = np.int64(_KEY_FIELD)
-    loy = np.int64(_KEY_FIELD)
-    loz = np.int64(_KEY_FIELD)
-    hix = np.int64(0)
-    hiy = np.int64(0)
-    hiz = np.int64(0)
-    band_keys = np.empty(min(n, band), dtype=np.int64)
-    p = 0
-    for start in range(0, n, band):
-        stop = min(n, start + band)
-        first = p
-        chunk = points[start:stop]
-        chunk_inverse = inverse[start:stop]
-        # 1a. the band's keys (-1: a dropped row), in a loop without branches
-        for i in range(chunk.shape[0]):
-            fx = np.floor(np.float64(chunk[i, 0]) * inv_leaf)
-            fy = np.floor(np.float64(chunk[i, 1]) * inv_leaf)
-            fz = np.floor(np.float64(chunk[i, 2]) * inv_leaf)
-            # NaN fails every comparison, inf fails the range: both dropped
-            ok = lo <= fx <= hi and lo <= fy <= hi and lo <= fz <= hi
-            kx = np.int64(fx if ok else 0.0) + _KEY_OFFSET
-            ky = np.int64(fy if ok else 0.0) + _KEY_OFFSET
-            kz = np.int64(fz if ok else 0.0) + _KEY_OFFSET
-            band_keys[i] = ((kx << (2 * KEY_BITS)) | (ky << KEY_BITS) | kz) if ok else -1
-        # 1b. probe and accumulate
-        for i in range(chunk.shape[0]):
-            key = band_keys[i]
-            if key < 0:
-                chunk_inverse[i] = -1
-                continue
-            slot = (np.uint64(key) * _HASH_MULT) >> tshift  # unsigned: no negative-index checks
-            while True:
-                row = table[two * slot + one]
-                if row < first:  # empty, or a record of an earlier band
-                    row = np.int64(p)
-                    table[two * slot] = key
-                    table[two * slot + one] = row
-                    rec_keys[row] = key
-                    rec[row, 0] = 0.0
-                    rec[row, 1] = 0.0
-                    rec[row, 2] = 0.0
-                    rec[row, 3] = 0.0
-                    p += 1
-                    kx = key >> (2 * KEY_BITS)
-                    ky = (key >> KEY_BITS) & _KEY_FIELD
-                    kz = key & _KEY_FIELD
-                    lox = min(lox, kx)
-                    hix = max(hix, kx)
-                    loy = min(loy, ky)
-                    hiy = max(hiy, ky)
-                    loz = min(loz, kz)
-                    hiz = max(hiz, kz)
-                    break
-                if table[two * slot] == key:
-                    break
-                slot = (slot + one) & tmask
-            rec[row, 0] += np.float64(chunk[i, 0])
-            rec[row, 1] += np.float64(chunk[i, 1])
-            rec[row, 2] += np.float64(chunk[i, 2])
-            rec[row, 3] += 1.0
-            chunk_inverse[i] = row
+    while True:
+        row = table[slot]
+        if row < first:
+            table[slot] = p
+            rec_keys[p] = key
+            rec[p, 0] = 0.0
+            rec[p, 1] = 0.0
+            rec[p, 2] = 0.0
+            rec[p, 3] = 0.0
+            return p, p + 1
+        if rec_keys[row] == key:
+            return row, p
+        slot = (slot + np.uint64(1)) & tmask
 
-    # 2. codes (x, then y, then z bit fields over the bounding box), in place of the keys
+
+@numba.njit(cache=True, nogil=True)
+def _merge_records(rec_keys, rec, p):
+    """Records -> voxels: (centroids (M, 3) float32, counts (M,) int32, keys (M,) int64
+    strictly increasing, record_voxel (p,) int32).
+
+    The records' keys become bit-field codes over their bounding box (same order as the keys)
+    and are radix-sorted (stable: the records of one voxel stay in band order); records with
+    equal codes are summed in that order and the centroid is ``float32(sum / count)`` in
+    float64.  ``rec_keys[:p]`` is overwritten with the sorted codes.
+    """
+    lox = np.int64(_KEY_FIELD)
+    loy = lox
+    loz = lox
+    hix = np.int64(0)
+    hiy = hix
+    hiz = hix
+    for j in range(p):
+        key = rec_keys[j]
+        kx = key >> (2 * KEY_BITS)
+        ky = (key >> KEY_BITS) & _KEY_FIELD
+        kz = key & _KEY_FIELD
+        lox = min(lox, kx)
+        hix = max(hix, kx)
+        loy = min(loy, ky)
+        hiy = max(hiy, ky)
+        loz = min(loz, kz)
+        hiz = max(hiz, kz)
     bz = _bit_length(hiz - loz) if p > 0 else 0
     by = _bit_length(hiy - loy) if p > 0 else 0
     bx = _bit_length(hix - lox) if p > 0 else 0
@@ -287,9 +263,7 @@ def _voxel_kernel(points, inv_leaf, band):
             | ((((key >> KEY_BITS) & _KEY_FIELD) - loy) << bz)
             | ((key & _KEY_FIELD) - loz)
         )
-    order, rec_to_voxel = _radix_order(codes, bx + by + bz)
-
-    # 3. merge
+    order, record_voxel = _radix_order(codes, bx + by + bz)
     m = 0
     for j in range(p):
         m += j == 0 or codes[j] != codes[j - 1]
@@ -328,12 +302,91 @@ def _voxel_kernel(points, inv_leaf, band):
         sy += rec[q, 1]
         sz += rec[q, 2]
         sc += rec[q, 3]
-        rec_to_voxel[q] = v
+        record_voxel[q] = v
+    return centroids, counts, keys, record_voxel[:p]
+
+
+@numba.njit(cache=True, nogil=True)
+def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
+    """(N, 3) float32, 1/leaf, chunk length, table bits and band limit (see
+    :func:`voxel_table_size`) -> (centroids (M, 3) float32, counts (M,) int32, keys (M,) int64
+    sorted, inverse (N,) int32).
+
+    1. The points go in chunks of ``chunk`` consecutive rows.  Per chunk, keys and home hash
+       slots are computed first (a loop without branches), then each point is looked up in
+       the current band's open-addressing table (a hit in its home slot is the fast path; else
+       :func:`_voxel_insert`) and added to that record (sum x, y, z, count in float64).  A
+       band is closed at the start of a chunk when it holds more than ``limit - chunk``
+       records; its records stay, the next band starts with an (implicitly) empty table.  The
+       table stays in L1/L2 where one table for the whole cloud would not.
+    2. :func:`_merge_records` sorts and sums the records into voxels; per point, the record it
+       went to is replaced by its voxel's row.
+
+    Summation order: a voxel's sum is the sum over bands, in band order, of the sum over its
+    points in that band, in point order (the tests' twin does the same).
+    """
+    n = points.shape[0]
+    inverse = np.empty(n, dtype=np.int32)
+    tmask = np.uint64((1 << tbits) - 1)
+    tshift = np.uint64(64 - tbits)
+    table = np.full(1 << tbits, -1, dtype=np.int32)
+    # at most one record per point; pages never touched cost nothing
+    rec_keys = np.empty(n, dtype=np.int64)
+    rec = np.empty((n, 4), dtype=np.float64)
+    lo = np.float64(-_KEY_OFFSET)
+    hi = np.float64(_KEY_OFFSET - 1)
+    keys = np.empty(min(n, chunk), dtype=np.int64)
+    slots = np.empty(min(n, chunk), dtype=np.uint64)
+    xs = np.empty(min(n, chunk), dtype=np.float64)
+    ys = np.empty(min(n, chunk), dtype=np.float64)
+    zs = np.empty(min(n, chunk), dtype=np.float64)
+    first = 0
+    p = 0
+    for start in range(0, n, chunk):
+        if p - first > limit - chunk:
+            first = p
+        part = points[start:start + chunk]
+        part_inverse = inverse[start:start + chunk]
+        # 1a. coordinates in float64 (one array per axis, so the next loop vectorises), then
+        # keys (-1: a dropped row) and home slots, in a loop without branches
+        for i in range(part.shape[0]):
+            xs[i] = part[i, 0]
+            ys[i] = part[i, 1]
+            zs[i] = part[i, 2]
+        for i in range(part.shape[0]):
+            fx = np.floor(xs[i] * inv_leaf)
+            fy = np.floor(ys[i] * inv_leaf)
+            fz = np.floor(zs[i] * inv_leaf)
+            # NaN fails every comparison, inf fails the range: both dropped
+            ok = (lo <= fx) & (fx <= hi) & (lo <= fy) & (fy <= hi) & (lo <= fz) & (fz <= hi)
+            # the index fits 21 bits: an int32 conversion vectorises
+            kx = np.int64(np.int32(fx if ok else 0.0)) + _KEY_OFFSET
+            ky = np.int64(np.int32(fy if ok else 0.0)) + _KEY_OFFSET
+            kz = np.int64(np.int32(fz if ok else 0.0)) + _KEY_OFFSET
+            key = (kx << (2 * KEY_BITS)) | (ky << KEY_BITS) | kz
+            keys[i] = key if ok else -1
+            slots[i] = _voxel_slot(key, tshift)
+        # 1b. look up and accumulate
+        for i in range(part.shape[0]):
+            key = keys[i]
+            if key < 0:
+                part_inverse[i] = -1
+                continue
+            slot = slots[i]
+            r = table[slot]
+            if not (r >= first and rec_keys[r] == key):
+                r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
+            rec[r, 0] += xs[i]
+            rec[r, 1] += ys[i]
+            rec[r, 2] += zs[i]
+            rec[r, 3] += 1.0
+            part_inverse[i] = r
+    centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
     for i in range(n):
         r = inverse[i]
         if r >= 0:
-            inverse[i] = rec_to_voxel[r]
-    return centroids, counts, keys, inverse
+            inverse[i] = record_voxel[r]
+    return centroids, counts, voxel_keys, inverse
 
 
 def _check_positive(name: str, value: object, *, upper: float = math.inf, unit: str = "") -> float:
@@ -367,7 +420,8 @@ def voxel_grid(points: np.ndarray, leaf_m: float) -> VoxelGrid:
     leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
     if points.shape[0] >= 2**31:
         raise InputError(f"points: {points.shape[0]} rows is too many for int32 indices")
-    centroids, counts, keys, inverse = _voxel_kernel(points, 1.0 / leaf, VOXEL_BAND)
+    bits, limit = voxel_table_size(VOXEL_CHUNK)
+    centroids, counts, keys, inverse = _voxel_kernel(points, 1.0 / leaf, VOXEL_CHUNK, bits, limit)
     return VoxelGrid(points=centroids, counts=counts, keys=keys, inverse=inverse, leaf_m=leaf)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change.errors import InputError
 
-__all__ = ["depth_to_points", "project_points", "check_points"]
+__all__ = ["check_points", "depth_kernel_args", "depth_to_points", "project_points"]
 
 #: Largest depth a uint16 millimetre image can hold, in metres.
 MAX_DEPTH_M = 65.535
@@ -148,6 +148,19 @@ def depth_to_points(
     pixels : (N,) int32
         Flat pixel index ``row * W + col`` of each point.
     """
+    return _depth_to_points_kernel(*depth_kernel_args(depth, intrinsics, min_depth_m, max_depth_m))
+
+
+def depth_kernel_args(
+    depth: np.ndarray, intrinsics: Intrinsics, min_depth_m: float, max_depth_m: float
+) -> tuple[np.ndarray, float, float, float, float, np.uint16, np.uint16]:
+    """Validate a depth image, its intrinsics and the depth limits for a back-projecting kernel.
+
+    Returns ``(depth (H, W) uint16 C-contiguous, fx, fy, cx, cy, min_mm, max_mm)``: a pixel is
+    kept when ``d > 0`` and ``min_mm <= d <= max_mm`` (``ceil(min * 1000)`` and
+    ``floor(max * 1000)``; limits that keep nothing come back as 65535 and 0).
+    Raises :class:`InputError` naming the problem.
+    """
     if not isinstance(depth, np.ndarray):
         raise InputError(
             f"depth must be a numpy array (H, W) of uint16 millimetres, got "
@@ -171,7 +184,7 @@ def depth_to_points(
     lo, hi = _check_depth_range(min_depth_m, max_depth_m)
     min_mm = max(1, math.ceil(round(lo * 1000.0, 6)))
     max_mm = min(65535, math.floor(round(hi * 1000.0, 6)))
-    return _depth_to_points_kernel(
+    return (
         np.ascontiguousarray(depth),
         float(intrinsics.fx),
         float(intrinsics.fy),

@@ -13,7 +13,7 @@ from robot_change.filters import (
     KEY_MAX_INDEX,
     KEY_MIN_INDEX,
     RANSAC_SAMPLE,
-    VOXEL_BAND,
+    VOXEL_CHUNK,
     Plane,
     _inlier_scatter,
     _plane_inliers,
@@ -29,6 +29,7 @@ from robot_change.filters import (
     statistical_outliers,
     unpack_keys,
     voxel_grid,
+    voxel_table_size,
 )
 from robot_change.geometry import depth_to_points
 
@@ -39,19 +40,28 @@ RNG = np.random.default_rng(7)
 # voxel grid
 
 
-def twin_voxel_grid(points, leaf, band=VOXEL_BAND):
-    """np.unique(return_inverse) + bincount, same float64 arithmetic and summation order: per
-    band of ``band`` rows a partial sum per voxel (points in order), then per voxel the sum of
-    its partials in band order."""
-    p64 = points.astype(np.float64)
-    with np.errstate(invalid="ignore", over="ignore"):
-        idx = np.floor(p64 * (1.0 / leaf))
-    ok = np.all((idx >= KEY_MIN_INDEX) & (idx <= KEY_MAX_INDEX), axis=1)
-    keys_all = np.full(len(points), -1, dtype=np.int64)
-    keys_all[ok] = pack_keys(idx[ok].astype(np.int64))
+def twin_bands(keys, rows, limit):
+    """Band number of each point (the voxel kernels' rule): points go in rows (``rows``: (R + 1,)
+    boundaries); a band is closed at the start of a row when it holds more than ``limit - row
+    length`` distinct keys.  ``keys`` (N,) int64, -1 = dropped (not counted)."""
+    band_of = np.empty(len(keys), dtype=np.int64)
+    band, seen = 0, set()
+    for a, b in zip(rows[:-1], rows[1:]):
+        if len(seen) > limit - (b - a):
+            band, seen = band + 1, set()
+        seen.update(keys[a:b][keys[a:b] >= 0].tolist())
+        band_of[a:b] = band
+    return band_of
+
+
+def twin_voxel_sums(p64, keys_all, band_of):
+    """np.unique(return_inverse) + bincount, float64, the kernels' summation order: per band a
+    partial sum per voxel (points in order), then per voxel the sum of its partials in band
+    order.  ``keys_all`` (N,) int64 (-1 = dropped).  Returns (centroids, counts, keys, inverse)."""
+    ok = keys_all >= 0
     part_keys, part_sums, part_counts = [], [], []
-    for start in range(0, len(points), band):
-        sel = np.flatnonzero(ok[start:start + band]) + start
+    for band in np.unique(band_of[ok]):
+        sel = np.flatnonzero(ok & (band_of == band))
         keys, inv = np.unique(keys_all[sel], return_inverse=True)
         inv = inv.ravel()
         part_keys.append(keys)
@@ -72,10 +82,30 @@ def twin_voxel_grid(points, leaf, band=VOXEL_BAND):
         [np.bincount(pinv, weights=part_sums[:, j], minlength=len(keys)) for j in range(3)], axis=1
     )
     centroids = (sums / counts[:, None]).astype(np.float32)
-    lookup = np.searchsorted(keys, keys_all[ok])
-    inverse = np.full(len(points), -1, dtype=np.int64)
-    inverse[ok] = lookup
+    inverse = np.full(len(keys_all), -1, dtype=np.int64)
+    inverse[ok] = np.searchsorted(keys, keys_all[ok])
     return centroids, counts.astype(np.int64), keys, inverse
+
+
+def twin_keys(points, leaf):
+    """(N,) int64 packed keys of float32 points, -1 where NaN/inf or out of the key range."""
+    p64 = points.astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        idx = np.floor(p64 * (1.0 / leaf))
+    ok = np.all((idx >= KEY_MIN_INDEX) & (idx <= KEY_MAX_INDEX), axis=1)
+    keys_all = np.full(len(points), -1, dtype=np.int64)
+    keys_all[ok] = pack_keys(idx[ok].astype(np.int64))
+    return keys_all
+
+
+def twin_voxel_grid(points, leaf, chunk=VOXEL_CHUNK, limit=None):
+    """NumPy twin of voxel_grid: chunks of ``chunk`` points are the rows of the band rule."""
+    if limit is None:
+        limit = voxel_table_size(chunk)[1]
+    keys_all = twin_keys(points, leaf)
+    rows = np.append(np.arange(0, len(points), chunk), len(points))
+    band_of = twin_bands(keys_all, rows, limit)
+    return twin_voxel_sums(points.astype(np.float64), keys_all, band_of)
 
 
 def assert_grid_matches_twin(points, leaf):
@@ -121,17 +151,26 @@ def test_voxel_grid_matches_twin_on_random_points(n, spread):
     assert_grid_matches_twin(points, 0.02)
 
 
-@pytest.mark.parametrize("band", [1, 7, 64])
-def test_voxel_kernel_small_bands_match_twin(band):
-    """Many bands: voxels split over bands, stale hash slots of earlier bands reused."""
+@pytest.mark.parametrize("chunk, limit", [(1, 1), (7, 5), (64, 100), (64, 30)])
+def test_voxel_kernel_small_bands_match_twin(chunk, limit):
+    """Many bands: voxels split over bands, stale hash slots of earlier bands reused, and a limit
+    below the chunk length (a band per chunk)."""
     points = depth_scene_points(np.random.default_rng(11))[::37]
     points = np.concatenate([points, points[::-3], [[np.nan, 0, 1]]]).astype(np.float32)
-    centroids, counts, keys, inverse = _voxel_kernel(points, 1.0 / 0.05, band)
-    want = twin_voxel_grid(points, 0.05, band)
+    bits = voxel_table_size(chunk)[0]
+    centroids, counts, keys, inverse = _voxel_kernel(points, 1.0 / 0.05, chunk, bits, limit)
+    want = twin_voxel_grid(points, 0.05, chunk, limit)
     np.testing.assert_array_equal(keys, want[2])
     np.testing.assert_array_equal(counts, want[1])
     np.testing.assert_array_equal(inverse, want[3])
     np.testing.assert_array_equal(centroids, want[0])
+
+
+def test_voxel_table_size_keeps_the_table_a_quarter_full_at_most():
+    for row in (1, 512, 640, 4096, 100_000):
+        bits, limit = voxel_table_size(row)
+        assert (1 << bits) >= 4 * row and (1 << bits) >= 1 << 14
+        assert max(limit, row) <= (1 << bits) // 4
 
 
 def test_voxel_grid_duplicates_and_negative_coordinates():

@@ -102,7 +102,7 @@ def test_build_from_depth_frames(ref_model, sim):
     assert m.mixture.n_components >= 2 and m.mixture.record.n_points == len(m)
     assert m.mixture.record.reg_covar == pytest.approx(m.params.cloud.leaf_m**2 / 12)
     assert m.params == SceneParams()
-    assert set(m.seconds) == {"fusion", "points", "voxel", "outliers", "plane", "cloud", "fit",
+    assert set(m.seconds) == {"fusion", "voxel", "outliers", "plane", "cloud", "fit",
                               "total"}
     assert all(v >= 0 for v in m.seconds.values())
     assert m.seconds["total"] >= m.seconds["fit"] + m.seconds["cloud"]
