@@ -547,26 +547,27 @@ def _components_kernel(keys, radius):
     (M,) int64 labels 0..C-1, numbered in order of each component's first voxel."""
     m = keys.shape[0]
     parent = np.arange(m)
-    shift_x = np.int64(1) << np.int64(2 * KEY_BITS)
-    shift_y = np.int64(1) << np.int64(KEY_BITS)
+    # the key's three fields (z, y, x from the top; the test treats them alike)
+    shift_top = np.int64(1) << np.int64(2 * KEY_BITS)
+    shift_mid = np.int64(1) << np.int64(KEY_BITS)
     for i in range(m):
         k = keys[i]
-        ix = (k >> np.int64(2 * KEY_BITS)) & _FIELD
-        iy = (k >> np.int64(KEY_BITS)) & _FIELD
-        iz = k & _FIELD
-        for dx in range(-radius, radius + 1):
-            for dy in range(-radius, radius + 1):
-                for dz in range(-radius, radius + 1):
+        it = (k >> np.int64(2 * KEY_BITS)) & _FIELD
+        im = (k >> np.int64(KEY_BITS)) & _FIELD
+        il = k & _FIELD
+        for dt in range(-radius, radius + 1):
+            for dm in range(-radius, radius + 1):
+                for dl in range(-radius, radius + 1):
                     # each pair once: only neighbours with a larger key
-                    if dx < 0 or (dx == 0 and (dy < 0 or (dy == 0 and dz <= 0))):
+                    if dt < 0 or (dt == 0 and (dm < 0 or (dm == 0 and dl <= 0))):
                         continue
-                    jx = ix + dx
-                    jy = iy + dy
-                    jz = iz + dz
-                    if jx < 0 or jy < 0 or jz < 0 or jx > _FIELD or jy > _FIELD or \
-                            jz > _FIELD:
+                    jt = it + dt
+                    jm = im + dm
+                    jl = il + dl
+                    if jt < 0 or jm < 0 or jl < 0 or jt > _FIELD or jm > _FIELD or \
+                            jl > _FIELD:
                         continue
-                    nk = jx * shift_x + jy * shift_y + jz
+                    nk = jt * shift_top + jm * shift_mid + jl
                     j = np.searchsorted(keys, nk)
                     if j < m and keys[j] == nk:
                         a = _find(parent, i)

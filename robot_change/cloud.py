@@ -160,21 +160,64 @@ class CleanCloud:
 
 
 @numba.njit(cache=True, nogil=True)
-def _pixel_maps(pixel_voxel, voxel_to_final, voxel_stage):
-    """Per-pixel row in the final cloud (-1 = none) and stage code, in one branch-free pass.
+def _take_rows(points, rows):
+    """(V, 3) float32, (R,) int64 -> (R, 3) float32 ``points[rows]`` (twice as fast as
+    ``np.take`` on a room's 30k rows)."""
+    out = np.empty((rows.shape[0], 3), dtype=points.dtype)
+    for j in range(rows.shape[0]):
+        r = rows[j]
+        out[j, 0] = points[r, 0]
+        out[j, 1] = points[r, 1]
+        out[j, 2] = points[r, 2]
+    return out
 
-    ``pixel_voxel`` (P,) int32 voxel of each pixel (-1 = no point); ``voxel_to_final`` (V,)
-    int32; ``voxel_stage`` (V,) uint8.  Returns ((P,) int32, (P,) uint8).
+
+@numba.njit(cache=True, nogil=True)
+def _finish(points, keys, counts, kept_rows, on_plane, pixel_voxel):
+    """The clean cloud and the pixel maps, in two passes.
+
+    ``points`` (V, 3), ``keys`` (V,), ``counts`` (V,): the voxel grid; ``kept_rows`` (R,)
+    int64 ascending: the voxels outlier removal kept; ``on_plane`` (R,) bool: which of those
+    the plane took; ``pixel_voxel`` (P,) int32: each pixel's voxel (-1 = no point).  Returns
+    (points (M, 3), keys (M,), counts (M,), pixel rows (P,) int32 with -1 for none, pixel
+    stages (P,) uint8).
     """
+    v = points.shape[0]
+    voxel_to_final = np.full(v, -1, dtype=np.int32)
+    voxel_stage = np.full(v, PIXEL_OUTLIER, dtype=np.uint8)
+    m = 0
+    for j in range(kept_rows.shape[0]):
+        m += not on_plane[j]
+    out_points = np.empty((m, 3), dtype=points.dtype)
+    out_keys = np.empty(m, dtype=keys.dtype)
+    out_counts = np.empty(m, dtype=counts.dtype)
+    f = 0
+    for j in range(kept_rows.shape[0]):
+        r = kept_rows[j]
+        if on_plane[j]:
+            voxel_stage[r] = PIXEL_PLANE
+        else:
+            voxel_stage[r] = PIXEL_KEPT
+            voxel_to_final[r] = f
+            out_points[f, 0] = points[r, 0]
+            out_points[f, 1] = points[r, 1]
+            out_points[f, 2] = points[r, 2]
+            out_keys[f] = keys[r]
+            out_counts[f] = counts[r]
+            f += 1
     n = pixel_voxel.shape[0]
     rows = np.empty(n, dtype=np.int32)
     stages = np.empty(n, dtype=np.uint8)
+    if v == 0:
+        rows[:] = -1
+        stages[:] = PIXEL_NO_POINT
+        return out_points, out_keys, out_counts, rows, stages
     for i in range(n):
-        v = pixel_voxel[i]
-        at = max(v, 0)  # a valid index whatever v is; its values are discarded when v < 0
-        rows[i] = voxel_to_final[at] if v >= 0 else -1
-        stages[i] = voxel_stage[at] if v >= 0 else PIXEL_NO_POINT
-    return rows, stages
+        vi = pixel_voxel[i]
+        at = max(vi, 0)  # a valid index whatever vi is; its values are discarded when vi < 0
+        rows[i] = voxel_to_final[at] if vi >= 0 else -1
+        stages[i] = voxel_stage[at] if vi >= 0 else PIXEL_NO_POINT
+    return out_points, out_keys, out_counts, rows, stages
 
 
 def clean_cloud(
@@ -208,40 +251,29 @@ def clean_cloud(
                                       params.outlier_alpha, params.outlier_cap_leaves)
         kept_rows = np.flatnonzero(inlier)
     else:
-        kept_rows = np.arange(len(grid))
+        kept_rows = np.arange(len(grid), dtype=np.int64)
     t_outlier = time.perf_counter()
 
-    # np.take along axis 0: 4x faster than fancy indexing of the (V, 3) rows, same values
-    survivors = np.take(grid.points, kept_rows, axis=0)
+    survivors = _take_rows(grid.points, kept_rows)
     if params.remove_plane:
         plane = fit_plane_ransac(
             survivors, params.plane_distance_m, params.plane_iterations, params.plane_seed,
             up=params.plane_up, max_tilt_deg=params.plane_max_tilt_deg,
             min_inliers=params.plane_min_inliers,
         )
-        final_rows = kept_rows[~plane.inliers]
     else:
         plane = Plane.none(len(kept_rows))
-        final_rows = kept_rows
     t_plane = time.perf_counter()
 
-    voxel_to_final = np.full(len(grid), -1, dtype=np.int32)
-    voxel_to_final[final_rows] = np.arange(len(final_rows), dtype=np.int32)
-    voxel_stage = np.full(len(grid), PIXEL_OUTLIER, dtype=np.uint8)
-    voxel_stage[kept_rows[plane.inliers]] = PIXEL_PLANE
-    voxel_stage[final_rows] = PIXEL_KEPT
+    points, keys, counts, pixel_voxel, pixel_stage = _finish(
+        grid.points, grid.keys, grid.counts, kept_rows, plane.inliers, grid.inverse)
     height, width = depth.shape
-    if len(grid):
-        pixel_voxel, pixel_stage = _pixel_maps(grid.inverse, voxel_to_final, voxel_stage)
-    else:
-        pixel_voxel = np.full(height * width, -1, dtype=np.int32)
-        pixel_stage = np.full(height * width, PIXEL_NO_POINT, dtype=np.uint8)
     end = time.perf_counter()
 
     return CleanCloud(
-        points=np.take(grid.points, final_rows, axis=0),
-        keys=np.take(grid.keys, final_rows),
-        counts=np.take(grid.counts, final_rows),
+        points=points,
+        keys=keys,
+        counts=counts,
         pixel_voxel=pixel_voxel.reshape(height, width),
         pixel_stage=pixel_stage.reshape(height, width),
         plane=plane,
@@ -251,7 +283,7 @@ def clean_cloud(
             "voxels": len(grid),
             "after_outliers": int(len(kept_rows)),
             "plane_inliers": int(plane.n_inliers),
-            "kept": int(len(final_rows)),
+            "kept": len(points),
         },
         timings_ms={
             "voxel_ms": (t_voxel - start) * 1e3,

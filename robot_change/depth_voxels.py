@@ -68,7 +68,7 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
     rec = np.empty((n, 4), dtype=np.float64)
     du = np.empty(width, dtype=np.float64)
     for u in range(width):
-        du[u] = u - cx
+        du[u] = (u - cx) / fx
     xs = np.empty(width, dtype=np.float64)
     ys = np.empty(width, dtype=np.float64)
     zs = np.empty(width, dtype=np.float64)
@@ -83,12 +83,12 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
         if p - first > limit - width:
             first = p
         row = depth[v]
-        dv = v - cy
+        dv = (v - cy) / fy
         for u in range(width):
             d = row[u]
             z = d / 1000.0
-            x32 = np.float32(du[u] * z / fx)
-            y32 = np.float32(dv * z / fy)
+            x32 = np.float32(du[u] * z)
+            y32 = np.float32(dv * z)
             z32 = np.float32(z)
             xs[u] = x32
             ys[u] = y32
@@ -102,7 +102,7 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
             kx = np.int64(np.int32(kfx if ok else 0.0)) + _KEY_OFFSET
             ky = np.int64(np.int32(kfy if ok else 0.0)) + _KEY_OFFSET
             kz = np.int64(np.int32(kfz if ok else 0.0)) + _KEY_OFFSET
-            key = (kx << (2 * KEY_BITS)) | (ky << KEY_BITS) | kz
+            key = (kz << (2 * KEY_BITS)) | (ky << KEY_BITS) | kx
             keys[u] = key if ok else -1
             slots[u] = _voxel_slot(key, tshift)
         base = v * width

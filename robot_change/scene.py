@@ -56,7 +56,10 @@ __all__ = [
 ]
 
 FILE_FORMAT = "robot_change.scene"
-FILE_VERSION = 1
+#: 2: voxel keys pack z, y, x from the top (robot_change.filters); version 1 packed x, y, z.
+#: A version-1 file still loads: its cloud is rebuilt from its own depth image and parameters
+#: (keys, point order and pixel maps as this version makes them); its mixture is kept.
+FILE_VERSION = 2
 #: Intrinsics closer than this (pixels) count as the same camera.
 INTRINSICS_TOLERANCE_PX = 1e-3
 #: Fewest clean points a scene may hold: fewer is no view of a room (and cannot be fitted:
@@ -732,12 +735,16 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
     plane = Plane(normal=arrays["plane_normal"], offset=float(ch["plane_offset"]),
                   inliers=arrays["plane_inliers"], n_inliers=int(ch["plane_n_inliers"]),
                   iterations=int(ch["plane_iterations"]))
-    cloud = CleanCloud(
-        points=arrays["points"], keys=arrays["keys"], counts=arrays["counts"],
-        pixel_voxel=arrays["pixel_voxel"], pixel_stage=arrays["pixel_stage"], plane=plane,
-        stage_counts={k: int(v) for k, v in ch["stage_counts"].items()},
-        timings_ms={k: float(v) for k, v in ch["timings_ms"].items()}, params=params.cloud,
-    )
+    if header["version"] == 1:
+        # keys in the old layout: rebuild the cloud as this version makes it
+        cloud = clean_cloud(arrays["depth"], camera, params.cloud)
+    else:
+        cloud = CleanCloud(
+            points=arrays["points"], keys=arrays["keys"], counts=arrays["counts"],
+            pixel_voxel=arrays["pixel_voxel"], pixel_stage=arrays["pixel_stage"], plane=plane,
+            stage_counts={k: int(v) for k, v in ch["stage_counts"].items()},
+            timings_ms={k: float(v) for k, v in ch["timings_ms"].items()}, params=params.cloud,
+        )
     mixture = Mixture(arrays["weights"], arrays["means"], arrays["covariances"],
                       _record_from_dict(header["fit"]))
 

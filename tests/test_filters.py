@@ -178,7 +178,8 @@ def test_voxel_grid_duplicates_and_negative_coordinates():
     points = np.repeat(base, [5, 3], axis=0)[RNG.permutation(8)]
     grid = assert_grid_matches_twin(points, 0.02)
     assert sorted(grid.counts.tolist()) == [3, 5]
-    np.testing.assert_array_equal(unpack_keys(grid.keys), [[-1, -25, 0], [0, 0, -1]])
+    # sorted by z, then y, then x
+    np.testing.assert_array_equal(unpack_keys(grid.keys), [[0, 0, -1], [-1, -25, 0]])
 
 
 def test_voxel_grid_drops_nan_inf_and_huge_rows():
@@ -238,8 +239,8 @@ def test_pack_unpack_roundtrip():
     idx[:2] = [[KEY_MIN_INDEX] * 3, [KEY_MAX_INDEX] * 3]
     keys = pack_keys(idx)
     np.testing.assert_array_equal(unpack_keys(keys), idx)
-    # key order is lexicographic (x, y, z)
-    order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+    # key order is lexicographic (z, y, x)
+    order = np.lexsort((idx[:, 0], idx[:, 1], idx[:, 2]))
     np.testing.assert_array_equal(np.argsort(keys), order)
     with pytest.raises(InputError):
         pack_keys(np.array([[KEY_MAX_INDEX + 1, 0, 0]]))
@@ -295,13 +296,13 @@ def test_knn_mean_distance_on_masked_subset():
 
 
 def test_knn_no_false_neighbours_across_key_fields():
-    """Keys one apart across a field boundary (z wraps into y) are not neighbours."""
+    """Keys one apart across a field boundary (x wraps into y) are not neighbours."""
     leaf = 1.0
     points = np.array(
         [
-            [0.5, 0.5, KEY_MAX_INDEX + 0.5],  # (0, 0, zmax)
-            [0.5, 1.5, KEY_MIN_INDEX + 0.5],  # (0, 1, zmin): packed key is the first one + 1
-            [1.5, KEY_MIN_INDEX + 0.5, 0.5],  # (1, ymin, 0)
+            [KEY_MAX_INDEX + 0.5, 0.5, 0.5],  # (xmax, 0, 0)
+            [KEY_MIN_INDEX + 0.5, 1.5, 0.5],  # (xmin, 1, 0): packed key is the first one + 1
+            [0.5, KEY_MIN_INDEX + 0.5, 1.5],  # (0, ymin, 1)
             [0.5, KEY_MAX_INDEX + 0.5, 0.5],  # (0, ymax, 0): key differs by one y-step
         ],
         dtype=np.float32,
@@ -316,8 +317,8 @@ def test_knn_no_false_neighbours_across_key_fields():
 
 @pytest.mark.parametrize("k", [3, 4])
 def test_knn_no_false_neighbours_across_column_fields(k):
-    """The column walk's targets (x, y + 1) and (x + 1, y - 1) carry or borrow between the y
-    and x fields for y at the ends of its range, and (x, y, z + 1) would carry from z into y;
+    """The row walk's targets (z, y + 1) and (z + 1, y - 1) carry or borrow between the y
+    and z fields for y at the ends of its range, and (x + 1, y, z) would carry from x into y;
     such voxels are not neighbours.  The points sit close together whatever their keys, so a
     false neighbour would show in the statistic.  k = 4 runs the kernel's copy compiled for
     that constant, k = 3 the general one."""
@@ -329,7 +330,7 @@ def test_knn_no_false_neighbours_across_column_fields(k):
             [8, 0, hi], [8, 1, lo],  # (x, y, z + 1) of the first carries into the second
             [10, lo, 0], [10, lo + 1, 1],  # true neighbours
         ]
-    )
+    )[:, ::-1]  # written as (z, y, x): the rows along x are the key's columns
     keys = pack_keys(idx)
     order = np.argsort(keys)
     keys = keys[order]

@@ -21,8 +21,8 @@ def twin_depth_to_points(depth, intr, min_depth_m, max_depth_m):
     max_mm = int(np.floor(round(max_depth_m * 1000.0, 6)))
     keep = (d > 0) & (d >= min_mm) & (d <= max_mm)
     z = depth[keep].astype(np.float64) / 1000.0
-    x = (u[keep].astype(np.float64) - intr.cx) * z / intr.fx
-    y = (v[keep].astype(np.float64) - intr.cy) * z / intr.fy
+    x = ((u[keep].astype(np.float64) - intr.cx) / intr.fx) * z
+    y = ((v[keep].astype(np.float64) - intr.cy) / intr.fy) * z
     points = np.stack([x, y, z], axis=1).astype(np.float32)
     pixels = np.flatnonzero(keep.ravel()).astype(np.int32)
     return points, pixels

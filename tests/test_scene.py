@@ -35,6 +35,7 @@ from robot_change.scene import (
     check_compatible,
     scene_differences,
 )
+from conftest import SIM_FIXTURES
 from sim_fixtures import load_scene
 
 ARRAYS = ("depth", "points", "keys", "counts", "pixel_voxel", "pixel_stage", "plane_normal",
@@ -358,6 +359,42 @@ def test_save_load_round_trip(ref_model, saved):
         assert getattr(m, name) == getattr(ref_model, name), name
     assert not m.depth.flags.writeable and not m.points.flags.writeable
     check_compatible(ref_model, m)
+
+
+def test_format_1_file_loads_with_its_cloud_rebuilt(tmp_path):
+    """A reference saved before the key layout change (format 1: keys packed x, y, z from the
+    top) still loads: the cloud is rebuilt from its depth image with the current layout, the
+    mixture is the stored one, and saving it again writes the current format."""
+    from robot_change.filters import KEY_BITS, unpack_keys
+
+    legacy = SIM_FIXTURES / "legacy" / "office_reference_v1.npz"
+    header, arrays = read_npz(legacy)
+    assert header["version"] == 1
+    m = SceneModel.load(legacy)
+    np.testing.assert_array_equal(m.mixture.means, arrays["means"])
+    np.testing.assert_array_equal(m.depth, arrays["depth"])
+    # every kept pixel lies in the voxel its point's key names (current layout)
+    leaf = m.params.cloud.leaf_m
+    rows = m.cloud.pixel_voxel.ravel()
+    v, u = np.divmod(np.flatnonzero(rows >= 0), m.depth.shape[1])
+    z = m.depth.ravel()[rows >= 0] / 1000.0
+    own = np.stack([(u - m.intrinsics.cx) / m.intrinsics.fx * z,
+                    (v - m.intrinsics.cy) / m.intrinsics.fy * z, z], axis=1).astype(np.float32)
+    np.testing.assert_array_equal(np.floor(own.astype(np.float64) / leaf).astype(np.int64),
+                                  unpack_keys(m.cloud.keys[rows[rows >= 0]]))
+    assert np.all(np.diff(m.cloud.keys) > 0)
+    # the same voxels as the stored cloud, whose keys read with the old layout
+    field = (1 << KEY_BITS) - 1
+    old = arrays["keys"]
+    old_idx = np.stack([(old >> (2 * KEY_BITS)) & field, (old >> KEY_BITS) & field,
+                        old & field], axis=1) - (1 << (KEY_BITS - 1))
+    stored = set(map(tuple, old_idx.tolist()))
+    rebuilt = set(map(tuple, unpack_keys(m.cloud.keys).tolist()))
+    assert len(stored & rebuilt) >= 0.99 * max(len(stored), len(rebuilt))
+    m.save(tmp_path / "again.npz")
+    assert read_npz(tmp_path / "again.npz")[0]["version"] == FILE_VERSION
+    np.testing.assert_array_equal(SceneModel.load(tmp_path / "again.npz").cloud.keys,
+                                  m.cloud.keys)
 
 
 def test_file_is_a_plain_npz_with_a_json_header(saved, ref_model):
