@@ -173,12 +173,13 @@ def _take_rows(points, rows):
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish(points, keys, counts, kept_rows, on_plane, pixel_voxel):
+def _finish(points, keys, counts, kept_rows, on_plane, pixel_record, record_voxel):
     """The clean cloud and the pixel maps, in two passes.
 
     ``points`` (V, 3), ``keys`` (V,), ``counts`` (V,): the voxel grid; ``kept_rows`` (R,)
     int64 ascending: the voxels outlier removal kept; ``on_plane`` (R,) bool: which of those
-    the plane took; ``pixel_voxel`` (P,) int32: each pixel's voxel (-1 = no point).  Returns
+    the plane took; ``pixel_record`` (P,) int32 and ``record_voxel`` (R,) int32: each pixel's
+    voxel in two steps (:class:`robot_change.depth_voxels.DepthVoxels`).  Returns
     (points (M, 3), keys (M,), counts (M,), pixel rows (P,) int32 with -1 for none, pixel
     stages (P,) uint8).
     """
@@ -205,7 +206,14 @@ def _finish(points, keys, counts, kept_rows, on_plane, pixel_voxel):
             out_keys[f] = keys[r]
             out_counts[f] = counts[r]
             f += 1
-    n = pixel_voxel.shape[0]
+    # per record, the pixel's row and stage: one gather per pixel below
+    n_rec = record_voxel.shape[0]
+    record_row = np.empty(n_rec, dtype=np.int32)
+    record_stage = np.empty(n_rec, dtype=np.uint8)
+    for r in range(n_rec):
+        record_row[r] = voxel_to_final[record_voxel[r]]
+        record_stage[r] = voxel_stage[record_voxel[r]]
+    n = pixel_record.shape[0]
     rows = np.empty(n, dtype=np.int32)
     stages = np.empty(n, dtype=np.uint8)
     if v == 0:
@@ -213,10 +221,10 @@ def _finish(points, keys, counts, kept_rows, on_plane, pixel_voxel):
         stages[:] = PIXEL_NO_POINT
         return out_points, out_keys, out_counts, rows, stages
     for i in range(n):
-        vi = pixel_voxel[i]
-        at = max(vi, 0)  # a valid index whatever vi is; its values are discarded when vi < 0
-        rows[i] = voxel_to_final[at] if vi >= 0 else -1
-        stages[i] = voxel_stage[at] if vi >= 0 else PIXEL_NO_POINT
+        ri = pixel_record[i]
+        at = max(ri, 0)  # a valid index whatever ri is; its values are discarded when ri < 0
+        rows[i] = record_row[at] if ri >= 0 else -1
+        stages[i] = record_stage[at] if ri >= 0 else PIXEL_NO_POINT
     return out_points, out_keys, out_counts, rows, stages
 
 
@@ -243,18 +251,17 @@ def clean_cloud(
     start = time.perf_counter()
     voxels = depth_voxel_grid(depth, intrinsics, params.leaf_m, min_depth_m=params.min_depth_m,
                               max_depth_m=params.max_depth_m)
-    grid = voxels.grid
     t_voxel = time.perf_counter()
 
     if params.remove_outliers:
-        inlier = statistical_outliers(grid.points, grid.keys, grid.leaf_m, params.outlier_k,
+        inlier = statistical_outliers(voxels.points, voxels.keys, voxels.leaf_m, params.outlier_k,
                                       params.outlier_alpha, params.outlier_cap_leaves)
         kept_rows = np.flatnonzero(inlier)
     else:
-        kept_rows = np.arange(len(grid), dtype=np.int64)
+        kept_rows = np.arange(len(voxels), dtype=np.int64)
     t_outlier = time.perf_counter()
 
-    survivors = _take_rows(grid.points, kept_rows)
+    survivors = _take_rows(voxels.points, kept_rows)
     if params.remove_plane:
         plane = fit_plane_ransac(
             survivors, params.plane_distance_m, params.plane_iterations, params.plane_seed,
@@ -266,7 +273,8 @@ def clean_cloud(
     t_plane = time.perf_counter()
 
     points, keys, counts, pixel_voxel, pixel_stage = _finish(
-        grid.points, grid.keys, grid.counts, kept_rows, plane.inliers, grid.inverse)
+        voxels.points, voxels.keys, voxels.counts, kept_rows, plane.inliers, voxels.pixel_record,
+        voxels.record_voxel)
     height, width = depth.shape
     end = time.perf_counter()
 
@@ -280,7 +288,7 @@ def clean_cloud(
         stage_counts={
             "pixels": int(np.count_nonzero(depth)),
             "points": voxels.n_points,
-            "voxels": len(grid),
+            "voxels": len(voxels),
             "after_outliers": int(len(kept_rows)),
             "plane_inliers": int(plane.n_inliers),
             "kept": len(points),

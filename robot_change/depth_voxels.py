@@ -38,19 +38,43 @@ __all__ = ["DepthVoxels", "depth_voxel_grid"]
 class DepthVoxels:
     """A depth image's voxel grid.
 
-    ``grid``: the :class:`~robot_change.filters.VoxelGrid`, whose ``inverse`` is per pixel:
-    (H * W,) int32, row-major, the voxel of each pixel, -1 for a pixel without a point.
-    ``n_points``: pixels that became points (valid and within the depth limits).
+    ``points`` (M, 3) float32 centroids, ``counts`` (M,) int32, ``keys`` (M,) int64 strictly
+    increasing, ``leaf_m``: as in :class:`~robot_change.filters.VoxelGrid`.  Which pixel went
+    where, in two steps (so the kernel need not rewrite every pixel): ``pixel_record`` (H * W,)
+    int32, row-major, the hash record of each pixel (-1: no point), and ``record_voxel`` (R,)
+    int32, the voxel of each record; :meth:`pixel_voxel` composes them.  ``n_points``: pixels
+    that became points (valid, within the depth limits, and a key could hold them).
     """
 
-    grid: VoxelGrid
+    points: np.ndarray
+    counts: np.ndarray
+    keys: np.ndarray
+    leaf_m: float
+    pixel_record: np.ndarray
+    record_voxel: np.ndarray
     n_points: int
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def pixel_voxel(self) -> np.ndarray:
+        """(H * W,) int32: the voxel of each pixel, -1 for a pixel without a point."""
+        out = np.full(self.pixel_record.shape, -1, dtype=np.int32)
+        has = self.pixel_record >= 0
+        out[has] = self.record_voxel[self.pixel_record[has]]
+        return out
+
+    def grid(self) -> VoxelGrid:
+        """The same voxels as a :class:`~robot_change.filters.VoxelGrid` whose ``inverse`` is
+        :meth:`pixel_voxel` (per pixel, not per point)."""
+        return VoxelGrid(points=self.points, counts=self.counts, keys=self.keys,
+                         inverse=self.pixel_voxel(), leaf_m=self.leaf_m)
 
 
 @numba.njit(cache=True, nogil=True)
 def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, limit):
     """(H, W) uint16 mm -> (centroids (M, 3) float32, counts (M,) int32, keys (M,) int64 sorted,
-    inverse (H * W,) int32, points kept).
+    pixel record (H * W,) int32 (-1: no point), record voxel (R,) int32, points kept).
 
     Per image row: a branch-free loop (vectorised) back-projects every pixel exactly as
     :func:`robot_change.geometry._depth_to_points_kernel` does (float64, then float32), and
@@ -122,11 +146,7 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
             rec[r, 3] += 1.0
             inverse[base + u] = r
     centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
-    for i in range(n):
-        r = inverse[i]
-        if r >= 0:
-            inverse[i] = record_voxel[r]
-    return centroids, counts, voxel_keys, inverse, kept
+    return centroids, counts, voxel_keys, inverse, record_voxel, kept
 
 
 def depth_voxel_grid(
@@ -155,12 +175,13 @@ def depth_voxel_grid(
     -------
     DepthVoxels
         The same keys and counts as ``voxel_grid(depth_to_points(...)[0], leaf_m)`` and the same
-        centroids up to float64 summation order; ``grid.inverse`` maps pixels (not points) to
-        voxels.
+        centroids up to float64 summation order; :meth:`DepthVoxels.pixel_voxel` maps pixels
+        (not points) to voxels.
     """
     args = depth_kernel_args(depth, intrinsics, min_depth_m, max_depth_m)
     leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
     bits, limit = voxel_table_size(args[0].shape[1])
-    centroids, counts, keys, inverse, kept = _depth_voxel_kernel(*args, 1.0 / leaf, bits, limit)
-    grid = VoxelGrid(points=centroids, counts=counts, keys=keys, inverse=inverse, leaf_m=leaf)
-    return DepthVoxels(grid=grid, n_points=int(kept))
+    centroids, counts, keys, pixel_record, record_voxel, kept = _depth_voxel_kernel(
+        *args, 1.0 / leaf, bits, limit)
+    return DepthVoxels(points=centroids, counts=counts, keys=keys, leaf_m=leaf,
+                       pixel_record=pixel_record, record_voxel=record_voxel, n_points=int(kept))

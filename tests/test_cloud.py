@@ -137,7 +137,7 @@ def test_clean_cloud_equals_the_stages_run_by_hand(scene):
     params = LEVEL
     cloud = clean_cloud(depth, INTR, params)
     grid = depth_voxel_grid(depth, INTR, params.leaf_m, min_depth_m=params.min_depth_m,
-                            max_depth_m=params.max_depth_m).grid
+                            max_depth_m=params.max_depth_m).grid()
     inlier = statistical_outliers(grid.points, grid.keys, params.leaf_m, params.outlier_k,
                                   params.outlier_alpha, params.outlier_cap_leaves)
     plane = fit_plane_ransac(grid.points[inlier], params.plane_distance_m,

@@ -40,7 +40,8 @@ def twin_depth_voxel_grid(depth, intr, leaf, min_depth_m, max_depth_m, limit=Non
 def assert_matches_twin(depth, intr=INTR, leaf=0.03, limits=(0.4, 5.0)):
     got = depth_voxel_grid(depth, intr, leaf, min_depth_m=limits[0], max_depth_m=limits[1])
     centroids, counts, keys, inverse, kept = twin_depth_voxel_grid(depth, intr, leaf, *limits)
-    grid = got.grid
+    grid = got.grid()
+    assert len(got) == len(grid) and got.leaf_m == leaf
     assert grid.points.dtype == np.float32 and grid.inverse.dtype == np.int32
     assert grid.inverse.shape == (depth.size,)
     np.testing.assert_array_equal(grid.keys, keys)
@@ -93,10 +94,12 @@ def test_small_band_limits_match_twin(limit):
     intr = Intrinsics(640, 60, 525.0, 525.0, 319.5, 29.5)
     args = depth_kernel_args(depth, intr, 0.4, 5.0)
     bits = voxel_table_size(640)[0]
-    centroids, counts, keys, inverse, kept = _depth_voxel_kernel(*args, 1.0 / 0.02, bits, limit)
+    centroids, counts, keys, pixel_record, record_voxel, kept = _depth_voxel_kernel(
+        *args, 1.0 / 0.02, bits, limit)
     want = twin_depth_voxel_grid(depth, intr, 0.02, 0.4, 5.0, limit)
     np.testing.assert_array_equal(keys, want[2])
     np.testing.assert_array_equal(counts, want[1])
+    inverse = np.where(pixel_record >= 0, record_voxel[np.maximum(pixel_record, 0)], -1)
     np.testing.assert_array_equal(inverse, want[3])
     np.testing.assert_array_equal(centroids, want[0])
     assert kept == want[4]
@@ -104,7 +107,7 @@ def test_small_band_limits_match_twin(limit):
 
 def test_same_voxels_as_the_two_separate_stages():
     depth = room_depth()
-    got = depth_voxel_grid(depth, INTR, 0.03, min_depth_m=0.4, max_depth_m=5.0).grid
+    got = depth_voxel_grid(depth, INTR, 0.03, min_depth_m=0.4, max_depth_m=5.0).grid()
     points, pixels = depth_to_points(depth, INTR, min_depth_m=0.4, max_depth_m=5.0)
     want = voxel_grid(points, 0.03)
     np.testing.assert_array_equal(got.keys, want.keys)
@@ -121,14 +124,14 @@ def test_wide_and_tiny_images():
     one = np.zeros((1, 1), np.uint16)
     one[0, 0] = 1234
     got = assert_matches_twin(one, Intrinsics(1, 1, 525.0, 525.0, 0.0, 0.0))
-    np.testing.assert_array_equal(got.grid.points, np.float32([[0.0, 0.0, 1.234]]))
+    np.testing.assert_array_equal(got.points, np.float32([[0.0, 0.0, 1.234]]))
 
 
 def test_empty_and_all_invalid_frames():
     for depth in (np.zeros((480, 640), np.uint16), np.full((480, 640), 9000, np.uint16)):
         got = assert_matches_twin(depth)
-        assert len(got.grid) == 0 and got.n_points == 0
-        assert np.all(got.grid.inverse == -1)
+        assert len(got) == 0 and got.n_points == 0
+        assert np.all(got.pixel_voxel() == -1)
 
 
 def test_tiny_leaf_drops_what_a_key_cannot_hold():
@@ -137,7 +140,7 @@ def test_tiny_leaf_drops_what_a_key_cannot_hold():
     depth[0, 0] = 1000
     got = assert_matches_twin(depth, Intrinsics(6, 4, 525.0, 525.0, 2.5, 1.5), leaf=1e-5,
                               limits=(0.0, 65.535))
-    assert got.n_points == 1 and np.count_nonzero(got.grid.inverse >= 0) == 1
+    assert got.n_points == 1 and np.count_nonzero(got.pixel_voxel() >= 0) == 1
 
 
 def test_non_contiguous_depth_is_accepted():

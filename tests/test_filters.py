@@ -12,6 +12,7 @@ from robot_change.errors import InputError
 from robot_change.filters import (
     KEY_MAX_INDEX,
     KEY_MIN_INDEX,
+    RANSAC_BAIL_SIGMAS,
     RANSAC_SAMPLE,
     VOXEL_CHUNK,
     Plane,
@@ -421,10 +422,12 @@ def test_statistical_outliers_rejects_mismatched_keys():
 # RANSAC plane
 
 
-def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0, sample=None):
+def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0, sample=None,
+                bail_sigmas=RANSAC_BAIL_SIGMAS):
     """Plain NumPy loop over the same triples, each scored on the sample rows (all rows when
-    None); first strictly best wins; the classic adaptive stop once
-    t + 1 >= log(1 - confidence) / log(1 - w**3), w = best count / sample size."""
+    None) block by block (256 rows), dropped when it can no longer win or its count falls below
+    n w - bail_sigmas sqrt(n w (1 - w)) - 1; first strictly best wins; the classic adaptive stop
+    once t + 1 >= log(1 - confidence) / log(1 - w**3), w = best count / sample size."""
     full = points.astype(np.float64)
     p = full if sample is None else full[sample]
     use_up = bool(np.any(up != 0))
@@ -444,7 +447,19 @@ def twin_ransac(points, triples, distance, up, cos_min, confidence=1.0, sample=N
         if ok:
             d = -(n[0] * full[a, 0] + n[1] * full[a, 1] + n[2] * full[a, 2])
             r = n[0] * p[:, 0] + n[1] * p[:, 1] + n[2] * p[:, 2] + d
-            count = int(np.count_nonzero(np.abs(r) <= distance))
+            hits = np.abs(r) <= distance
+            count = 0
+            for start in range(0, len(p), 256):
+                count += int(np.count_nonzero(hits[start:start + 256]))
+                done = min(len(p), start + 256)
+                if count + (len(p) - done) <= best[1]:
+                    count = -1
+                    break
+                if best[1] > 0:
+                    w = best[1] / len(p)
+                    if count < done * w - bail_sigmas * math.sqrt(done * w * (1 - w)) - 1:
+                        count = -1
+                        break
             if count > best[1]:
                 best = (t, count, n, d)
                 w3 = (count / len(p)) ** 3
@@ -471,10 +486,11 @@ def plane_scene(n_plane=3000, n_clutter=1500, normal=(0.1, -0.9, -0.4), offset=1
     return points, truth, normal
 
 
+@pytest.mark.parametrize("bail", [RANSAC_BAIL_SIGMAS, 0.0, math.inf])
 @pytest.mark.parametrize("sample_size", [None, 1000])
 @pytest.mark.parametrize("use_up", [False, True])
 @pytest.mark.parametrize("confidence", [1.0, 0.999, 0.5])
-def test_ransac_kernel_matches_twin(use_up, confidence, sample_size):
+def test_ransac_kernel_matches_twin(use_up, confidence, sample_size, bail):
     # the subsample cases draw from their own generator: the module RNG's sequence, which the
     # later tests' data depend on, stays as it was
     points, _, _ = plane_scene(1500, 3000, rng=np.random.default_rng(3) if sample_size else None)
@@ -486,11 +502,11 @@ def test_ransac_kernel_matches_twin(use_up, confidence, sample_size):
     if sample_size:
         assert len(sample) == sample_size and len(np.unique(sample)) == sample_size
     else:
-        np.testing.assert_array_equal(sample, np.arange(len(points)))
+        np.testing.assert_array_equal(np.sort(sample), np.arange(len(points)))
     t, count, n, d, tried = _ransac_kernel(points, sample, triples, 0.01, up, cos_min,
-                                           confidence)
+                                           confidence, bail)
     wt, wcount, wn, wd, wtried = twin_ransac(points, triples, 0.01, up, cos_min, confidence,
-                                             sample)
+                                             sample, bail)
     assert (t, count, tried) == (wt, wcount, wtried) and t >= 0
     np.testing.assert_array_equal(n, wn)
     assert d == wd
@@ -522,7 +538,8 @@ def test_fit_plane_uses_the_triples_drawn_from_the_seed():
     points, _, _ = plane_scene(400, 800)
     plane = fit_plane_ransac(points, 0.01, 50, seed=9)
     triples = ransac_triples(len(points), 50, 9)
-    t, count, n, d, tried = twin_ransac(points, triples, 0.01, np.zeros(3), 0.0, 0.999)
+    t, count, n, d, tried = twin_ransac(points, triples, 0.01, np.zeros(3), 0.0, 0.999,
+                                        ransac_sample(len(points)))
     assert t >= 0 and plane.iterations == tried
     # the refit may only gain inliers over the best triple's plane
     assert plane.n_inliers >= count
@@ -534,7 +551,9 @@ def test_fit_plane_scores_on_the_subsample():
     points, truth, normal = plane_scene(9000, 6000, rng=np.random.default_rng(12))
     assert len(points) > RANSAC_SAMPLE
     sample = ransac_sample(len(points))
-    assert len(sample) == RANSAC_SAMPLE and np.all(np.diff(sample) > 0)
+    assert len(sample) == RANSAC_SAMPLE and len(np.unique(sample)) == RANSAC_SAMPLE
+    np.testing.assert_array_equal(np.sort(sample), np.arange(RANSAC_SAMPLE) * len(points)
+                                  // RANSAC_SAMPLE)
     plane = fit_plane_ransac(points, 0.01, 200, seed=2, min_inliers=100)
     triples = ransac_triples(len(points), 200, 2)
     t, count, n, d, tried = twin_ransac(points, triples, 0.01, np.zeros(3), 0.0, 0.999, sample)
@@ -632,6 +651,8 @@ def test_remove_plane():
         (dict(up=(0, -1, 0), max_tilt_deg=95), "max_tilt_deg"),
         (dict(confidence=0.0), "confidence"),
         (dict(confidence=1.5), "confidence"),
+        (dict(bail_sigmas=-1.0), "bail_sigmas"),
+        (dict(bail_sigmas=float("nan")), "bail_sigmas"),
     ],
 )
 def test_fit_plane_rejects_bad_parameters(kwargs, message):
