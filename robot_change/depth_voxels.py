@@ -138,12 +138,13 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
             kept += 1
             slot = slots[u]
             r = table[slot]
-            if not (r >= first and rec_keys[r] == key):
+            if not (r >= first and rec_keys[np.uint64(r)] == key):
                 r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
-            rec[r, 0] += xs[u]
-            rec[r, 1] += ys[u]
-            rec[r, 2] += zs[u]
-            rec[r, 3] += 1.0
+            at = np.uint64(r)  # unsigned: no negative-index fix-up
+            rec[at, 0] += xs[u]
+            rec[at, 1] += ys[u]
+            rec[at, 2] += zs[u]
+            rec[at, 3] += 1.0
             inverse[base + u] = r
     centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
     return centroids, counts, voxel_keys, inverse, record_voxel, kept

@@ -219,13 +219,14 @@ def _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p):
         row = table[slot]
         if row < first:
             table[slot] = p
-            rec_keys[p] = key
-            rec[p, 0] = 0.0
-            rec[p, 1] = 0.0
-            rec[p, 2] = 0.0
-            rec[p, 3] = 0.0
+            at = np.uint64(p)  # unsigned indices: no negative-index fix-up
+            rec_keys[at] = key
+            rec[at, 0] = 0.0
+            rec[at, 1] = 0.0
+            rec[at, 2] = 0.0
+            rec[at, 3] = 0.0
             return p, p + 1
-        if rec_keys[row] == key:
+        if rec_keys[np.uint64(row)] == key:
             return row, p
         slot = (slot + np.uint64(1)) & tmask
 
@@ -303,7 +304,7 @@ def _merge_records(rec_keys, rec, p):
             sy = 0.0
             sz = 0.0
             sc = 0.0
-        q = order[j]
+        q = np.uint64(order[j])
         sx += rec[q, 0]
         sy += rec[q, 1]
         sz += rec[q, 2]
@@ -380,12 +381,13 @@ def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
                 continue
             slot = slots[i]
             r = table[slot]
-            if not (r >= first and rec_keys[r] == key):
+            if not (r >= first and rec_keys[np.uint64(r)] == key):
                 r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
-            rec[r, 0] += xs[i]
-            rec[r, 1] += ys[i]
-            rec[r, 2] += zs[i]
-            rec[r, 3] += 1.0
+            at = np.uint64(r)  # unsigned: no negative-index fix-up
+            rec[at, 0] += xs[i]
+            rec[at, 1] += ys[i]
+            rec[at, 2] += zs[i]
+            rec[at, 3] += 1.0
             part_inverse[i] = r
     centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
     for i in range(n):
@@ -439,9 +441,10 @@ def voxel_grid(points: np.ndarray, leaf_m: float) -> VoxelGrid:
 def _push_best(best, i, k, d):
     """Insert d into row i of best (ascending, k long), dropping the largest: a branch-free
     min/max pass (the values are unchanged, only placed)."""
+    row = np.uint64(i)  # an unsigned index spares numba's negative-index fix-up
     for j in range(k):
-        b = best[i, j]
-        best[i, j] = min(b, d)
+        b = best[row, j]
+        best[row, j] = min(b, d)
         d = max(b, d)
 
 
@@ -495,16 +498,18 @@ def _knn_pairs(xs, ys, zs, ix, col_key, col_start, n_col, best, k):
             j = col_start[q]
             for i in range(a0, a1):
                 xi = ix[i]
-                while j < b1 and ix[j] < xi - 1:
+                while j < b1 and ix[np.uint64(j)] < xi - 1:
                     j += 1
                 x = xs[i]
                 y = ys[i]
                 z = zs[i]
                 p = j
-                while p < b1 and ix[p] <= xi + 1:
-                    dx = x - xs[p]
-                    dy = y - ys[p]
-                    dz = z - zs[p]
+                # unsigned indices: no negative-index fix-up in the innermost loop
+                while p < b1 and ix[np.uint64(p)] <= xi + 1:
+                    at = np.uint64(p)
+                    dx = x - xs[at]
+                    dy = y - ys[at]
+                    dz = z - zs[at]
                     d2 = dx * dx + dy * dy + dz * dz
                     _push_best(best, i, k, d2)
                     _push_best(best, p, k, d2)
