@@ -21,11 +21,11 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change.filters import (
     _KEY_OFFSET,
-    KEY_BITS,
     VoxelGrid,
+    _accumulate_row,
     _check_positive,
     _merge_records,
-    _voxel_insert,
+    _pack_key,
     _voxel_slot,
     voxel_table_size,
 )
@@ -123,29 +123,12 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
             ok = ((d > 0) & (d >= min_mm) & (d <= max_mm)
                   & (lo <= kfx) & (kfx <= hi) & (lo <= kfy) & (kfy <= hi)
                   & (lo <= kfz) & (kfz <= hi))
-            kx = np.int64(np.int32(kfx if ok else 0.0)) + _KEY_OFFSET
-            ky = np.int64(np.int32(kfy if ok else 0.0)) + _KEY_OFFSET
-            kz = np.int64(np.int32(kfz if ok else 0.0)) + _KEY_OFFSET
-            key = (kz << (2 * KEY_BITS)) | (ky << KEY_BITS) | kx
-            keys[u] = key if ok else -1
-            slots[u] = _voxel_slot(key, tshift)
+            keys[u] = _pack_key(kfx, kfy, kfz, ok)
+            slots[u] = _voxel_slot(keys[u], tshift)
         base = v * width
-        for u in range(width):
-            key = keys[u]
-            if key < 0:
-                inverse[base + u] = -1
-                continue
-            kept += 1
-            slot = slots[u]
-            r = table[slot]
-            if not (r >= first and rec_keys[np.uint64(r)] == key):
-                r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
-            at = np.uint64(r)  # unsigned: no negative-index fix-up
-            rec[at, 0] += xs[u]
-            rec[at, 1] += ys[u]
-            rec[at, 2] += zs[u]
-            rec[at, 3] += 1.0
-            inverse[base + u] = r
+        p, added = _accumulate_row(keys, slots, xs, ys, zs, width, inverse[base:base + width],
+                                   table, tmask, rec_keys, rec, first, p)
+        kept += added
     centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
     return centroids, counts, voxel_keys, inverse, record_voxel, kept
 

@@ -231,6 +231,43 @@ def _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p):
         slot = (slot + np.uint64(1)) & tmask
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pack_key(fx, fy, fz, ok):
+    """Packed key of floored voxel indices (float64, in the key range when ``ok``), -1 when
+    not ``ok``.  The index fits 21 bits, so the int32 conversion vectorises."""
+    kx = np.int64(np.int32(fx if ok else 0.0)) + _KEY_OFFSET
+    ky = np.int64(np.int32(fy if ok else 0.0)) + _KEY_OFFSET
+    kz = np.int64(np.int32(fz if ok else 0.0)) + _KEY_OFFSET
+    key = (kz << (2 * KEY_BITS)) | (ky << KEY_BITS) | kx
+    return key if ok else np.int64(-1)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _accumulate_row(keys, slots, xs, ys, zs, n, out, table, tmask, rec_keys, rec, first, p):
+    """Add the first ``n`` points of a row (keys (n,) int64, -1 = none; home slots; float64
+    coordinates) to the current band's records: a hit in the home slot is the fast path, else
+    :func:`_voxel_insert`.  ``out[i]`` gets the record of point i (-1 = none).  Returns
+    (new p, points added)."""
+    added = 0
+    for i in range(n):
+        key = keys[i]
+        if key < 0:
+            out[i] = -1
+            continue
+        added += 1
+        slot = slots[i]
+        r = table[slot]
+        if not (r >= first and rec_keys[np.uint64(r)] == key):
+            r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
+        at = np.uint64(r)  # unsigned indices spare numba's negative-index fix-up
+        rec[at, 0] += xs[i]
+        rec[at, 1] += ys[i]
+        rec[at, 2] += zs[i]
+        rec[at, 3] += 1.0
+        out[i] = r
+    return p, added
+
+
 @numba.njit(cache=True, nogil=True)
 def _merge_records(rec_keys, rec, p):
     """Records -> voxels: (centroids (M, 3) float32, counts (M,) int32, keys (M,) int64
@@ -366,29 +403,11 @@ def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
             fz = np.floor(zs[i] * inv_leaf)
             # NaN fails every comparison, inf fails the range: both dropped
             ok = (lo <= fx) & (fx <= hi) & (lo <= fy) & (fy <= hi) & (lo <= fz) & (fz <= hi)
-            # the index fits 21 bits: an int32 conversion vectorises
-            kx = np.int64(np.int32(fx if ok else 0.0)) + _KEY_OFFSET
-            ky = np.int64(np.int32(fy if ok else 0.0)) + _KEY_OFFSET
-            kz = np.int64(np.int32(fz if ok else 0.0)) + _KEY_OFFSET
-            key = (kz << (2 * KEY_BITS)) | (ky << KEY_BITS) | kx
-            keys[i] = key if ok else -1
-            slots[i] = _voxel_slot(key, tshift)
+            keys[i] = _pack_key(fx, fy, fz, ok)
+            slots[i] = _voxel_slot(keys[i], tshift)
         # 1b. look up and accumulate
-        for i in range(part.shape[0]):
-            key = keys[i]
-            if key < 0:
-                part_inverse[i] = -1
-                continue
-            slot = slots[i]
-            r = table[slot]
-            if not (r >= first and rec_keys[np.uint64(r)] == key):
-                r, p = _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p)
-            at = np.uint64(r)  # unsigned: no negative-index fix-up
-            rec[at, 0] += xs[i]
-            rec[at, 1] += ys[i]
-            rec[at, 2] += zs[i]
-            rec[at, 3] += 1.0
-            part_inverse[i] = r
+        p, _ = _accumulate_row(keys, slots, xs, ys, zs, part.shape[0], part_inverse, table,
+                               tmask, rec_keys, rec, first, p)
     centroids, counts, voxel_keys, record_voxel = _merge_records(rec_keys, rec, p)
     for i in range(n):
         r = inverse[i]
