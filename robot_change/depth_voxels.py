@@ -23,6 +23,7 @@ from robot_change.filters import (
     _KEY_OFFSET,
     VoxelGrid,
     _accumulate_row,
+    _band_workspace,
     _check_positive,
     _merge_records,
     _pack_key,
@@ -83,13 +84,7 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
     as the row of the band rule (see :func:`robot_change.filters._voxel_kernel`).
     """
     height, width = depth.shape
-    n = height * width
-    inverse = np.empty(n, dtype=np.int32)
-    tmask = np.uint64((1 << tbits) - 1)
-    tshift = np.uint64(64 - tbits)
-    table = np.full(1 << tbits, -1, dtype=np.int32)
-    rec_keys = np.empty(n, dtype=np.int64)
-    rec = np.empty((n, 4), dtype=np.float64)
+    inverse, tmask, tshift, table, rec_keys, rec = _band_workspace(height * width, tbits)
     du = np.empty(width, dtype=np.float64)
     for u in range(width):
         du[u] = (u - cx) / fx

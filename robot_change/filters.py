@@ -232,6 +232,16 @@ def _voxel_insert(key, slot, table, tmask, rec_keys, rec, first, p):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _band_workspace(n, tbits):
+    """Scratch of the voxel kernels for up to ``n`` points: (per-point records (n,) int32,
+    table mask, hash shift, empty table (2**tbits,) int32, record keys (n,) int64, records
+    (n, 4) float64).  At most one record per point; pages never touched cost nothing."""
+    return (np.empty(n, dtype=np.int32), np.uint64((1 << tbits) - 1), np.uint64(64 - tbits),
+            np.full(1 << tbits, -1, dtype=np.int32), np.empty(n, dtype=np.int64),
+            np.empty((n, 4), dtype=np.float64))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _pack_key(fx, fy, fz, ok):
     """Packed key of floored voxel indices (float64, in the key range when ``ok``), -1 when
     not ``ok``.  The index fits 21 bits, so the int32 conversion vectorises."""
@@ -370,13 +380,7 @@ def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
     points in that band, in point order (the tests' twin does the same).
     """
     n = points.shape[0]
-    inverse = np.empty(n, dtype=np.int32)
-    tmask = np.uint64((1 << tbits) - 1)
-    tshift = np.uint64(64 - tbits)
-    table = np.full(1 << tbits, -1, dtype=np.int32)
-    # at most one record per point; pages never touched cost nothing
-    rec_keys = np.empty(n, dtype=np.int64)
-    rec = np.empty((n, 4), dtype=np.float64)
+    inverse, tmask, tshift, table, rec_keys, rec = _band_workspace(n, tbits)
     lo = np.float64(-_KEY_OFFSET)
     hi = np.float64(_KEY_OFFSET - 1)
     keys = np.empty(min(n, chunk), dtype=np.int64)
