@@ -114,7 +114,8 @@ def plot(summary: dict, path: Path) -> None:
         rest = summary[name]["preprocess_ms"] - left
         ax.barh(row, rest, left=left, color="#bdbdbd", label="bookkeeping" if row else None)
         ax.text(summary[name]["preprocess_ms"] + 0.1, row,
-                f"{summary[name]['preprocess_ms']:.2f} ms", va="center")
+                f"{summary[name]['preprocess_ms']:.2f} ms", va="center",
+                bbox={"facecolor": "white", "edgecolor": "none", "pad": 1})
     ax.axvline(5.0, color="k", ls="--", lw=1)
     ax.set_xlim(0, 1.18 * max(summary[name]["preprocess_ms"] for name in ("other", "this")))
     ax.set_yticks([0, 1], ["before", "now"])
