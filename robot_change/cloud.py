@@ -176,9 +176,9 @@ def _take_rows(points, rows):
 def _finish(points, keys, counts, kept_rows, on_plane, pixel_record, record_voxel):
     """The clean cloud and the pixel maps, in two passes.
 
-    ``points`` (V, 3), ``keys`` (V,), ``counts`` (V,): the voxel grid; ``kept_rows`` (R,)
-    int64 ascending: the voxels outlier removal kept; ``on_plane`` (R,) bool: which of those
-    the plane took; ``pixel_record`` (P,) int32 and ``record_voxel`` (R,) int32: each pixel's
+    ``points`` (V, 3), ``keys`` (V,), ``counts`` (V,): the voxel grid; ``kept_rows`` (K,)
+    int64 ascending: the voxels outlier removal kept; ``on_plane`` (K,) bool: which of those
+    the plane took; ``pixel_record`` (P,) int32 and ``record_voxel`` (Q,) int32: each pixel's
     voxel in two steps (:class:`robot_change.depth_voxels.DepthVoxels`).  Returns
     (points (M, 3), keys (M,), counts (M,), pixel rows (P,) int32 with -1 for none, pixel
     stages (P,) uint8).

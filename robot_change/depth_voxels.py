@@ -5,8 +5,8 @@
 in float64 in point order), without writing the (N, 3) points out and reading them back: each
 image row is back-projected into row buffers and goes straight into the voxel hash.  The one
 difference is where the hash bands end (at image rows here, at chunks of points there), which
-can move a centroid by one float32 rounding step.  On a dense VGA
-frame this saves about a quarter of the two steps' time (docs/benchmarks.md).
+can move a centroid by one float32 rounding step.  On a dense VGA frame this saves about a fifth
+of the two steps' time (docs/benchmarks.md).
 
 Numeric module: arrays in, arrays out; no I/O, no logging, no global state.
 """

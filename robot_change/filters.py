@@ -123,9 +123,9 @@ VOXEL_CHUNK = 512
 #: Smallest hash table of a voxel band, in slots (int32 record numbers: 64 KiB).
 VOXEL_TABLE_MIN_SLOTS = 1 << 14
 
-#: Largest radix digit in :func:`_radix_order`: 2**12 counters (32 KiB) stay in L1, and a room's
-#: codes (22 bits at a 3 cm leaf, 23-24 at 2 cm) take two passes (at 2 cm, 11-bit digits took
-#: three).
+#: Largest radix digit in :func:`_radix_order`: 2**12 int32 counters (16 KiB) stay in L1, and
+#: a room's codes (22 bits at a 3 cm leaf, 23-24 at 2 cm) take two passes (at 2 cm, 11-bit
+#: digits took three).  int32 counters: the sort ran 2.5x faster than with int64 ones.
 _RADIX_DIGIT = 12
 
 
@@ -1028,11 +1028,13 @@ def fit_plane_ransac(
 
     Up to ``iterations`` triples of distinct points, drawn by :func:`ransac_triples` (NumPy's
     ``default_rng(seed)``), are scored in order by :func:`_ransac_kernel` on the fixed subsample
-    :func:`ransac_sample` (``RANSAC_SAMPLE`` evenly strided rows: preemptive RANSAC; inliers
-    within ``distance_m``; with ``up`` and ``max_tilt_deg``, only planes whose normal is within
-    ``max_tilt_deg`` of ``up`` count; adaptive stop at ``confidence``, with the inlier fraction
-    measured on the subsample).  Only the winner's inliers are counted on all points; it needs
-    ``min_inliers`` of them.  It is then refitted to its inliers (normal = eigenvector of the smallest eigenvalue of their covariance, through
+    :func:`ransac_sample` (``RANSAC_SAMPLE`` evenly strided rows in a fixed random order:
+    preemptive RANSAC; inliers within ``distance_m``; a triple dropped early when its partial
+    count falls ``bail_sigmas`` below the best fraction; with ``up`` and ``max_tilt_deg``, only
+    planes whose normal is within ``max_tilt_deg`` of ``up`` count; adaptive stop at
+    ``confidence``, with the inlier fraction measured on the subsample).  Only the winner's
+    inliers are counted on all points; it needs ``min_inliers`` of them.  It is then refitted to
+    its inliers (normal = eigenvector of the smallest eigenvalue of their covariance, through
     their centroid) and its inliers are counted again; the refit is kept when it still meets the
     tilt limit and has at least as many inliers.
 
