@@ -246,7 +246,7 @@ class BaseSim:
         self.t0 = clock()
         self.log: list[Entry] = []
         self.cursor = 0  # just past the entry the last ``expect`` matched
-        self.mark = 0  # len(log) when the last script command was sent
+        self.mark = 0  # len(log) when the last command was sent
         self.consumed: set[int] = set()  # entries an ``expect`` already matched
         self.assembler = ReportAssembler()
         self.motion = Motion.PARKED
@@ -355,6 +355,7 @@ class BaseSim:
         """Carry out one interactive command; False on quit.  InputError when it is wrong."""
         verb, args, message = parse_command(line)
         if message is not None:
+            self.mark = len(self.log)  # expect() looks at what arrives from here on
             seq = self.runner.send(message)
             self.say(f"-> {describe(message)}  (seq {seq})")
         elif verb == "motion":

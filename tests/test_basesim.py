@@ -210,3 +210,21 @@ def test_expect_takes_the_replies_to_one_command_in_any_order_and_never_twice():
     assert sim.expect("BASE", {"paused": "1"}, 0.0) is not None  # ... and is still found
     assert sim.expect("BASE", {"paused": "1"}, 0.0) is None  # but only once
     assert sim.expect("PAUSE", {}, 0.0) is None
+
+
+def test_expect_after_a_programmatic_command_ignores_what_came_before_it():
+    """BaseSim.command (as robot-change demo sends) marks the log like a script line does: an
+    old heartbeat that matches must not answer for the command sent after it."""
+    import io
+
+    from hw.serial_port import open_port
+    from robot_change.basesim import BaseSim
+
+    sim = BaseSim(open_port("loop://"), out=io.StringIO())
+    sim._record("HEARTBEAT", p.Heartbeat(p.ModuleState.IDLE, paused=False))  # long ago
+    sim._record("PAUSE", p.Pause(p.PauseCause.CHANGE_CHECK))
+    assert sim.expect("PAUSE", {}, 0.0) is not None
+    sim.command("resume")
+    assert sim.expect("HEARTBEAT", {"paused": "0"}, 0.0) is None
+    sim._record("HEARTBEAT", p.Heartbeat(p.ModuleState.IDLE, paused=False))
+    assert sim.expect("HEARTBEAT", {"paused": "0"}, 0.0) is sim.log[-1]

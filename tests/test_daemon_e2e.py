@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -184,6 +185,10 @@ def test_demo_runs_the_daemon_and_shows_the_pause_and_the_report(tmp_path: Path)
                  "base <- CHANGE_REPORT", "appeared:", "daemon stopped by SIGTERM, exit status 0"):
         assert line in text, text
     assert text.index("PAUSE") < text.index("CHANGE_REPORT")
+    # every reply came after the command it answers (a stale one would show a negative time)
+    times = [int(t) for t in re.findall(r"\((-?\d+) ms\)", text)]
+    assert times and min(times) >= 0, text
+    assert "base <- HEARTBEAT" in text[text.index("base -> RESUME"):], text
     picture = (tmp_path / "report.png").read_bytes()
     assert picture.startswith(b"\x89PNG\r\n\x1a\n") and len(picture) > 20_000
     assert time.monotonic() - started < 60
