@@ -724,3 +724,18 @@ def test_fuse_depth_known_values():
 def test_fuse_depth_rejects_bad_input(stack, min_valid, message):
     with pytest.raises(InputError, match=message):
         fuse_depth(stack, min_valid)
+
+
+@pytest.mark.parametrize("m, iterations, seed", [(3, 50, 0), (7, 200, 3), (35_000, 1000, 0)])
+def test_ransac_triples_match_twin(m, iterations, seed):
+    """The numba triple kernel against NumPy: scaled uniforms, then the shifts past the rows
+    already taken."""
+    u = np.random.default_rng(seed).random((iterations, 3))
+    a = np.minimum(np.floor(u[:, 0] * m).astype(np.int64), m - 1)
+    b = np.minimum(np.floor(u[:, 1] * (m - 1)).astype(np.int64), m - 2)
+    c = np.minimum(np.floor(u[:, 2] * (m - 2)).astype(np.int64), m - 3)
+    b = b + (b >= a)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    c = c + (c >= lo)
+    c = c + (c >= hi)
+    np.testing.assert_array_equal(ransac_triples(m, iterations, seed), np.stack([a, b, c], 1))
