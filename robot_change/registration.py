@@ -1,0 +1,746 @@
+"""Registration of the current view to the station's reference: where the camera stands now.
+
+ALGORITHM.md section 4, as built (docs/algorithm.md, "Registration"): projective point-to-plane
+ICP of the current depth image against the reference's fused depth image, as KinectFusion tracks
+a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
+
+* **vertex maps by block averaging of 3-D points** (not of depths): a cell of a level is the
+  mean of the back-projected readings of its ``f x f`` block that lie within a depth band of the
+  block's nearest reading (a depth edge does not blend fore- and background).  Averaging over a
+  block also smooths out the Kinect's disparity quantisation terraces, the trap of
+  ALGORITHM.md section 4 (two clouds' terraces line up better than their surfaces);
+* **normals** from central differences of the vertex map, refused across depth edges;
+* **projective association**: a current cell, moved by the estimate, is projected into the
+  reference level and paired with the cell it lands on, if the two are within a distance that
+  shrinks level by level and their normals agree;
+* **weights**: residuals are divided by the depth noise at the point (Kinect axial noise plus
+  quantisation, both growing with z^2, so near surfaces count more), then a Tukey kernel with
+  a scale from the median absolute residual: the change is what does not fit;
+* **degeneracy**: the 6x6 normal matrix, rotations scaled by the cloud's radius to metres, is
+  decomposed; directions with little information (a bare wall leaves translations along it
+  free) are not moved along and are reported (Zhang, Kaess & Singh 2016);
+* **fitness**: the fraction of current cells with an inlier correspondence at the end, and the
+  RMSE of those.  Low fitness, or an offset beyond the station tolerance, is "not at the
+  station", a different answer from "changed" (decided in :mod:`robot_change.change`).
+
+The floor stays in: registration runs on the depth images, before plane removal.
+
+Numeric module: arrays in, arrays out.  Kernels are ``@njit(cache=True, nogil=True)`` with NumPy
+twins in ``tests/test_registration.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from typing import Any
+
+import numba
+import numpy as np
+
+from hw.depth import Intrinsics
+from robot_change import validate
+from robot_change.errors import InputError
+
+__all__ = [
+    "AXES",
+    "Registration",
+    "RegistrationParams",
+    "depth_sigma",
+    "identity_registration",
+    "register_depth",
+    "rotation_to_rpy_deg",
+    "transform_points",
+]
+
+#: Names of the six directions of the estimate, camera optical frame: translations along
+#: x (right), y (down), z (forward), rotations about them.
+AXES = ("x", "y", "z", "rot_x", "rot_y", "rot_z")
+
+_num = functools.partial(validate.number, "RegistrationParams")
+_int = functools.partial(validate.whole, "RegistrationParams")
+_bool = functools.partial(validate.flag, "RegistrationParams")
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationParams:
+    """Parameters of :func:`register_depth`, validated on construction.
+
+    ``levels``: pyramid factors, coarse to fine (a level of factor f has (H/f) x (W/f) cells);
+    ``iterations`` per level; ``max_distance_m`` per level: correspondences farther apart are
+    not paired.  The defaults cover offsets of 15 cm and 6 degrees (docs/algorithm.md).
+    """
+
+    # Register at all (False: the identity, for cameras bolted in place, and to measure).
+    enabled: bool = True
+    levels: tuple[int, ...] = (16, 8, 4)
+    iterations: tuple[int, ...] = (12, 10, 6)
+    max_distance_m: tuple[float, ...] = (0.35, 0.15, 0.06)
+    # After the level of index search_level (0 = coarsest), translations along the two least
+    # constrained translation directions (this step, out to this reach) are scored by their
+    # inlier count and ICP goes on from the best: rooms let ICP slide along the floor and
+    # walls (ALGORITHM.md section 4), and a yaw error is first taken up by a sideways slide.
+    search_level: int = 1
+    search_step_m: float = 0.05
+    search_reach_m: float = 0.4
+    # Normals of a pair must agree within this angle.
+    max_normal_angle_deg: float = 30.0
+    # A cell is the mean of the block's readings within this band of the reading at its
+    # centre: band = band_m + band_slope * (f * z / fx) (so a slanted floor's block is kept).
+    band_m: float = 0.03
+    band_slope: float = 2.0
+    # Tukey's constant, in units of the robust residual scale (4.685: 95 % efficiency).
+    tukey_c: float = 4.685
+    # A correspondence is an inlier (fitness, RMSE) within this many noise sigmas.
+    inlier_sigmas: float = 3.0
+    # Eigenvalues of the scaled normal matrix per unit weight below this are weak directions.
+    weak_eigenvalue: float = 1e-4
+    # Stop a level when the step is below this (metres; rotations times the cloud radius).
+    tol_m: float = 1e-5
+    # Station tolerance: fitness below min_fitness, a translation above max_translation_m or a
+    # rotation above max_rotation_deg is "not at the station".
+    min_fitness: float = 0.5
+    max_translation_m: float = 0.5
+    max_rotation_deg: float = 20.0
+    # Depth readings outside this range are not used (metres).
+    min_depth_m: float = 0.4
+    max_depth_m: float = 5.0
+
+    def __post_init__(self) -> None:
+        _bool("enabled", self.enabled)
+        n = len(self.levels) if isinstance(self.levels, tuple) else -1
+        for name in ("levels", "iterations", "max_distance_m"):
+            value = getattr(self, name)
+            if not isinstance(value, tuple) or len(value) != n or n < 1:
+                raise InputError(f"RegistrationParams.{name} must be a tuple of the same length "
+                                 f"as levels (>= 1), got {value!r}")
+        for f in self.levels:
+            _int("levels", f, 1, 64)
+        if any(a != 2 * b for a, b in zip(self.levels, self.levels[1:])):
+            raise InputError(f"RegistrationParams.levels={self.levels!r}: each factor must be "
+                             f"twice the next (coarse to fine), e.g. (16, 8, 4)")
+        for it in self.iterations:
+            _int("iterations", it, 0, 100)
+        for d in self.max_distance_m:
+            _num("max_distance_m", d, 0.0, 5.0, low_open=True, unit=" metres")
+        _int("search_level", self.search_level, 0, n - 1)
+        _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
+        _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
+        _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
+        _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
+        _num("band_slope", self.band_slope, 0.0, 100.0)
+        _num("tukey_c", self.tukey_c, 0.0, 100.0, low_open=True)
+        _num("inlier_sigmas", self.inlier_sigmas, 0.0, 100.0, low_open=True)
+        _num("weak_eigenvalue", self.weak_eigenvalue, 0.0, 1.0)
+        _num("tol_m", self.tol_m, 0.0, 1.0, low_open=True, unit=" metres")
+        _num("min_fitness", self.min_fitness, 0.0, 1.0)
+        _num("max_translation_m", self.max_translation_m, 0.0, 100.0, unit=" metres")
+        _num("max_rotation_deg", self.max_rotation_deg, 0.0, 180.0)
+        _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
+        _num("max_depth_m", self.max_depth_m, self.min_depth_m, 100.0, low_open=True,
+             unit=" metres")
+
+    def replace(self, **changes: Any) -> RegistrationParams:
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Registration:
+    """The estimated rigid transform between the two camera frames, and how far to trust it.
+
+    ``T_ref_from_cur`` (4, 4) float64 maps current camera-frame points into the reference
+    camera frame (metres).  ``fitness``: fraction of the current's cells with an inlier
+    correspondence (0..1); ``rmse_m`` of those residuals (point-to-plane).  ``weak``: names
+    (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
+    there is the starting value).  ``eigenvalues`` (6,) of the scaled normal matrix per unit
+    weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells`` current cells at the
+    finest level; ``iterations`` run; ``ms`` the time taken; ``converged``.
+    """
+
+    T_ref_from_cur: np.ndarray
+    fitness: float
+    rmse_m: float
+    weak: tuple[str, ...]
+    eigenvalues: np.ndarray
+    n_pairs: int
+    n_cells: int
+    iterations: int
+    converged: bool
+    ms: float
+
+    @property
+    def translation_m(self) -> np.ndarray:
+        """(3,) translation of ``T_ref_from_cur``: where the current camera stands in the
+        reference camera frame, metres."""
+        return self.T_ref_from_cur[:3, 3].copy()
+
+    @property
+    def rotation_deg(self) -> float:
+        """Angle of the rotation of ``T_ref_from_cur``, degrees."""
+        return rotation_angle_deg(self.T_ref_from_cur[:3, :3])
+
+    @property
+    def is_identity(self) -> bool:
+        return bool(np.array_equal(self.T_ref_from_cur, np.eye(4)))
+
+    def inverse(self) -> np.ndarray:
+        """(4, 4) ``T_cur_from_ref``."""
+        return invert(self.T_ref_from_cur)
+
+    def within(self, params: RegistrationParams) -> bool:
+        """True when fitness and offset are within the station tolerance of ``params``."""
+        return (self.fitness >= params.min_fitness
+                and float(np.linalg.norm(self.translation_m)) <= params.max_translation_m
+                and self.rotation_deg <= params.max_rotation_deg)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the transform, translation (m) and roll/pitch/yaw (deg) of
+        ``T_ref_from_cur`` in the camera optical frame, fitness, RMSE, weak directions, ms."""
+        return {
+            "T_ref_from_cur": [[round(float(v), 9) for v in row] for row in self.T_ref_from_cur],
+            "translation_m": [round(float(v), 5) for v in self.translation_m],
+            "rotation_deg": [round(float(v), 4)
+                             for v in rotation_to_rpy_deg(self.T_ref_from_cur[:3, :3])],
+            "fitness": round(self.fitness, 4),
+            "rmse_m": round(self.rmse_m, 5),
+            "weak_directions": list(self.weak),
+            "n_pairs": self.n_pairs,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "ms": round(self.ms, 3),
+        }
+
+
+def identity_registration(fitness: float = 1.0) -> Registration:
+    """The identity (registration switched off)."""
+    return Registration(np.eye(4), float(fitness), 0.0, (), np.ones(6), 0, 0, 0, True, 0.0)
+
+
+# --------------------------------------------------------------------------- small geometry
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """(4, 4) inverse of a rigid transform."""
+    out = np.eye(4)
+    R = T[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(M, 3) float32 ``points`` mapped by the (4, 4) rigid transform ``T``."""
+    p = np.asarray(points, dtype=np.float64)
+    return (p @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of the rotation matrix ``R`` (3, 3), degrees."""
+    c = (float(np.trace(R)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def rotation_to_rpy_deg(R: np.ndarray) -> np.ndarray:
+    """(3,) roll, pitch, yaw in degrees of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (angles about
+    the frame's x, y and z axes, the REP 103 convention)."""
+    pitch = math.asin(max(-1.0, min(1.0, -float(R[2, 0]))))
+    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    return np.degrees([roll, pitch, yaw])
+
+
+def rpy_deg_to_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``, angles in degrees."""
+    r, p, y = (math.radians(a) for a in (roll, pitch, yaw))
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), \
+        math.cos(y), math.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: (3, 3) rotation of the rotation vector ``w`` (radians)."""
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = w / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+
+
+@numba.njit(cache=True, nogil=True)
+def depth_sigma(z):
+    """Axial depth noise of a Kinect-class sensor at depth ``z`` (m), metres: the noise of
+    Nguyen et al. 2012, 0.0012 + 0.0019 (z - 0.4)^2, with the disparity quantisation step
+    2.85e-3 z^2 (Khoshelham & Oude Elberink 2012) added as a uniform error (step / sqrt 12)."""
+    noise = 0.0012 + 0.0019 * (z - 0.4) ** 2
+    quant = 2.85e-3 / math.sqrt(12.0) * z * z
+    return np.sqrt(noise * noise + quant * quant)
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@numba.njit(cache=True, nogil=True)
+def _vertex_level(depth, factor, fx, fy, cx, cy, min_mm, max_mm, band_m, band_slope):
+    """Vertex map of one pyramid level: (h, w, 3) float32 metres, h = H // factor.
+
+    Cell (i, j) is the mean of the back-projected readings of its block (rows i*f..i*f+f-1,
+    columns j*f..) that lie within ``band_m + band_slope * f * za / fx`` of the anchor za, the
+    mean reading of the block's central 2 x 2 pixels (a band symmetric about the surface at the
+    centre, so noise does not bias the mean); a cell with no central reading or fewer than
+    f*f/4 readings in the band is invalid (z = 0).
+    """
+    height, width = depth.shape
+    h = height // factor
+    w = width // factor
+    out = np.zeros((h, w, 3), dtype=np.float32)
+    count = np.zeros((h, w), dtype=np.int32)
+    need = max(1, (factor * factor) // 4)
+    half = factor // 2
+    for i in range(h):
+        for j in range(w):
+            # the anchor: mean of the valid readings of the block's central 2 x 2 (1 x 1)
+            za = 0.0
+            na = 0
+            for r in range(i * factor + max(half - 1, 0), i * factor + half + 1):
+                for c in range(j * factor + max(half - 1, 0), j * factor + half + 1):
+                    d = np.int64(depth[r, c])
+                    if d >= min_mm and d <= max_mm:
+                        za += d * 0.001
+                        na += 1
+            if na == 0:
+                continue
+            za /= na
+            band = band_m + band_slope * factor * za / fx
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            n = 0
+            for r in range(i * factor, i * factor + factor):
+                for c in range(j * factor, j * factor + factor):
+                    d = np.int64(depth[r, c])
+                    if d < min_mm or d > max_mm:
+                        continue
+                    z = d * 0.001
+                    if abs(z - za) > band:
+                        continue
+                    sx += (c - cx) * z / fx
+                    sy += (r - cy) * z / fy
+                    sz += z
+                    n += 1
+            if n >= need:
+                out[i, j, 0] = sx / n
+                out[i, j, 1] = sy / n
+                out[i, j, 2] = sz / n
+                count[i, j] = n
+    return out, count
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_level(vertex, count, band_m, band_slope_per_cell):
+    """The next coarser level: each 2 x 2 group of cells of (``vertex`` (h, w, 3), ``count``
+    (h, w) readings per cell) becomes one cell, the reading-weighted mean of the group's cells
+    that lie within ``band_m + band_slope_per_cell * za`` in depth of the anchor za (the mean
+    depth of the group's valid cells); a group with none valid, or fewer than a quarter of
+    its readings in the band, is invalid.  Returns (vertex (h//2, w//2, 3), count)."""
+    h = vertex.shape[0] // 2
+    w = vertex.shape[1] // 2
+    out = np.zeros((h, w, 3), dtype=np.float32)
+    out_count = np.zeros((h, w), dtype=np.int32)
+    for i in range(h):
+        for j in range(w):
+            za = 0.0
+            na = 0
+            total = 0
+            for r in range(2 * i, 2 * i + 2):
+                for c in range(2 * j, 2 * j + 2):
+                    if count[r, c] > 0:
+                        za += vertex[r, c, 2]
+                        na += 1
+                        total += count[r, c]
+            if na == 0:
+                continue
+            za /= na
+            band = band_m + band_slope_per_cell * za
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            n = 0
+            for r in range(2 * i, 2 * i + 2):
+                for c in range(2 * j, 2 * j + 2):
+                    k = count[r, c]
+                    if k > 0 and abs(vertex[r, c, 2] - za) <= band:
+                        sx += k * vertex[r, c, 0]
+                        sy += k * vertex[r, c, 1]
+                        sz += k * vertex[r, c, 2]
+                        n += k
+            if n > 0 and 4 * n >= total:
+                out[i, j, 0] = sx / n
+                out[i, j, 1] = sy / n
+                out[i, j, 2] = sz / n
+                out_count[i, j] = n
+    return out, out_count
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal_map(vertex, max_step):
+    """(h, w, 3) float32 unit normals (facing the camera) from central differences of the
+    vertex map; zero where a neighbour is missing or a difference is longer than
+    ``max_step * z`` (a depth edge)."""
+    h, w, _ = vertex.shape
+    out = np.zeros((h, w, 3), dtype=np.float32)
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            z = vertex[i, j, 2]
+            if z <= 0.0 or vertex[i, j - 1, 2] <= 0.0 or vertex[i, j + 1, 2] <= 0.0 or \
+                    vertex[i - 1, j, 2] <= 0.0 or vertex[i + 1, j, 2] <= 0.0:
+                continue
+            ax = vertex[i, j + 1, 0] - vertex[i, j - 1, 0]
+            ay = vertex[i, j + 1, 1] - vertex[i, j - 1, 1]
+            az = vertex[i, j + 1, 2] - vertex[i, j - 1, 2]
+            bx = vertex[i + 1, j, 0] - vertex[i - 1, j, 0]
+            by = vertex[i + 1, j, 1] - vertex[i - 1, j, 1]
+            bz = vertex[i + 1, j, 2] - vertex[i - 1, j, 2]
+            lim = max_step * z
+            if ax * ax + ay * ay + az * az > lim * lim or bx * bx + by * by + bz * bz > lim * lim:
+                continue
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if norm <= 0.0:
+                continue
+            if nx * vertex[i, j, 0] + ny * vertex[i, j, 1] + nz * vertex[i, j, 2] > 0.0:
+                norm = -norm
+            out[i, j, 0] = nx / norm
+            out[i, j, 1] = ny / norm
+            out[i, j, 2] = nz / norm
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _match(cur_v, cur_n, ref_v, ref_n, i, j, rot, trans, fx, fy, cx, cy, md2, min_cos):
+    """Pair current cell (i, j), moved by (rot, trans), with the reference cell it projects
+    to.  Returns (paired, px, py, pz: the moved point, mx, my, mz: the reference normal,
+    residual m . (p - q))."""
+    nx0 = cur_n[i, j, 0]
+    ny0 = cur_n[i, j, 1]
+    nz0 = cur_n[i, j, 2]
+    if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    x = cur_v[i, j, 0]
+    y = cur_v[i, j, 1]
+    z = cur_v[i, j, 2]
+    px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+    py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+    pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+    if pz <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    u = int(math.floor(fx * px / pz + cx + 0.5))
+    v = int(math.floor(fy * py / pz + cy + 0.5))
+    if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    mx = ref_n[v, u, 0]
+    my = ref_n[v, u, 1]
+    mz = ref_n[v, u, 2]
+    if mx == 0.0 and my == 0.0 and mz == 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    dx = px - ref_v[v, u, 0]
+    dy = py - ref_v[v, u, 1]
+    dz = pz - ref_v[v, u, 2]
+    if dx * dx + dy * dy + dz * dz > md2:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+    ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+    nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+    if nx * mx + ny * my + nz * mz < min_cos:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    return True, px, py, pz, mx, my, mz, mx * dx + my * dy + mz * dz
+
+
+@numba.njit(cache=True, nogil=True)
+def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+               res, jac, zs):
+    """Projective data association and point-to-plane residuals of one ICP step.
+
+    Each current cell with a normal (``cur_v``, ``cur_n`` (h, w, 3)) is moved by (``rot``
+    (3, 3), ``trans`` (3,)), projected with the level's intrinsics into the reference level and
+    paired with the cell it lands on when that has a normal, the two points are within
+    ``max_dist`` and the normals' cosine is at least ``min_cos``.  Fills, per pair k, ``res[k]``
+    = n_ref . (p - q) (metres), ``jac[k]`` = (p x n_ref, n_ref) (derivative of the residual
+    under a left perturbation (rotation vector, translation)) and ``zs[k]`` the depth of p in
+    the reference frame.  Returns the number of pairs.
+    """
+    k = 0
+    md2 = max_dist * max_dist
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            ok, px, py, pz, mx, my, mz, r = _match(cur_v, cur_n, ref_v, ref_n, i, j, rot, trans,
+                                                   fx, fy, cx, cy, md2, min_cos)
+            if not ok:
+                continue
+            res[k] = r
+            jac[k, 0] = py * mz - pz * my
+            jac[k, 1] = pz * mx - px * mz
+            jac[k, 2] = px * my - py * mx
+            jac[k, 3] = mx
+            jac[k, 4] = my
+            jac[k, 5] = mz
+            zs[k] = pz
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                   sigmas):
+    """The pairs :func:`_associate` would make whose residual is within ``sigmas`` depth
+    noise sigmas (:func:`depth_sigma`), counted."""
+    k = 0
+    md2 = max_dist * max_dist
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            ok, _px, _py, pz, _mx, _my, _mz, r = _match(cur_v, cur_n, ref_v, ref_n, i, j, rot,
+                                                        trans, fx, fy, cx, cy, md2, min_cos)
+            if ok and abs(r) <= sigmas * depth_sigma(pz):
+                k += 1
+    return k
+
+
+# --------------------------------------------------------------------------- the pyramid
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Level:
+    factor: int
+    vertex: np.ndarray
+    normal: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+def _levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams
+            ) -> list[_Level]:
+    """The pyramid, coarse to fine: the finest level from the image, each coarser one by
+    merging 2 x 2 cells of the one below (the factors must double)."""
+    min_mm = int(math.ceil(params.min_depth_m * 1000.0))
+    max_mm = int(math.floor(params.max_depth_m * 1000.0))
+    finest = int(params.levels[-1])
+    vertex, count = _vertex_level(depth, finest, intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                  intrinsics.cy, min_mm, max_mm, params.band_m,
+                                  params.band_slope)
+    out = []
+    for f in reversed(params.levels):
+        if f != finest:
+            vertex, count = _merge_level(vertex, count, params.band_m,
+                                         params.band_slope * f / intrinsics.fx)
+        # a difference of two cells spans 2 f pixels; allow surfaces up to ~76 deg
+        normal = _normal_map(vertex, 8.0 * f / intrinsics.fx)
+        out.append(_Level(int(f), vertex, normal, intrinsics.fx / f, intrinsics.fy / f,
+                          (intrinsics.cx + 0.5) / f - 0.5, (intrinsics.cy + 0.5) / f - 0.5))
+    return out[::-1]
+
+
+def _check_depth(name: str, depth: Any, intrinsics: Intrinsics) -> np.ndarray:
+    if not isinstance(depth, np.ndarray) or depth.ndim != 2 or depth.dtype != np.uint16:
+        raise InputError(f"{name} depth must be an (H, W) uint16 array of millimetres")
+    if depth.shape != (intrinsics.height, intrinsics.width):
+        raise InputError(f"{name} depth is {depth.shape[1]}x{depth.shape[0]} but the intrinsics "
+                         f"are for {intrinsics.width}x{intrinsics.height}")
+    return np.ascontiguousarray(depth)
+
+
+def _robust_weights(res: np.ndarray, zs: np.ndarray, c: float) -> tuple[np.ndarray, float]:
+    """Per-pair weights: 1 / sigma(z)^2 times Tukey's biweight of the normalised residual,
+    scale from the median absolute normalised residual; returns (weights, scale)."""
+    sig = depth_sigma(zs)
+    e = res / sig
+    scale = max(1.4826 * float(np.median(np.abs(e))), 0.5) if e.size else 1.0
+    u = e / (c * scale)
+    tukey = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    return tukey / (sig * sig), scale
+
+
+def _normal_equations(jac: np.ndarray, res: np.ndarray, wts: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    jw = jac * wts[:, None]
+    return jw.T @ jac, jw.T @ res
+
+
+def _solve(A: np.ndarray, b: np.ndarray, radius: float, wsum: float, weak_eigenvalue: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton step of the 6x6 system, not moving along weak directions.
+
+    Rotations are scaled by ``radius`` (m) so all six are metres; eigenvalues per unit weight
+    below ``weak_eigenvalue`` are weak.  Returns (step (6,) rotation vector then translation,
+    eigenvalues (6,) ascending, eigenvectors (6, 6) as columns, scaled)."""
+    s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
+    As = A / np.outer(s, s)
+    bs = b / s
+    lam, vec = np.linalg.eigh(As)
+    lam_n = lam / max(wsum, 1e-300)
+    step_s = np.zeros(6)
+    for i in range(6):
+        if lam_n[i] >= weak_eigenvalue:
+            step_s -= (vec[:, i] @ bs) / lam[i] * vec[:, i]
+    return step_s / s, lam_n, vec
+
+
+def _weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> tuple[str, ...]:
+    names = []
+    for i in range(6):
+        if lam_n[i] < weak_eigenvalue:
+            axis = AXES[int(np.argmax(np.abs(vec[:, i])))]
+            if axis not in names:
+                names.append(axis)
+    return tuple(names)
+
+
+def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
+                   params: RegistrationParams = RegistrationParams(), *,
+                   initial: np.ndarray | None = None) -> Registration:
+    """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
+    into the reference camera frame, from the two depth images.
+
+    Parameters
+    ----------
+    reference, current : (H, W) uint16 mm
+        The reference's (fused) depth image and the current one, same intrinsics.
+    intrinsics : hw.depth.Intrinsics
+    params : RegistrationParams
+    initial : (4, 4) float64, optional
+        Starting estimate (identity by default: the robot believes it is at its station).
+
+    Returns
+    -------
+    Registration
+        With ``enabled=False``, the identity with fitness 1.
+    """
+    if not isinstance(params, RegistrationParams):
+        raise InputError(f"params must be a RegistrationParams, got {type(params).__name__}")
+    if not isinstance(intrinsics, Intrinsics):
+        raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
+                         f"{type(intrinsics).__name__}")
+    ref = _check_depth("reference", reference, intrinsics)
+    cur = _check_depth("current", current, intrinsics)
+    T = np.eye(4) if initial is None else np.array(initial, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError("initial must be a finite (4, 4) rigid transform")
+    if not params.enabled:
+        return identity_registration()
+    t0 = time.perf_counter()
+    ref_levels = _levels(ref, intrinsics, params)
+    cur_levels = _levels(cur, intrinsics, params)
+    min_cos = math.cos(math.radians(params.max_normal_angle_deg))
+    iterations = 0
+    converged = False
+    lam_n = np.zeros(6)
+    vec = np.eye(6)
+    for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
+        pairs = _Pairs(cl)
+        T, n_it, converged, lam_n, vec, A = _icp_level(rl, cl, T, params, li, min_cos, pairs)
+        iterations += n_it
+        if li == params.search_level and params.search_reach_m > 0 and A is not None:
+            moved = _translation_search(rl, cl, T, A, params, min_cos, pairs)
+            if moved is not None:
+                T, n_it, converged, lam_n, vec, _ = _icp_level(rl, cl, moved, params, li,
+                                                               min_cos, pairs)
+                iterations += n_it
+    fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
+                                               min_cos)
+    return Registration(T, fitness, rmse, _weak_names(lam_n, vec, params.weak_eigenvalue),
+                        lam_n, n_pairs, n_cells, iterations, converged,
+                        (time.perf_counter() - t0) * 1e3)
+
+
+class _Pairs:
+    """Scratch arrays for the pairs of one level (one row per current cell)."""
+
+    def __init__(self, level: _Level) -> None:
+        size = level.vertex.shape[0] * level.vertex.shape[1]
+        self.res = np.empty(size)
+        self.jac = np.empty((size, 6))
+        self.zs = np.empty(size)
+
+    def associate(self, rl: _Level, cl: _Level, T: np.ndarray, max_dist: float, min_cos: float
+                  ) -> int:
+        return _associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], T[:3, 3],
+                          rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, self.res, self.jac,
+                          self.zs)
+
+    def count_inliers(self, rl: _Level, cl: _Level, T: np.ndarray, max_dist: float,
+                      min_cos: float, sigmas: float) -> int:
+        return _count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], T[:3, 3],
+                              rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, sigmas)
+
+    def inliers(self, n: int, sigmas: float) -> np.ndarray:
+        """(n,) bool: pairs whose residual is within ``sigmas`` depth-noise sigmas."""
+        return np.abs(self.res[:n]) <= sigmas * depth_sigma(self.zs[:n])
+
+
+def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, li: int,
+               min_cos: float, pairs: _Pairs):
+    """Gauss-Newton iterations of one level from ``T``; returns (T, iterations, converged,
+    eigenvalues, eigenvectors, last normal matrix or None)."""
+    lam_n, vec, A = np.zeros(6), np.eye(6), None
+    n_it = 0
+    for _ in range(params.iterations[li]):
+        n = pairs.associate(rl, cl, T, params.max_distance_m[li], min_cos)
+        if n < 6:
+            break
+        wts, _scale = _robust_weights(pairs.res[:n], pairs.zs[:n], params.tukey_c)
+        A, b = _normal_equations(pairs.jac[:n], pairs.res[:n], wts)
+        radius = math.sqrt(float(np.median(pairs.zs[:n] ** 2)))
+        step, lam_n, vec = _solve(A, b, radius, float(wts.sum()), params.weak_eigenvalue)
+        n_it += 1
+        inc = np.eye(4)
+        inc[:3, :3] = _exp_so3(step[:3])
+        inc[:3, 3] = step[3:]
+        T = inc @ T
+        if math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
+                     + float((step[3:] ** 2).sum())) < params.tol_m:
+            return T, n_it, True, lam_n, vec, A
+    return T, n_it, False, lam_n, vec, A
+
+
+def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
+                        params: RegistrationParams, min_cos: float, pairs: _Pairs
+                        ) -> np.ndarray | None:
+    """The best-scoring translation offset of ``T`` along each of the two least constrained
+    translation directions of ``A`` (score: inlier pairs within one search step); None when
+    ``T`` itself scores best."""
+    _lam, vecs = np.linalg.eigh(A[3:, 3:])
+    steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
+    steps = np.concatenate([-steps[::-1], steps])
+    reach = params.search_step_m
+    best_score = pairs.count_inliers(rl, cl, T, reach, min_cos, params.inlier_sigmas)
+    best = None
+    trial = T.copy()
+    for direction in (vecs[:, 0], vecs[:, 1]):
+        for a in steps:
+            trial[:3, 3] = T[:3, 3] + a * direction
+            score = pairs.count_inliers(rl, cl, trial, reach, min_cos, params.inlier_sigmas)
+            if score > best_score:
+                best_score, best = score, trial.copy()
+    return best
+
+
+def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float
+             ) -> tuple[float, float, int, int]:
+    """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level."""
+    n_cells = int(np.count_nonzero(np.any(cl.normal != 0, axis=2)))
+    if n_cells == 0:
+        return 0.0, 0.0, 0, 0
+    pairs = _Pairs(cl)
+    n = pairs.associate(rl, cl, T, params.max_distance_m[-1], min_cos)
+    inl = pairs.inliers(n, params.inlier_sigmas)
+    k = int(inl.sum())
+    rmse = math.sqrt(float((pairs.res[:n][inl] ** 2).mean())) if k else 0.0
+    return k / n_cells, rmse, k, n_cells
