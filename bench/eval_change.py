@@ -15,7 +15,12 @@ Truth and scoring (point level):
   truth-changed points predicted / truth-changed points, F1 their harmonic mean.  "changed"
   pools appeared and disappeared points; the totals sum the counts over scenes (micro
   average);
-* a no-change scene has a false alarm when the method reports any region (``changed``).
+* a no-change scene has a false alarm when the method reports any region (``changed``);
+* on the revisit scenes (the current camera displaced from the reference camera), truth that
+  the other camera could not see (``observed_reference`` / ``observed_current`` of the scene)
+  is not counted: no method can detect it.  The registration error is the estimated
+  ``T_ref_from_cur`` against the scene's true one (mm, degrees); the far-offset and
+  other-room pairs must end as ``not_at_station``.
 
 Every method sees the same two SceneModels: the reference and the current, each fused from the
 scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with
@@ -48,8 +53,23 @@ from robot_change.cloud import CloudParams  # noqa: E402
 from robot_change.scene import SceneParams, build_scene  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 
-NO_CHANGE = ("office_no_change", "office_no_change_jitter", "storage_no_change_jitter")
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
+#: Offset groups of the simulated scenes: "" (the robot at its station) and the pose levels.
+LEVELS = ("", "pose_2cm", "pose_5cm", "pose_10cm")
+
+
+def level_of(name: str) -> str:
+    """The pose level of a scene name ('' for a scene at its station)."""
+    for level in LEVELS[1:]:
+        if name.endswith("_" + level):
+            return level
+    return ""
+
+
+def is_no_change(name: str) -> bool:
+    from sim_fixtures import load_scene
+
+    return load_scene(name).change in ("none", "none_jitter")
 
 #: Table-top pairs (objects 0.6-1.7 m away, 5-15 cm in size): a 1 cm leaf instead of 2 cm.
 #: Everything else scales with the leaf or the depth (see docs/evaluation.md).
@@ -89,7 +109,10 @@ def method_fns(params: ChangeParams) -> dict:
     }
 
 
-def score(cs, ref_model, cur_model, truth_app, truth_dis) -> dict:
+def score(cs, ref_model, cur_model, truth_app, truth_dis, scene=None) -> dict:
+    if scene is not None and hasattr(scene, "observed_current"):
+        truth_app = truth_app & scene.observed_current
+        truth_dis = truth_dis & scene.observed_reference
     t_app = point_truth(cur_model.pixel_voxel, truth_app, len(cur_model))
     t_dis = point_truth(ref_model.pixel_voxel, truth_dis, len(ref_model))
     p_app = np.zeros(len(cur_model), bool)
@@ -109,7 +132,18 @@ def score(cs, ref_model, cur_model, truth_app, truth_dis) -> dict:
     out["n_regions"] = len(cs.regions)
     out["n_regions_true"] = hits
     out["changed"] = bool(cs.changed)
+    out["outcome"] = cs.outcome
     out["detect_ms"] = cs.timings_ms.get("detect_ms", float("nan"))
+    reg = cs.registration
+    out["fitness"] = reg.fitness
+    out["registration_ms"] = reg.ms
+    out["weak"] = list(reg.weak)
+    if scene is not None and hasattr(scene, "T_ref_from_cur"):
+        from robot_change.registration import invert, rotation_angle_deg
+
+        err = invert(scene.T_ref_from_cur) @ reg.T_ref_from_cur
+        out["reg_err_mm"] = float(np.linalg.norm(err[:3, 3]) * 1e3)
+        out["reg_err_deg"] = rotation_angle_deg(err[:3, :3])
     return out
 
 
@@ -163,7 +197,7 @@ def run(names, loader, methods, verbose=True):
         cache[name] = (ref, cur, ta, td)
         for m, fn in methods.items():
             cs = fn(ref, cur)
-            s = score(cs, ref, cur, ta, td)
+            s = score(cs, ref, cur, ta, td, _)
             s["scene"] = name
             per[m].append(s)
             if verbose:
@@ -171,9 +205,11 @@ def run(names, loader, methods, verbose=True):
                 d = prf(s["dis_tp"], s["dis_pred"], s["dis_true"])
                 c = prf(s["app_tp"] + s["dis_tp"], s["app_pred"] + s["dis_pred"],
                         s["app_true"] + s["dis_true"])
-                print(f"  {name:26s} {m:10s} F1 {c[2]:.3f} app {a[0]:.2f}/{a[1]:.2f} "
+                reg = (f" reg {s['reg_err_mm']:.1f} mm {s['reg_err_deg']:.2f} deg "
+                       f"fit {s['fitness']:.2f}" if "reg_err_mm" in s else "")
+                print(f"  {name:34s} {m:10s} F1 {c[2]:.3f} app {a[0]:.2f}/{a[1]:.2f} "
                       f"dis {d[0]:.2f}/{d[1]:.2f} regions {s['n_regions']} "
-                      f"(true {s['n_regions_true']}) changed {s['changed']} "
+                      f"(true {s['n_regions_true']}) {s['outcome']}{reg} "
                       f"{s['detect_ms']:.0f} ms", flush=True)
     return per, cache
 
@@ -221,6 +257,8 @@ def speed(n_runs: int = 15) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", default="dev", choices=("dev", "holdout", "all", "none"))
+    ap.add_argument("--levels", nargs="*", default=list(LEVELS),
+                    help="pose levels of the simulated scenes ('' = at the station)")
     ap.add_argument("--scenes", nargs="*")
     ap.add_argument("--real", action="store_true", help="also the 9 real table-top pairs")
     ap.add_argument("--methods", nargs="*", default=["ours", "plain", "nn", "geometric"])
@@ -234,7 +272,7 @@ def main(argv=None):
     ap.add_argument("-q", "--quiet", action="store_true")
     args = ap.parse_args(argv)
 
-    from sim_fixtures import scene_names
+    from sim_fixtures import load_scene, scene_names
 
     params = ChangeParams(**parse_set(args.set))
     fns = {m: f for m, f in method_fns(params).items() if m in args.methods}
@@ -248,7 +286,13 @@ def main(argv=None):
     elif args.split != "none":
         splits = ("dev", "holdout") if args.split == "all" else (args.split,)
         for sp in splits:
-            groups[sp] = scene_names(sp)
+            names = scene_names(sp)
+            for level in args.levels:
+                group = sp if level == "" else f"{sp} {level}"
+                groups[group] = [n for n in names if level_of(n) == level
+                                 and load_scene(n).change != "not_at_station"]
+            groups[f"{sp} not_at_station"] = [n for n in names
+                                              if load_scene(n).change == "not_at_station"]
     sp = SceneParams(seed=args.scene_seed)
     caches = {}
     for group, names in groups.items():
@@ -275,10 +319,20 @@ def main(argv=None):
               f"missed scenes")
         for m, r in res.items():
             t = r["total"]
-            fa = [s["scene"] for s in r["scenes"] if s["scene"] in NO_CHANGE and s["changed"]]
-            nc = [s["scene"] for s in r["scenes"] if s["scene"] in NO_CHANGE]
-            missed = [s["scene"] for s in r["scenes"] if s["scene"] not in NO_CHANGE
+            if group.endswith("not_at_station"):
+                outs = [s["outcome"] for s in r["scenes"]]
+                print(f"{m:10s} outcomes {outs}")
+                continue
+            fa = [s["scene"] for s in r["scenes"] if is_no_change(s["scene"]) and s["changed"]]
+            nc = [s["scene"] for s in r["scenes"] if is_no_change(s["scene"])]
+            missed = [s["scene"] for s in r["scenes"] if not is_no_change(s["scene"])
                       and s["n_regions_true"] == 0]
+            errs = [s["reg_err_mm"] for s in r["scenes"] if "reg_err_mm" in s]
+            degs = [s["reg_err_deg"] for s in r["scenes"] if "reg_err_deg" in s]
+            if errs:
+                print(f"{'':10s} registration error median {statistics.median(errs):.1f} mm / "
+                      f"{statistics.median(degs):.3f} deg, max {max(errs):.1f} mm / "
+                      f"{max(degs):.3f} deg")
             print(f"{m:10s} {t['f1']:6.3f} {t['p']:6.3f} {t['r']:6.3f} | {t['app_f1']:6.3f} "
                   f"{t['app_p']:6.3f} {t['app_r']:6.3f} | {t['dis_f1']:6.3f} {t['dis_p']:6.3f} "
                   f"{t['dis_r']:6.3f} | {len(fa)}/{len(nc)} {fa} | {missed}")

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time
 from typing import Any
 
@@ -51,6 +52,13 @@ from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change import validate
 from robot_change.filters import KEY_BITS
 from robot_change.mixture import Mixture, fit_mixture
+from robot_change.registration import (
+    Registration,
+    RegistrationParams,
+    identity_registration,
+    register_depth,
+    transform_points,
+)
 
 __all__ = [
     "ChangeParams",
@@ -70,6 +78,9 @@ __all__ = [
 ]
 
 METHODS = ("novelty", "plain", "geometric", "nn")
+#: What a check found: something changed, nothing changed, or the camera is not where the
+#: reference was taken (registration failed or the offset is beyond the station tolerance).
+OUTCOMES = ("changed", "no_change", "not_at_station")
 GROUND_DISTANCES = ("euclidean", "wasserstein2")
 NOVELTY_SEEDS = ("density", "density+free_space")
 
@@ -171,8 +182,20 @@ class ChangeParams:
     min_cloud_points: int = 50
     # Seed of the mixture fits (subsets); same seed, same result.
     seed: int = 0
+    # --- registration -----------------------------------------------------------------------
+    # How the current view is registered to the reference before comparing (and the station
+    # tolerance); RegistrationParams(enabled=False) compares in the shared pixel grid.
+    registration: RegistrationParams = RegistrationParams()
+    # When more than this fraction of either cloud's observed points is seen through by the
+    # other epoch, the two views disagree too much to be one place with a change in it: the
+    # outcome is "not_at_station".  Measured (docs/evaluation.md): revisits with changes of
+    # up to ~8 % of the view 0.00-0.08; the far-offset and other-room pairs 0.65.
+    max_seen_through_fraction: float = 0.35
 
     def __post_init__(self) -> None:
+        if not isinstance(self.registration, RegistrationParams):
+            raise InputError(f"ChangeParams.registration must be a RegistrationParams, got "
+                             f"{type(self.registration).__name__}")
         _choice("novelty_seed", self.novelty_seed, NOVELTY_SEEDS)
         _choice("current_mixture", self.current_mixture, ("fit", "from_reference"))
         for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
@@ -196,6 +219,8 @@ class ChangeParams:
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
+        _num("max_seen_through_fraction", self.max_seen_through_fraction, 0.0, 1.0,
+             low_open=True)
 
     def replace(self, **changes: Any) -> ChangeParams:
         """A copy with some fields changed (validated)."""
@@ -282,6 +307,16 @@ class ChangeSet:
     ``greedy_appeared``/``greedy_disappeared``: :class:`GreedyTrace` or None.  ``method``:
     ``"novelty"``, ``"plain"``, ``"geometric"`` or ``"nn"``.  ``timings_ms``: per stage and
     ``detect_ms`` (the whole call).
+
+    Frames: the current camera's optical frame (x right, y down, z forward, metres) for
+    everything geometric: appeared points and regions are the current cloud's, disappeared
+    points and regions are the reference cloud's mapped through the registration
+    (``registration.inverse()``), so both say where things are relative to the camera now.
+    ``outcome``: one of :data:`OUTCOMES`; with ``"not_at_station"`` nothing is reported
+    (``changed`` False, no regions).  ``registration``: the :class:`Registration` used.
+    ``unobserved_fraction``: of the two clouds' points, the fraction the other epoch's camera
+    could not have seen (outside its image or range), neither appeared nor disappeared.
+    ``not_at_station_reason``: why, for that outcome (else "").
     """
 
     changed: bool
@@ -302,6 +337,10 @@ class ChangeSet:
     method: str
     params: Any
     timings_ms: dict[str, float]
+    outcome: str = "no_change"
+    registration: Registration = dataclasses.field(default_factory=identity_registration)
+    unobserved_fraction: float = 0.0
+    not_at_station_reason: str = ""
 
     @property
     def regions(self) -> tuple[Region, ...]:
@@ -311,8 +350,12 @@ class ChangeSet:
     def summary(self) -> dict:
         """JSON-ready summary: changed, regions, K of both mixtures, greedy traces, timings."""
         return {
+            "outcome": self.outcome,
             "changed": self.changed,
             "method": self.method,
+            "registration": self.registration.to_dict(),
+            "unobserved_fraction": round(self.unobserved_fraction, 4),
+            "not_at_station_reason": self.not_at_station_reason,
             "regions": [r.to_dict() for r in self.regions],
             "n_appeared_points": int(self.appeared_points.shape[0]),
             "n_disappeared_points": int(self.disappeared_points.shape[0]),
@@ -456,58 +499,107 @@ def _window_filter(depth, radius, take_min):
 
 
 @numba.njit(cache=True, nogil=True)
-def _free_space_kernel(pixel_voxel, own_depth, near_other, far_other, n_points, margin_m,
-                       margin_per_m2, no_reading_is_free):
-    """Per point: how many of its pixels the other image sees through, and how many it has.
+def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, height, min_m, max_m):
+    """Where each pixel of this epoch's depth image lands in the other epoch's image.
 
-    ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``own_depth`` (P,) uint16
-    mm; ``near_other`` (P,) the other image's nearest reading in the pose window (0: none
-    there), ``far_other`` (P,) its farthest reading in the hole window (0: none).  The other
-    reading is ``near_other``, else ``far_other``; with neither, the pixel is seen through when
-    ``no_reading_is_free``.  Seen through: reading > own + margin_m + margin_per_m2 * z^2
-    (metres, z = own depth).
+    ``own_depth`` (H, W) uint16 mm; (``rot`` (3, 3), ``trans`` (3,)) maps this camera's frame
+    into the other's (same intrinsics).  Returns ``target`` (P,) int64, the flat index of the
+    other image's pixel the reading projects to (-1 for no reading here; -2 when the other
+    camera could not have seen it: behind it, outside its image, or outside its depth range
+    ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other frame (m).
+    """
+    h, w = own_depth.shape
+    target = np.full(h * w, -1, dtype=np.int64)
+    z_other = np.zeros(h * w)
+    for r in range(h):
+        for c in range(w):
+            d = own_depth[r, c]
+            if d == 0:
+                continue
+            p = r * w + c
+            z = d * 0.001
+            x = (c - cx) * z / fx
+            y = (r - cy) * z / fy
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            target[p] = -2
+            if pz < min_m or pz > max_m:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= width or v >= height:
+                continue
+            target[p] = v * width + u
+            z_other[p] = pz
+    return target, z_other
+
+
+@numba.njit(cache=True, nogil=True)
+def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_points, margin_m,
+                       margin_per_m2, no_reading_is_free):
+    """Per point: how many of its pixels the other image sees through, how many it has, and
+    how many of them the other camera could not have seen.
+
+    ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``target`` (P,) and
+    ``z_other`` (P,) from :func:`_warp_kernel`; ``near_other`` (P',) the other image's
+    nearest reading in the pose window (0: none there), ``far_other`` (P',) its farthest
+    reading in the hole window (0: none).  The other reading is ``near_other``, else
+    ``far_other``; with neither, the pixel is seen through when ``no_reading_is_free``.  Seen
+    through: reading > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
     """
     votes = np.zeros(n_points, dtype=np.int32)
     total = np.zeros(n_points, dtype=np.int32)
+    unseen = np.zeros(n_points, dtype=np.int32)
     for p in range(pixel_voxel.shape[0]):
         v = pixel_voxel[p]
         if v < 0:
             continue
         total[v] += 1
-        d1 = near_other[p]
+        q = target[p]
+        if q < 0:
+            unseen[v] += 1
+            continue
+        d1 = near_other[q]
         if d1 == 0:
-            d1 = far_other[p]
+            d1 = far_other[q]
         if d1 == 0:
             if no_reading_is_free:
                 votes[v] += 1
             continue
-        z = own_depth[p] * 0.001
+        z = z_other[p]
         if d1 * 0.001 > z + margin_m + margin_per_m2 * z * z:
             votes[v] += 1
-    return votes, total
+    return votes, total, unseen
 
 
 def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth: np.ndarray,
                      n_points: int, margin_m: float, margin_per_m2: float = 0.0,
                      pose_radius: int = 0, hole_radius: int = 0,
-                     no_reading_is_free: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     no_reading_is_free: bool = True, *,
+                     intrinsics: Intrinsics | None = None,
+                     other_from_own: np.ndarray | None = None,
+                     depth_range_m: tuple[float, float] = (0.0, 65.535)
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Free-space evidence per point of one epoch against the other epoch's depth image.
 
-    Both images share the pixel grid (same intrinsics, same pose: the station), so a point's
-    projection into the other image is the set of its own pixels (``pixel_voxel == v``).  At
-    each of them the other epoch saw *through* the point when its reading is farther by more
-    than ``margin_m + margin_per_m2 * z**2`` (z = this epoch's depth there, m).  The reading
-    used is the *nearest* one of the other image within ``pose_radius`` pixels (a square
-    window; a camera back at its station within a few pixels does not make static edges look
-    seen through); where that window has no reading, the *farthest* reading within
+    Each of the point's pixels (``pixel_voxel == v``) is back-projected with its own reading,
+    moved into the other camera by ``other_from_own`` ((4, 4), the registration; identity when
+    not given, and then the pixel is its own projection) and projected into the other image
+    (same ``intrinsics``).  There the other epoch saw *through* the point when its reading is
+    farther by more than ``margin_m + margin_per_m2 * z**2`` (z = the depth in the other
+    frame, m).  The reading used is the *nearest* one of the other image within
+    ``pose_radius`` pixels (a square window: a small residual pose error does not make static
+    edges look seen through); where that window has no reading, the *farthest* reading within
     ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
-    (open space beyond the sensor's range).
+    (open space beyond the sensor's range).  A pixel that lands behind the other camera,
+    outside its image or outside ``depth_range_m`` was not observed by it.
 
     Returns
     -------
-    votes, total : (n_points,) int32
-        Pixels seen through, and pixels, per point.
+    votes, total, unseen : (n_points,) int32
+        Pixels seen through, pixels, and pixels the other camera could not observe, per point.
     """
     if pixel_voxel.ndim != 2 or pixel_voxel.shape != own_depth.shape or \
             own_depth.shape != other_depth.shape:
@@ -516,13 +608,27 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     for name, a in (("own_depth", own_depth), ("other_depth", other_depth)):
         if a.dtype != np.uint16:
             raise InputError(f"{name} must be uint16 millimetres, got {a.dtype}")
+    height, width = own_depth.shape
+    if intrinsics is None:
+        intrinsics = Intrinsics(width, height, 525.0, 525.0, (width - 1) / 2, (height - 1) / 2)
+    T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError("other_from_own must be a finite (4, 4) rigid transform")
+    own = np.ascontiguousarray(own_depth)
+    if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
+        target = np.where(own.ravel() > 0, np.arange(own.size), -1)
+        z_other = own.ravel() * 0.001
+    else:
+        target, z_other = _warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx,
+                                       intrinsics.fy, intrinsics.cx, intrinsics.cy, width,
+                                       height, float(depth_range_m[0]),
+                                       float(depth_range_m[1]))
     other = np.ascontiguousarray(other_depth)
     near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
     far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
     return _free_space_kernel(np.ascontiguousarray(pixel_voxel, dtype=np.int32).ravel(),
-                              np.ascontiguousarray(own_depth).ravel(), near.ravel(),
-                              far.ravel(), int(n_points), float(margin_m),
-                              float(margin_per_m2), bool(no_reading_is_free))
+                              target, z_other, near.ravel(), far.ravel(), int(n_points),
+                              float(margin_m), float(margin_per_m2), bool(no_reading_is_free))
 
 
 _FIELD = (1 << KEY_BITS) - 1
@@ -761,7 +867,7 @@ def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: Ch
 
 
 def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, params: ChangeParams,
-                       timings: dict, prefix: str, free: np.ndarray | None = None):
+                       timings: dict, prefix: str, free: np.ndarray, observed: np.ndarray):
     """Changed points of ``other`` relative to ``base``: the mixture part.
 
     ``base_mix`` (fitted on ``base``) is held fixed as the background of ``other``'s cloud;
@@ -774,8 +880,9 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
     thr = np.quantile(base_mix.score_samples(base.points[::step]), params.novelty_quantile)
     log_dens = base_mix.score_samples(other.points)
     novel = log_dens < thr
-    if params.novelty_seed == "density+free_space" and free is not None:
+    if params.novelty_seed == "density+free_space":
         novel |= free
+    novel &= observed  # what the base's camera could not see is no evidence of novelty
     t1 = time.perf_counter()
     k0 = base_mix.n_components
     init, fixed = _seed_novelty(base_mix, other, novel, params)
@@ -796,7 +903,7 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
     t3 = time.perf_counter()
     # posteriors only where they can matter: with the free-space check on, a point it rejects
     # is never changed, so its posterior is not computed (left 0)
-    rows = np.flatnonzero(free) if (params.free_space and free is not None) else None
+    rows = np.flatnonzero(free) if params.free_space else None
     post = _responsibilities(fitted, other.points, rows)
     if trace.change.size:
         mass = post[:, trace.change].sum(axis=1)
@@ -837,23 +944,34 @@ def _plain_direction(base_mix: Mixture, other: Epoch, other_mix: Mixture, params
     return cand, other_mix, post, trace
 
 
-def _free_mask(other: Epoch, base: Epoch, params: ChangeParams) -> np.ndarray:
-    """(M,) bool: points of ``other`` that ``base``'s depth image sees through."""
-    votes, total = free_space_votes(other.pixel_voxel, other.depth, base.depth, other.n_points,
-                                    params.free_space_margin_m, params.free_space_margin_per_m2,
-                                    params.free_space_pose_radius_px,
-                                    params.free_space_hole_radius_px,
-                                    params.free_space_no_reading_is_free)
-    return (total > 0) & (votes >= params.free_space_min_fraction * np.maximum(total, 1))
+def _free_mask(other: Epoch, base: Epoch, params: ChangeParams, base_from_other: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(free, observed), (M,) bool each over ``other``'s points: the points ``base``'s depth
+    image sees through, and those ``base``'s camera could see at all (the majority of their
+    pixels land inside its image and depth range)."""
+    cp = base.cloud_params or CloudParams()
+    votes, total, unseen = free_space_votes(
+        other.pixel_voxel, other.depth, base.depth, other.n_points, params.free_space_margin_m,
+        params.free_space_margin_per_m2, params.free_space_pose_radius_px,
+        params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
+        intrinsics=other.intrinsics, other_from_own=base_from_other,
+        depth_range_m=(cp.min_depth_m, cp.max_depth_m))
+    observed = (total > 0) & (2 * unseen < total)
+    seen = total - unseen
+    free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))
+    return free, observed
 
 
 def _geometric_filters(other: Epoch, base: Epoch, cand: np.ndarray, params: ChangeParams,
-                       timings: dict, prefix: str, free: np.ndarray | None = None
+                       timings: dict, prefix: str, free: np.ndarray, observed: np.ndarray
                        ) -> np.ndarray:
-    """Free-space check (against ``base``'s depth image) and the optional NN check."""
+    """What the other camera could not see is never a change; then the free-space check
+    (against ``base``'s depth image) and the optional NN check (``base.points`` are in
+    ``other``'s frame)."""
     t0 = time.perf_counter()
+    cand = cand & observed
     if params.free_space:
-        cand = cand & (free if free is not None else _free_mask(other, base, params))
+        cand = cand & free
     t1 = time.perf_counter()
     if params.nn_check_m > 0 and cand.any():
         rows = np.flatnonzero(cand)
@@ -914,36 +1032,151 @@ def _check_scene_models(reference: Any, current: Any) -> None:
         check_compatible(reference, current)
 
 
-def _finish(method, params, ref, cur, app, dis, app_post, app_mix, dis_post, dis_mix,
-            trace_a, trace_d, k_ref, k_cur, timings, t_start) -> ChangeSet:
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Direction:
+    """One direction's result before regions: candidate mask (M,) bool, posteriors (M, K) of
+    the searched mixture (or None), that mixture, its greedy trace, and the observed mask."""
+
+    changed: np.ndarray
+    posterior: np.ndarray | None
+    mixture: Mixture | None
+    trace: GreedyTrace | None
+    observed: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Aligned:
+    """The two epochs of a check in the current camera frame: ``ref`` with its points (and
+    mixture) mapped through the registration, ``cur`` as it is; ``registration``;
+    ``at_station`` when the registration is within the station tolerance."""
+
+    ref: Epoch
+    cur: Epoch
+    registration: Registration
+    reason: str = ""
+    free_cur: np.ndarray | None = None
+    observed_cur: np.ndarray | None = None
+    free_ref: np.ndarray | None = None
+    observed_ref: np.ndarray | None = None
+
+    @property
+    def at_station(self) -> bool:
+        return not self.reason
+
+
+def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intrinsics | None,
+           timings: dict) -> _Aligned:
+    """Checks, the current's clean cloud, registration, the reference moved into the current
+    camera frame, the free-space checks both ways, and whether this is the station at all."""
+    _check_scene_models(reference, current)
+    ref = _as_epoch(reference, "reference")
+    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
+    _check_pair(ref, cur, params)
+    reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration)
+    timings["registration_ms"] = reg.ms
+    rp = params.registration
+    if not reg.within(rp):
+        return _Aligned(ref, cur, reg, _tolerance_reason(reg, rp))
+    identity = reg.is_identity
+    if not identity:
+        T = reg.inverse()
+        ref = dataclasses.replace(
+            ref, points=transform_points(T, ref.points),
+            mixture=ref.mixture.transformed(T) if ref.mixture is not None else None)
+    free_cur, obs_cur = _timed_free(cur, ref, params, timings, "appeared_",
+                                    None if identity else reg.T_ref_from_cur)
+    free_ref, obs_ref = _timed_free(ref, cur, params, timings, "disappeared_",
+                                    None if identity else reg.inverse())
+    worst = max(float(free_cur[obs_cur].mean()) if obs_cur.any() else 0.0,
+                float(free_ref[obs_ref].mean()) if obs_ref.any() else 0.0)
+    reason = ""
+    if worst > params.max_seen_through_fraction:
+        reason = (f"{worst:.0%} of one view is seen through by the other (more than "
+                  f"{params.max_seen_through_fraction:.0%}): another place, or a change too "
+                  f"large to register against")
+    return _Aligned(ref, cur, reg, reason, free_cur, obs_cur, free_ref, obs_ref)
+
+
+def _tolerance_reason(reg: Registration, rp: RegistrationParams) -> str:
+    """Why a registration is outside the station tolerance."""
+    moved = float(np.linalg.norm(reg.translation_m))
+    if reg.fitness < rp.min_fitness:
+        return (f"registration fitness {reg.fitness:.2f} < {rp.min_fitness:.2f}: the views "
+                f"do not overlap enough")
+    if moved > rp.max_translation_m:
+        return f"offset {moved:.2f} m > {rp.max_translation_m:.2f} m"
+    return f"rotation {reg.rotation_deg:.1f} deg > {rp.max_rotation_deg:.1f} deg"
+
+
+def _finish(method: str, params: ChangeParams, aligned: _Aligned, app: _Direction | None,
+            dis: _Direction | None, k_ref: int, k_cur: int, timings: dict, t_start: float
+            ) -> ChangeSet:
+    ref, cur = aligned.ref, aligned.cur
     t0 = time.perf_counter()
-    regions_a = group_regions("appeared", cur, app, params, app_post,
-                              trace_a.change if trace_a is not None else None)
-    regions_d = group_regions("disappeared", ref, dis, params, dis_post,
-                              trace_d.change if trace_d is not None else None) \
+    regions_a = group_regions("appeared", cur, app.changed, params, app.posterior,
+                              app.trace.change if app.trace is not None else None) \
+        if app is not None else ()
+    regions_d = group_regions("disappeared", ref, dis.changed, params, dis.posterior,
+                              dis.trace.change if dis.trace is not None else None) \
         if dis is not None else ()
     rows_a = (np.sort(np.concatenate([r.point_index for r in regions_a]))
               if regions_a else np.zeros(0, np.int64))
     rows_d = (np.sort(np.concatenate([r.point_index for r in regions_d]))
               if regions_d else np.zeros(0, np.int64))
+    unseen = sum(int((~d.observed).sum()) for d in (app, dis) if d is not None)
+    seen_of = (cur.n_points if app is not None else 0) + (ref.n_points if dis is not None else 0)
     timings["regions_ms"] = (time.perf_counter() - t0) * 1e3
     timings["detect_ms"] = (time.perf_counter() - t_start) * 1e3
+    changed = bool(regions_a or regions_d)
     return ChangeSet(
-        changed=bool(regions_a or regions_d),
+        changed=changed,
         appeared=regions_a, disappeared=regions_d,
         appeared_points=cur.points[rows_a].astype(np.float32),
         disappeared_points=ref.points[rows_d].astype(np.float32),
         appeared_index=rows_a, disappeared_index=rows_d,
         appeared_mask=_mask_of(cur, rows_a), disappeared_mask=_mask_of(ref, rows_d),
-        appeared_mixture=app_mix, disappeared_mixture=dis_mix,
+        appeared_mixture=app.mixture if app is not None else None,
+        disappeared_mixture=dis.mixture if dis is not None else None,
         k_reference=k_ref, k_current=k_cur,
-        greedy_appeared=trace_a, greedy_disappeared=trace_d,
-        method=method, params=params, timings_ms=timings)
+        greedy_appeared=app.trace if app is not None else None,
+        greedy_disappeared=dis.trace if dis is not None else None,
+        method=method, params=params, timings_ms=timings,
+        outcome="changed" if changed else "no_change",
+        registration=aligned.registration,
+        unobserved_fraction=unseen / seen_of if seen_of else 0.0)
+
+
+def _not_at_station(method: str, params: ChangeParams, aligned: _Aligned, timings: dict,
+                    t_start: float) -> ChangeSet:
+    """The camera is not where the reference was taken: nothing is compared, nothing
+    reported."""
+    ref, cur = aligned.ref, aligned.cur
+    none = np.zeros(0, np.int64)
+    timings["detect_ms"] = (time.perf_counter() - t_start) * 1e3
+    return ChangeSet(
+        changed=False, appeared=(), disappeared=(),
+        appeared_points=np.zeros((0, 3), np.float32),
+        disappeared_points=np.zeros((0, 3), np.float32),
+        appeared_index=none, disappeared_index=none,
+        appeared_mask=np.zeros(cur.depth.shape, bool),
+        disappeared_mask=np.zeros(ref.depth.shape, bool),
+        appeared_mixture=None, disappeared_mixture=None,
+        k_reference=ref.mixture.n_components if ref.mixture is not None else 0, k_current=0,
+        greedy_appeared=None, greedy_disappeared=None, method=method, params=params,
+        timings_ms=timings, outcome="not_at_station", registration=aligned.registration,
+        unobserved_fraction=1.0 - aligned.registration.fitness,
+        not_at_station_reason=aligned.reason)
 
 
 def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangeParams(), *,
                    intrinsics: Intrinsics | None = None) -> ChangeSet:
     """What appeared and what disappeared between the station's reference and now.
+
+    The current view is first registered to the reference
+    (:func:`robot_change.registration.register_depth`, ``params.registration``); when the
+    registration fails or the offset is beyond the station tolerance, the outcome is
+    ``"not_at_station"`` and nothing is compared.  Otherwise both directions are compared in
+    the current camera frame.
 
     Parameters
     ----------
@@ -976,20 +1209,21 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
         return detect_plain(reference, current, params, intrinsics=intrinsics)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    _check_scene_models(reference, current)
-    ref = _as_epoch(reference, "reference")
-    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
-    _check_pair(ref, cur, params)
+    aligned = _align(reference, current, params, intrinsics, timings)
+    if not aligned.at_station:
+        return _not_at_station("novelty", params, aligned, timings, t_start)
+    ref, cur = aligned.ref, aligned.cur
     ref_mix = ref.mixture
     if ref_mix is None:
         t0 = time.perf_counter()
         ref_mix = _fit_own(ref, params)
         timings["reference_fit_ms"] = (time.perf_counter() - t0) * 1e3
-    free_a = _timed_free(cur, ref, params, timings, "appeared_")
-    app, app_mix, app_post, trace_a = _novelty_direction("appeared", ref, cur, ref_mix, params,
-                                                         timings, "appeared_", free_a)
-    app = _geometric_filters(cur, ref, app, params, timings, "appeared_", free_a)
-    dis = dis_mix = dis_post = trace_d = None
+    free_a, obs_a = aligned.free_cur, aligned.observed_cur
+    cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params, timings,
+                                                "appeared_", free_a, obs_a)
+    cand = _geometric_filters(cur, ref, cand, params, timings, "appeared_", free_a, obs_a)
+    app = _Direction(cand, post, mix, trace, obs_a)
+    dis = None
     k_cur = 0
     if params.disappeared:
         cur_mix = cur.mixture
@@ -998,13 +1232,14 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
             cur_mix = _current_mixture(cur, ref_mix, params)
             timings["current_fit_ms"] = (time.perf_counter() - t0) * 1e3
         k_cur = cur_mix.n_components
-        free_d = _timed_free(ref, cur, params, timings, "disappeared_")
-        dis, dis_mix, dis_post, trace_d = _novelty_direction("disappeared", cur, ref, cur_mix,
-                                                             params, timings, "disappeared_",
-                                                             free_d)
-        dis = _geometric_filters(ref, cur, dis, params, timings, "disappeared_", free_d)
-    return _finish("novelty", params, ref, cur, app, dis, app_post, app_mix, dis_post,
-                   dis_mix, trace_a, trace_d, ref_mix.n_components, k_cur, timings, t_start)
+        free_d, obs_d = aligned.free_ref, aligned.observed_ref
+        cand, mix, post, trace = _novelty_direction("disappeared", cur, ref, cur_mix, params,
+                                                    timings, "disappeared_", free_d, obs_d)
+        cand = _geometric_filters(ref, cur, cand, params, timings, "disappeared_", free_d,
+                                  obs_d)
+        dis = _Direction(cand, post, mix, trace, obs_d)
+    return _finish("novelty", params, aligned, app, dis, ref_mix.n_components, k_cur, timings,
+                   t_start)
 
 
 def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangeParams(
@@ -1012,14 +1247,15 @@ def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangePara
     """The plain method (the paper's): independent fits of both clouds, greedy EMD over all
     components both ways deciding what changed (``params.greedy`` is forced on: without it
     every component would count as changed), posterior segmentation; the free-space / NN
-    checks only if ``params`` switches them on (off by default here)."""
+    checks only if ``params`` switches them on (off by default here).  Registered first, as
+    :func:`detect_changes` is."""
     params = params.replace(greedy=True)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    _check_scene_models(reference, current)
-    ref = _as_epoch(reference, "reference")
-    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
-    _check_pair(ref, cur, params)
+    aligned = _align(reference, current, params, intrinsics, timings)
+    if not aligned.at_station:
+        return _not_at_station("plain", params, aligned, timings, t_start)
+    ref, cur = aligned.ref, aligned.cur
     mixes = []
     for name, ep in (("reference", ref), ("current", cur)):
         m = ep.mixture
@@ -1029,26 +1265,30 @@ def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangePara
             timings[f"{name}_fit_ms"] = (time.perf_counter() - t0) * 1e3
         mixes.append(m)
     ref_mix, cur_mix = mixes
-    app, app_mix, app_post, trace_a = _plain_direction(ref_mix, cur, cur_mix, params, timings,
-                                                       "appeared_")
-    app = _geometric_filters(cur, ref, app, params, timings, "appeared_")
-    dis = dis_mix = dis_post = trace_d = None
+    free_a, obs_a = aligned.free_cur, aligned.observed_cur
+    cand, mix, post, trace = _plain_direction(ref_mix, cur, cur_mix, params, timings,
+                                              "appeared_")
+    cand = _geometric_filters(cur, ref, cand, params, timings, "appeared_", free_a, obs_a)
+    app = _Direction(cand, post, mix, trace, obs_a)
+    dis = None
     if params.disappeared:
-        dis, dis_mix, dis_post, trace_d = _plain_direction(cur_mix, ref, ref_mix, params,
-                                                           timings, "disappeared_")
-        dis = _geometric_filters(ref, cur, dis, params, timings, "disappeared_")
-    return _finish("plain", params, ref, cur, app, dis, app_post, app_mix, dis_post, dis_mix,
-                   trace_a, trace_d, ref_mix.n_components, cur_mix.n_components, timings,
-                   t_start)
+        free_d, obs_d = aligned.free_ref, aligned.observed_ref
+        cand, mix, post, trace = _plain_direction(cur_mix, ref, ref_mix, params, timings,
+                                                  "disappeared_")
+        cand = _geometric_filters(ref, cur, cand, params, timings, "disappeared_", free_d,
+                                  obs_d)
+        dis = _Direction(cand, post, mix, trace, obs_d)
+    return _finish("plain", params, aligned, app, dis, ref_mix.n_components,
+                   cur_mix.n_components, timings, t_start)
 
 
-def _timed_free(other, base, params, timings, prefix):
-    if not (params.free_space or params.novelty_seed == "density+free_space"):
-        return None
+def _timed_free(other: Epoch, base: Epoch, params: ChangeParams, timings: dict, prefix: str,
+                base_from_other: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_free_mask`, timed.  (free, observed)."""
     t0 = time.perf_counter()
-    free = _free_mask(other, base, params)
+    free, observed = _free_mask(other, base, params, base_from_other)
     timings[f"{prefix}free_space_ms"] = (time.perf_counter() - t0) * 1e3
-    return free
+    return free, observed
 
 
 def _nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
@@ -1061,16 +1301,19 @@ def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = Cha
 ) -> ChangeSet:
     """Baseline: a current point is appeared when no reference point is within
     ``params.nn_check_m`` (a reference point disappeared likewise); no mixture, and the
-    free-space check only when ``params.free_space``.  Same region grouping as ours."""
+    free-space check only when ``params.free_space``.  Same registration and region grouping
+    as ours."""
     if params.nn_check_m <= 0 and not params.free_space:
         raise InputError("detect_nn_threshold needs params.nn_check_m > 0 (the threshold, m) "
                          "or the free-space check")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    _check_scene_models(reference, current)
-    ref = _as_epoch(reference, "reference")
-    cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
-    _check_pair(ref, cur, params)
+    method = ("free_space" if params.nn_check_m <= 0 else "geometric") if params.free_space \
+        else "nn"
+    aligned = _align(reference, current, params, intrinsics, timings)
+    if not aligned.at_station:
+        return _not_at_station(method, params, aligned, timings, t_start)
+    ref, cur = aligned.ref, aligned.cur
     t0 = time.perf_counter()
     if params.nn_check_m > 0:
         app = _nn_far(cKDTree(ref.points), cur.points, params.nn_check_m)
@@ -1081,12 +1324,15 @@ def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = Cha
         dis = np.ones(ref.n_points, dtype=bool) if params.disappeared else None
     timings["nn_ms"] = (time.perf_counter() - t0) * 1e3
     no_nn = params.replace(nn_check_m=0.0)
-    app = _geometric_filters(cur, ref, app, no_nn, timings, "appeared_")
+    free_a, obs_a = aligned.free_cur, aligned.observed_cur
+    app_d = _Direction(_geometric_filters(cur, ref, app, no_nn, timings, "appeared_", free_a,
+                                          obs_a), None, None, None, obs_a)
+    dis_d = None
     if dis is not None:
-        dis = _geometric_filters(ref, cur, dis, no_nn, timings, "disappeared_")
-    method = ("free_space" if params.nn_check_m <= 0 else "geometric") if params.free_space \
-        else "nn"
-    return _finish(method, params, ref, cur, app, dis, None, None, None, None, None, None,
+        free_d, obs_d = aligned.free_ref, aligned.observed_ref
+        dis_d = _Direction(_geometric_filters(ref, cur, dis, no_nn, timings, "disappeared_",
+                                              free_d, obs_d), None, None, None, obs_d)
+    return _finish(method, params, aligned, app_d, dis_d,
                    ref.mixture.n_components if ref.mixture is not None else 0,
                    cur.mixture.n_components if cur.mixture is not None else 0,
                    timings, t_start)

@@ -192,6 +192,17 @@ class Mixture:
         """Index of the most probable component for each point, shape (N,), int64."""
         return self.log_responsibilities(points).argmax(axis=1)
 
+    def transformed(self, transform: np.ndarray) -> Mixture:
+        """The mixture moved by the (4, 4) rigid ``transform``: means ``R mu + t``,
+        covariances ``R Sigma R^T``, weights kept (the density of the moved points)."""
+        T = np.asarray(transform, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise InputError("transform must be a finite (4, 4) rigid transform")
+        R, t = T[:3, :3], T[:3, 3]
+        cov = np.einsum("ij,kjl,ml->kim", R, np.asarray(self.covariances), R)
+        return Mixture(np.asarray(self.weights).copy(), np.asarray(self.means) @ R.T + t,
+                       (cov + cov.transpose(0, 2, 1)) / 2.0)
+
     def log_likelihood(self, points) -> float:
         """Total log-likelihood ``sum_n log p(x_n)``."""
         return float(self.score_samples(points).sum())

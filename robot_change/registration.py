@@ -699,6 +699,13 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
         A, b = _normal_equations(pairs.jac[:n], pairs.res[:n], wts)
         radius = math.sqrt(float(np.median(pairs.zs[:n] ** 2)))
         step, lam_n, vec = _solve(A, b, radius, float(wts.sum()), params.weak_eigenvalue)
+        # a trust region: no step moves a point by more than half the pairing distance (a
+        # first step from many wrong pairs must not throw the estimate out of the basin)
+        length = math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
+                           + float((step[3:] ** 2).sum()))
+        cap = 0.5 * params.max_distance_m[li]
+        if length > cap:
+            step = step * (cap / length)
         n_it += 1
         inc = np.eye(4)
         inc[:3, :3] = _exp_so3(step[:3])

@@ -61,7 +61,9 @@ class Scene:
     ``reference_oni``/``current_oni``: the recordings (OpenNI2 ``.oni``, (H, W) uint16 mm,
     0 = no reading, 30 fps).  ``reference_pngs``/``current_pngs``: per-frame 16-bit PNGs when
     the fixtures were written with ``--png``, else empty.  ``truth_appeared`` (H, W) bool over
-    the current image, ``truth_disappeared`` (H, W) bool over the reference image.  ``meta``:
+    the current image, ``truth_disappeared`` (H, W) bool over the reference image.
+    ``observed_reference`` (H, W) bool: reference pixels the current camera could see (inside
+    its image and range, not hidden); ``observed_current`` likewise.  ``meta``:
     the parsed scene.json (noise model, seed, poses, ``changes`` with centroids and extents in
     the camera frame, metres; ``recordings`` with each file's codec and frame count).
     """
@@ -77,11 +79,25 @@ class Scene:
     current_pngs: tuple[Path, ...]
     truth_appeared: np.ndarray
     truth_disappeared: np.ndarray
+    observed_reference: np.ndarray
+    observed_current: np.ndarray
 
     @property
     def change(self) -> str:
-        """'added', 'removed', 'moved', 'two', 'small', 'none' or 'none_jitter'."""
+        """'added', 'removed', 'moved', 'two', 'small', 'none', 'none_jitter' or
+        'not_at_station' (the current view is of another place)."""
         return self.meta["change"]
+
+    @property
+    def T_ref_from_cur(self) -> np.ndarray:
+        """(4, 4) float64: the true transform from the current camera frame to the reference
+        camera frame (the registration's truth)."""
+        return np.array(self.meta["T_ref_from_cur"], dtype=np.float64)
+
+    @property
+    def revisits(self) -> str | None:
+        """The scene whose reference this one shares (a revisit with a pose offset), or None."""
+        return self.meta.get("reference_from")
 
     @property
     def changes(self) -> list[dict]:
@@ -205,4 +221,6 @@ def load_scene(name: str) -> Scene:
         current_pngs=tuple(folder / f for f in files.get("current_png", ())),
         truth_appeared=_read_png(folder / files["truth_appeared"]) > 0,
         truth_disappeared=_read_png(folder / files["truth_disappeared"]) > 0,
+        observed_reference=_read_png(folder / files["observed_reference"]) > 0,
+        observed_current=_read_png(folder / files["observed_current"]) > 0,
     )

@@ -7,9 +7,15 @@ For each scene of :data:`sim_fixtures.scenes.SCENES` a folder ``scenes/<name>/``
     current.oni              the current frames, likewise
     truth_appeared.png       uint8 mask of the current image, 255 = new or moved-to object
     truth_disappeared.png    uint8 mask of the reference image, 255 = removed or moved-from
+    observed_reference.png   uint8 mask of the reference image, 255 = seen by the current camera
+    observed_current.png     uint8 mask of the current image, 255 = seen by the reference camera
     ids_reference.png        uint8 object ids of the ideal reference render (0 = nothing)
     ids_current.png          uint8 object ids of the ideal current render
     scene.json               name, split, noise model, seed, intrinsics, poses, changes, files
+
+A revisit scene (``<scene>_pose_<n>cm``, ``office_far_offset``, ``storage_other_room``) shares
+its reference recording with the scene it revisits (``files.reference`` is
+``../<scene>/reference.oni``), so it stores only its current recording.
 
 and ``frames/room_vga.png`` (+ ``room_vga.json``): one VGA frame of a furnished room with Kinect
 noise, the demo/benchmark frame.
@@ -43,6 +49,8 @@ from sim_fixtures.scenes import (
     change_geometry,
     object_ids,
     render_pair,
+    observed_masks,
+    true_transform,
     truth_masks,
     _storage,
 )
@@ -68,8 +76,10 @@ def write_image(path: Path, array: np.ndarray) -> None:
 
 
 def noisy_frames(spec: SceneSpec, r: Render, epoch: int, count: int) -> list[np.ndarray]:
-    """``count`` independent noisy (H, W) uint16 mm frames of the ideal render ``r``."""
-    return [spec.noise.apply(r, np.random.default_rng([spec.seed, epoch, k]))
+    """``count`` independent noisy (H, W) uint16 mm frames of the ideal render ``r``; epoch 0
+    is the reference, 1 the current (whose noise stream is ``spec.current_noise_epoch``)."""
+    stream = 0 if epoch == 0 else spec.current_noise_epoch
+    return [spec.noise.apply(r, np.random.default_rng([spec.seed, stream, k]))
             for k in range(count)]
 
 
@@ -136,8 +146,12 @@ def scene_metadata(spec: SceneSpec, ref: Render, cur: Render) -> dict:
         "depth_unit": "mm, uint16, 0 = no reading",
         "noise": spec.noise.to_json(),
         "seed": spec.seed,
-        "frame_seeding": "numpy.random.default_rng([seed, epoch, k]); epoch 0 reference, "
-        "1 current",
+        "frame_seeding": "numpy.random.default_rng([seed, stream, k]); stream 0 reference, "
+        f"{spec.current_noise_epoch} current",
+        "reference_from": spec.reference_from,
+        "T_ref_from_cur": [[round(float(v), 12) for v in row] for row in true_transform(spec)],
+        "T_ref_from_cur_note": "maps current camera-frame points into the reference camera "
+        "frame (optical, metres); the registration's truth",
         "intrinsics": {"width": intr.width, "height": intr.height, "fx": intr.fx,
                        "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
         "room_size_m": list(spec.room_size_m),
@@ -176,6 +190,7 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
     formats = ["oni"] + [f for f in formats if f != "oni"]
     ref, cur = render_pair(spec)
     appeared, disappeared = truth_masks(spec, ref, cur)
+    observed_ref, observed_cur = observed_masks(spec, ref, cur)
     folder = root / spec.name
     tmp = root / f".{spec.name}.tmp"
     if tmp.exists():
@@ -185,6 +200,13 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
     files: dict[str, object] = {}
     recordings: dict[str, dict] = {}
     for epoch, (name, r) in enumerate(zip(EPOCHS, (ref, cur))):
+        if epoch == 0 and spec.reference_from is not None:
+            shared = root / spec.reference_from / "reference.oni"
+            files[name] = f"../{spec.reference_from}/reference.oni"
+            info = read_oni_header(shared)
+            recordings[name] = {"file": files[name], "codec": info.codec,
+                                "frames": info.frames, "fps": info.fps}
+            continue
         frames = noisy_frames(spec, r, epoch, spec.frames[epoch])
         for fmt in formats:
             names = RECORDING_WRITERS[fmt](tmp / name, frames, spec)
@@ -198,7 +220,9 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
     for key, image in (("truth_appeared", appeared.astype(np.uint8) * 255),
                        ("truth_disappeared", disappeared.astype(np.uint8) * 255),
                        ("ids_reference", ref.ids.astype(np.uint8)),
-                       ("ids_current", cur.ids.astype(np.uint8))):
+                       ("ids_current", cur.ids.astype(np.uint8)),
+                       ("observed_reference", observed_ref.astype(np.uint8) * 255),
+                       ("observed_current", observed_cur.astype(np.uint8) * 255)):
         write_image(tmp / f"{key}.png", image)
         files[key] = f"{key}.png"
     meta["files"] = files

@@ -38,6 +38,10 @@ __all__ = [
     "object_ids",
     "render_pair",
     "change_geometry",
+    "POSE_LEVELS",
+    "observed_masks",
+    "pose_offset",
+    "true_transform",
 ]
 
 
@@ -154,6 +158,11 @@ class SceneSpec:
     seed: int
     frames: tuple[int, int] = (3, 3)
     intrinsics: Intrinsics = dataclasses.field(default_factory=Intrinsics.openni_default)
+    # The stored scene whose reference recording this one shares (same layout, pose, noise and
+    # seed, so the same frames); None: its own.  Current frame k draws its noise from
+    # default_rng([seed, current_noise_epoch, k]).
+    reference_from: str | None = None
+    current_noise_epoch: int = 1
 
 
 def _office() -> tuple[list[Obj], Pose]:
@@ -323,7 +332,72 @@ def _catalogue() -> dict[str, SceneSpec]:
         add(f"paper_sigma_{tag}", "dev", "added", f"the paper's protocol (Table 1): a box "
             f"appears in a simulated room; plain Gaussian depth noise sigma = {sigma} m",
             paper_size, paper, paper_cur, paper_pose, seed, noise=GaussianNoise(sigma))
+    specs += _revisits({s.name: s for s in specs}, office, office_pose, lounge, lounge_pose,
+                       storage, storage_pose, meeting, meeting_pose)
     return {s.name: s for s in specs}
+
+
+#: Offset levels of the revisit scenes: name -> (translation m, rotation deg).
+POSE_LEVELS = {"pose_2cm": (0.02, 1.0), "pose_5cm": (0.05, 2.0), "pose_10cm": (0.10, 4.0)}
+#: The scenes revisited at every level of POSE_LEVELS (the split follows the scene's).
+REVISITED = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_two_changes",
+             "storage_carton_removed", "storage_no_change_jitter", "meeting_two_changes")
+
+
+def pose_offset(pose: Pose, translation_m: float, rotation_deg: float, seed: int) -> Pose:
+    """``pose`` moved by ``translation_m`` in a random direction and turned by about
+    ``rotation_deg`` about a random axis (yaw, pitch and roll offsets in random shares whose
+    root sum of squares is ``rotation_deg``), from ``default_rng(seed)``."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    a = rng.normal(size=3)
+    d *= translation_m / np.linalg.norm(d)
+    a *= rotation_deg / np.linalg.norm(a)
+    return pose.moved(float(d[0]), float(d[1]), float(d[2]), float(a[0]), float(a[1]),
+                      float(a[2]))
+
+
+def true_transform(spec: SceneSpec) -> np.ndarray:
+    """(4, 4) ``T_ref_from_cur`` of ``spec``: current camera frame -> reference camera frame."""
+    ref = spec.reference_pose.matrix()
+    inv = np.eye(4)
+    inv[:3, :3] = ref[:3, :3].T
+    inv[:3, 3] = -ref[:3, :3].T @ ref[:3, 3]
+    return inv @ spec.current_pose.matrix()
+
+
+def _revisits(base: dict[str, SceneSpec], office, office_pose, lounge, lounge_pose, storage,
+              storage_pose, meeting, meeting_pose) -> list[SceneSpec]:
+    """The robot back at a station with a pose error: each scene of :data:`REVISITED` with its
+    current camera displaced from the reference camera by each level of :data:`POSE_LEVELS`;
+    and two pairs that must end as "not at the station": the office seen from 0.8 m / 25 deg
+    away (beyond the default tolerance), and the storage room's reference against a view of
+    the meeting room."""
+    out = []
+    for name in REVISITED:
+        spec = base[name]
+        for level, (tag, (translation, rotation)) in enumerate(POSE_LEVELS.items()):
+            seed = spec.seed * 100 + level
+            out.append(dataclasses.replace(
+                spec, name=f"{name}_{tag}",
+                change=spec.change if spec.change != "none_jitter" else "none",
+                description=f"{spec.description}; the robot came back {translation * 100:.0f} cm"
+                f" / {rotation:.0f} deg off its reference pose",
+                current_pose=pose_offset(spec.reference_pose, translation, rotation, seed),
+                reference_from=name, current_noise_epoch=10 + level))
+    office_spec = base["office_no_change"]
+    out.append(dataclasses.replace(
+        office_spec, name="office_far_offset", change="not_at_station",
+        description="the office, but the robot stands 0.8 m and 25 deg away from its station",
+        current_pose=office_pose.moved(dx=0.55, dy=0.55, dz=0.0, dyaw_deg=25.0),
+        reference_from="office_no_change", current_noise_epoch=20))
+    storage_spec = base["storage_carton_removed"]
+    out.append(dataclasses.replace(
+        storage_spec, name="storage_other_room", change="not_at_station",
+        description="the storage room's reference, but the robot is in the meeting room",
+        current=tuple(meeting), current_pose=meeting_pose, room_size_m=(5.5, 4.5, 2.6),
+        reference_from="storage_carton_removed", current_noise_epoch=21))
+    return out
 
 
 #: name -> SceneSpec, in catalogue order.
@@ -403,6 +477,8 @@ def truth_masks(spec: SceneSpec, ref: Render, cur: Render) -> tuple[np.ndarray, 
     """
     ids = object_ids(spec)
     changes = diff_layouts(spec.reference, spec.current)
+    if spec.change == "not_at_station":  # another place: nothing to compare
+        return np.zeros(cur.ids.shape, bool), np.zeros(ref.ids.shape, bool)
     new_ids = [ids[c.name] for c in changes if c.kind in ("added", "moved")]
     gone_ids = [ids[c.name] for c in changes if c.kind in ("removed", "moved")]
     return np.isin(cur.ids, new_ids), np.isin(ref.ids, gone_ids)
@@ -426,12 +502,42 @@ def _geometry(obj: Obj, pose: Pose, r: Render, oid: int) -> dict:
     }
 
 
+def observed_masks(spec: SceneSpec, ref: Render, cur: Render, min_depth_m: float = 0.4,
+                   max_depth_m: float = 5.0, occlusion_m: float = 0.05
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(reference observed by the current camera, current observed by the reference camera):
+    (H, W) bool each, from the ideal renders.  A pixel's surface point is observed by the
+    other camera when it lands inside the other image at a depth within
+    ``min_depth_m..max_depth_m`` and the other render sees nothing nearer there by more than
+    ``occlusion_m`` (seeing past the point, where the object was removed, counts as seeing)."""
+    T = true_transform(spec)
+    out = []
+    for own, other, M in ((ref, cur, np.linalg.inv(T)), (cur, ref, T)):
+        hit = own.depth > 0
+        p = own.points[hit] @ M[:3, :3].T + M[:3, 3]
+        intr = spec.intrinsics
+        ok = (p[:, 2] >= min_depth_m) & (p[:, 2] <= max_depth_m)
+        z = np.where(ok, p[:, 2], 1.0)
+        u = np.floor(intr.fx * p[:, 0] / z + intr.cx + 0.5).astype(np.int64)
+        v = np.floor(intr.fy * p[:, 1] / z + intr.cy + 0.5).astype(np.int64)
+        ok &= (u >= 0) & (v >= 0) & (u < intr.width) & (v < intr.height)
+        seen = np.zeros(p.shape[0], bool)
+        d = other.depth[v[ok], u[ok]]
+        seen[ok] = (d == 0) | (d >= p[ok, 2] - occlusion_m)
+        mask = np.zeros(own.depth.shape, bool)
+        mask[hit] = seen
+        out.append(mask)
+    return out[0], out[1]
+
+
 def change_geometry(spec: SceneSpec, ref: Render, cur: Render) -> list[dict]:
     """The changes as JSON-ready dicts: kind, object, and per side ('before' in the reference
     camera frame, 'after' in the current camera frame) the object's bounding-box centre and
     extent (metres, camera optical frame), its visible pixel count and visible centroid."""
     ids = object_ids(spec)
     out = []
+    if spec.change == "not_at_station":
+        return out
     for c in diff_layouts(spec.reference, spec.current):
         entry = {"kind": c.kind, "object": c.name, "id": ids[c.name]}
         if c.before is not None:

@@ -129,7 +129,12 @@ def test_plain_method_uses_independent_fits(models):
     _, ref, cur = models["office_box_added"]
     cs = detect_changes(ref, cur, ChangeParams(novelty=False, free_space=False))
     assert cs.method == "plain"
-    assert cs.appeared_mixture is cur.mixture and cs.disappeared_mixture is ref.mixture
+    assert cs.appeared_mixture is cur.mixture
+    # the reference's own fit, moved into the current camera frame by the registration
+    moved = ref.mixture.transformed(cs.registration.inverse())
+    np.testing.assert_array_equal(cs.disappeared_mixture.weights, ref.mixture.weights)
+    np.testing.assert_allclose(cs.disappeared_mixture.means, moved.means)
+    np.testing.assert_allclose(cs.disappeared_mixture.covariances, moved.covariances)
     assert cs.greedy_appeared.candidates.size == cur.mixture.n_components
     assert detect_plain(ref, cur).method == "plain"
 
@@ -245,16 +250,43 @@ def test_window_filter_matches_numpy(radius):
                                       _window_twin(depth, radius, take_min))
 
 
-def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero):
-    near = _window_twin(other, pose_r, True) if pose_r else other
-    far = _window_twin(other, hole_r, False) if hole_r else other
-    d1 = np.where(near > 0, near, far).astype(np.float64) * 1e-3
-    z = own.astype(np.float64) * 1e-3
-    seen = np.where(d1 == 0, free_zero, d1 > z + margin_m + per_m2 * z * z)
+def _warp_twin(own, T, intr, depth_range):
+    """NumPy twin of change._warp_kernel: (target (P,), z_other (P,))."""
+    h, w = own.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    z = own.astype(np.float64).ravel() * 0.001
+    x = (cols.ravel() - intr.cx) * z / intr.fx
+    y = (rows.ravel() - intr.cy) * z / intr.fy
+    p = np.stack([x, y, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+    pz = p[:, 2]
+    ok = (own.ravel() > 0) & (pz >= depth_range[0]) & (pz <= depth_range[1])
+    zsafe = np.where(ok, pz, 1.0)
+    u = np.floor(intr.fx * p[:, 0] / zsafe + intr.cx + 0.5).astype(np.int64)
+    v = np.floor(intr.fy * p[:, 1] / zsafe + intr.cy + 0.5).astype(np.int64)
+    ok &= (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    target = np.where(own.ravel() > 0, -2, -1)
+    target[ok] = v[ok] * w + u[ok]
+    return target, np.where(ok, pz, 0.0)
+
+
+def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero,
+                     target=None, z_other=None):
+    near = (_window_twin(other, pose_r, True) if pose_r else other).ravel()
+    far = (_window_twin(other, hole_r, False) if hole_r else other).ravel()
+    if target is None:
+        target = np.where(own.ravel() > 0, np.arange(own.size), -1)
+        z_other = own.astype(np.float64).ravel() * 1e-3
+    pv = pv.ravel()
+    valid = target >= 0
+    q = np.where(valid, target, 0)
+    d1 = np.where(near[q] > 0, near[q], far[q]).astype(np.float64) * 1e-3
+    z = z_other
+    seen = valid & np.where(d1 == 0, free_zero, d1 > z + margin_m + per_m2 * z * z)
     ok = pv >= 0
     votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
     total = np.bincount(pv[ok], minlength=n).astype(np.int32)
-    return votes, total
+    unseen = np.bincount(pv[ok], weights=~valid[ok], minlength=n).astype(np.int32)
+    return votes, total, unseen
 
 
 @pytest.mark.parametrize("pose_r,hole_r,free_zero", [(0, 0, True), (2, 4, False), (3, 0, True)])
@@ -268,8 +300,38 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero):
     pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
     want = _free_space_twin(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
-    np.testing.assert_array_equal(got[0], want[0])
-    np.testing.assert_array_equal(got[1], want[1])
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    assert not got[2].any()  # the shared pixel grid: everything is observed
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.03, -0.02, 0.05), (0.4, 0.0, 0.0)])
+def test_free_space_through_a_transform_matches_numpy(shift):
+    from hw.depth import Intrinsics
+    from robot_change.registration import rpy_deg_to_rotation
+
+    rng = np.random.default_rng(11)
+    h, w, n = 30, 40, 60
+    intr = Intrinsics(w, h, 35.0, 35.0, 19.5, 14.5)
+    own = rng.integers(800, 3000, size=(h, w)).astype(np.uint16)
+    own[rng.random((h, w)) < 0.1] = 0
+    other = (own.astype(np.int64) + rng.integers(-200, 400, size=(h, w))).astype(np.uint16)
+    other[rng.random((h, w)) < 0.2] = 0
+    pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
+    T = np.eye(4)
+    T[:3, :3] = rpy_deg_to_rotation(1.0, -2.0, 3.0)
+    T[:3, 3] = shift
+    got_t, got_z = ch._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
+                                   intr.cx, intr.cy, w, h, 0.4, 2.9)
+    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9))
+    np.testing.assert_array_equal(got_t, want_t)
+    np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
+    got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,
+                           other_from_own=T, depth_range_m=(0.4, 2.9))
+    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    assert got[2].sum() > 0  # the depth range and the image border leave some unseen
 
 
 @pytest.mark.parametrize("radius", [1, 2])

@@ -1,0 +1,257 @@
+"""Registration of the current view to the reference (robot_change.registration): the kernels
+against plain NumPy twins, accuracy against the revisit fixtures' true transforms (with the
+change in view), weak directions of a bare wall, and the not-at-station outcome."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hw.depth import Intrinsics
+from robot_change import registration as reg_mod
+from robot_change.change import ChangeParams, detect_changes
+from robot_change.errors import InputError
+from robot_change.registration import (
+    RegistrationParams,
+    depth_sigma,
+    invert,
+    register_depth,
+    rotation_angle_deg,
+    rotation_to_rpy_deg,
+    rpy_deg_to_rotation,
+)
+from robot_change.scene import build_scene
+from sim_fixtures import load_scene, scene_names
+
+INTR = Intrinsics.openni_default()
+
+
+def _fused(frames):
+    return np.median(np.stack(frames), axis=0).astype(np.uint16)
+
+
+# --------------------------------------------------------------------------- numba twins
+
+
+def _vertex_twin(depth, f, intr, min_mm, max_mm, band_m, band_slope):
+    h, w = depth.shape[0] // f, depth.shape[1] // f
+    out = np.zeros((h, w, 3), np.float32)
+    count = np.zeros((h, w), np.int32)
+    half = f // 2
+    lo = max(half - 1, 0)
+    for i in range(h):
+        for j in range(w):
+            block = depth[i * f:(i + 1) * f, j * f:(j + 1) * f].astype(np.int64)
+            centre = block[lo:half + 1, lo:half + 1]
+            centre = centre[(centre >= min_mm) & (centre <= max_mm)]
+            if centre.size == 0:
+                continue
+            za = (centre * 0.001).sum() / centre.size
+            band = band_m + band_slope * f * za / intr.fx
+            r, c = np.nonzero((block >= min_mm) & (block <= max_mm)
+                              & (np.abs(block * 0.001 - za) <= band))
+            if r.size < max(1, f * f // 4):
+                continue
+            z = block[r, c] * 0.001
+            x = (c + j * f - intr.cx) * z / intr.fx
+            y = (r + i * f - intr.cy) * z / intr.fy
+            out[i, j] = (x.sum() / r.size, y.sum() / r.size, z.sum() / r.size)
+            count[i, j] = r.size
+    return out, count
+
+
+def _merge_twin(vertex, count, band_m, slope):
+    h, w = vertex.shape[0] // 2, vertex.shape[1] // 2
+    out = np.zeros((h, w, 3), np.float32)
+    out_count = np.zeros((h, w), np.int32)
+    for i in range(h):
+        for j in range(w):
+            v = vertex[2 * i:2 * i + 2, 2 * j:2 * j + 2].reshape(4, 3).astype(np.float64)
+            k = count[2 * i:2 * i + 2, 2 * j:2 * j + 2].reshape(4)
+            ok = k > 0
+            if not ok.any():
+                continue
+            za = v[ok, 2].sum() / ok.sum()
+            sel = ok & (np.abs(v[:, 2] - za) <= band_m + slope * za)
+            n = k[sel].sum()
+            if n > 0 and 4 * n >= k.sum():
+                out[i, j] = (k[sel, None] * v[sel]).sum(axis=0) / n
+                out_count[i, j] = n
+    return out, out_count
+
+
+def _normal_twin(vertex, max_step):
+    v = vertex.astype(np.float64)
+    h, w, _ = v.shape
+    out = np.zeros((h, w, 3), np.float32)
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            nb = [v[i, j], v[i, j - 1], v[i, j + 1], v[i - 1, j], v[i + 1, j]]
+            if any(p[2] <= 0 for p in nb):
+                continue
+            a = v[i, j + 1] - v[i, j - 1]
+            b = v[i + 1, j] - v[i - 1, j]
+            lim = max_step * v[i, j, 2]
+            if a @ a > lim * lim or b @ b > lim * lim:
+                continue
+            n = np.cross(a, b)
+            norm = np.linalg.norm(n)
+            if norm <= 0:
+                continue
+            out[i, j] = -n / norm if n @ v[i, j] > 0 else n / norm
+    return out
+
+
+def _associate_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist, min_cos):
+    res, jac, zs = [], [], []
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            n0 = cur_n[i, j].astype(np.float64)
+            if not n0.any():
+                continue
+            p = R @ cur_v[i, j].astype(np.float64) + t
+            if p[2] <= 0:
+                continue
+            u = int(math.floor(fx * p[0] / p[2] + cx + 0.5))
+            v = int(math.floor(fy * p[1] / p[2] + cy + 0.5))
+            if not (0 <= u < ref_v.shape[1] and 0 <= v < ref_v.shape[0]):
+                continue
+            m = ref_n[v, u].astype(np.float64)
+            if not m.any():
+                continue
+            d = p - ref_v[v, u]
+            if d @ d > max_dist ** 2 or (R @ n0) @ m < min_cos:
+                continue
+            res.append(m @ d)
+            jac.append(np.concatenate([np.cross(p, m), m]))
+            zs.append(p[2])
+    return np.array(res), np.array(jac).reshape(-1, 6), np.array(zs)
+
+
+@pytest.fixture(scope="module")
+def office_pair():
+    sc = load_scene("office_box_added_pose_5cm")
+    return _fused(sc.reference_frames()), sc.current_frames()[0], sc
+
+
+def test_vertex_and_merge_levels_match_numpy(office_pair):
+    ref, _, _ = office_pair
+    crop = np.ascontiguousarray(ref[100:196, 200:328])  # (96, 128), edges and the floor
+    intr = Intrinsics(128, 96, 525.0, 525.0, 319.5 - 200, 239.5 - 100)
+    for f in (4, 8):
+        got_v, got_c = reg_mod._vertex_level(crop, f, intr.fx, intr.fy, intr.cx, intr.cy, 400,
+                                             5000, 0.03, 2.0)
+        want_v, want_c = _vertex_twin(crop, f, intr, 400, 5000, 0.03, 2.0)
+        np.testing.assert_array_equal(got_c, want_c)
+        np.testing.assert_allclose(got_v, want_v, rtol=1e-6, atol=1e-7)
+    got = reg_mod._merge_level(got_v, got_c, 0.03, 2.0 * 16 / 525.0)
+    want = _merge_twin(got_v, got_c, 0.03, 2.0 * 16 / 525.0)
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-6, atol=1e-7)
+    assert (got_c > 0).mean() > 0.5
+
+
+def test_normal_map_and_association_match_numpy(office_pair):
+    ref, cur, sc = office_pair
+    params = RegistrationParams()
+    rl = reg_mod._levels(ref, INTR, params)[1]
+    cl = reg_mod._levels(cur, INTR, params)[1]
+    np.testing.assert_allclose(reg_mod._normal_map(rl.vertex, 8.0 * 8 / INTR.fx),
+                               _normal_twin(rl.vertex, 8.0 * 8 / INTR.fx), atol=1e-6)
+    T = sc.T_ref_from_cur
+    n_cells = cl.vertex.shape[0] * cl.vertex.shape[1]
+    res, jac, zs = np.empty(n_cells), np.empty((n_cells, 6)), np.empty(n_cells)
+    n = reg_mod._associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                           T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8, res, jac, zs)
+    w_res, w_jac, w_zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3],
+                                         T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8)
+    assert n == len(w_res) > 1000
+    np.testing.assert_allclose(res[:n], w_res, atol=1e-6)
+    np.testing.assert_allclose(jac[:n], w_jac, atol=1e-6)
+    np.testing.assert_allclose(zs[:n], w_zs, atol=1e-6)
+    inliers = reg_mod._count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal,
+                                     T[:3, :3].copy(), T[:3, 3].copy(), rl.fx, rl.fy, rl.cx,
+                                     rl.cy, 0.1, 0.8, 3.0)
+    sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
+    quant = 2.85e-3 * w_zs ** 2 / math.sqrt(12.0)
+    assert inliers == int((np.abs(w_res) <= 3.0 * np.hypot(sig, quant)).sum())
+    np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
+
+
+def test_rotation_helpers_round_trip():
+    R = rpy_deg_to_rotation(3.0, -4.0, 10.0)
+    np.testing.assert_allclose(rotation_to_rpy_deg(R), (3.0, -4.0, 10.0), atol=1e-9)
+    assert rotation_angle_deg(R) == pytest.approx(
+        math.degrees(math.acos((np.trace(R) - 1) / 2)))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, (0.1, -0.2, 0.3)
+    np.testing.assert_allclose(invert(T) @ T, np.eye(4), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- behaviour
+
+
+REVISITS = [n for n in scene_names() if "_pose_" in n]
+
+
+@pytest.mark.parametrize("name", REVISITS)
+def test_registration_recovers_the_true_offset_with_the_change_in_view(name):
+    sc = load_scene(name)
+    got = register_depth(_fused(sc.reference_frames()), sc.current_frames()[0], sc.intrinsics)
+    err = invert(sc.T_ref_from_cur) @ got.T_ref_from_cur
+    assert np.linalg.norm(err[:3, 3]) < 0.01, got.to_dict()
+    assert rotation_angle_deg(err[:3, :3]) < 0.5
+    assert got.fitness > 0.6 and got.weak == ()
+
+
+def test_a_bare_wall_leaves_sliding_along_it_weak_and_unmoved():
+    depth = np.full((480, 640), 2000, np.uint16)  # a wall 2 m ahead, square to the camera
+    got = register_depth(depth, depth, INTR)
+    assert {"x", "y"} <= set(got.weak)
+    np.testing.assert_allclose(got.T_ref_from_cur, np.eye(4), atol=1e-6)
+    assert got.to_dict()["weak_directions"] == list(got.weak)
+
+
+@pytest.mark.parametrize("name", ["office_far_offset", "storage_other_room"])
+def test_another_place_is_not_at_station_not_a_change(name):
+    sc = load_scene(name)
+    ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+    cs = detect_changes(ref, sc.current_frames()[0], intrinsics=sc.intrinsics)
+    assert cs.outcome == "not_at_station" and not cs.changed and cs.regions == ()
+    assert cs.not_at_station_reason
+    summary = cs.summary()
+    assert summary["outcome"] == "not_at_station"
+    assert set(summary["registration"]) >= {"T_ref_from_cur", "translation_m", "rotation_deg",
+                                             "fitness", "rmse_m", "weak_directions", "ms"}
+
+
+def test_offset_beyond_the_station_tolerance_is_not_at_station():
+    sc = load_scene("office_no_change_pose_10cm")
+    ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+    tight = ChangeParams(registration=RegistrationParams(max_translation_m=0.05))
+    cs = detect_changes(ref, sc.current_frames()[0], tight, intrinsics=sc.intrinsics)
+    assert cs.outcome == "not_at_station" and "offset" in cs.not_at_station_reason
+    assert detect_changes(ref, sc.current_frames()[0], intrinsics=sc.intrinsics).outcome == \
+        "no_change"
+
+
+def test_registration_switched_off_is_the_identity(office_pair):
+    ref, cur, _ = office_pair
+    got = register_depth(ref, cur, INTR, RegistrationParams(enabled=False))
+    assert got.is_identity and got.fitness == 1.0
+
+
+def test_bad_input_is_refused_with_typed_errors(office_pair):
+    ref, cur, _ = office_pair
+    with pytest.raises(InputError, match="uint16"):
+        register_depth(ref.astype(np.float32), cur, INTR)
+    with pytest.raises(InputError, match="intrinsics"):
+        register_depth(ref[:100], cur[:100], INTR)
+    with pytest.raises(InputError, match="twice"):
+        RegistrationParams(levels=(16, 4, 2))
+    with pytest.raises(InputError, match="same length"):
+        RegistrationParams(iterations=(1, 2))
+    with pytest.raises(InputError, match="RegistrationParams"):
+        ChangeParams(registration="yes")
