@@ -55,9 +55,10 @@ __all__ = [
     "transform_points",
 ]
 
-#: Names of the six directions of the estimate, camera optical frame: translations along
-#: x (right), y (down), z (forward), rotations about them.
-AXES = ("x", "y", "z", "rot_x", "rot_y", "rot_z")
+#: Names of the six directions of the estimate, in the order of the Gauss-Newton step
+#: (rotation vector, then translation), camera optical frame: rotations about x (right),
+#: y (down), z (forward), translations along them.
+AXES = ("rot_x", "rot_y", "rot_z", "x", "y", "z")
 
 _num = functools.partial(validate.number, "RegistrationParams")
 _int = functools.partial(validate.whole, "RegistrationParams")
