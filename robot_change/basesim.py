@@ -55,11 +55,14 @@ from robot_change.link import (
 from robot_change.protocol import (
     PARAM_BY_NAME,
     PARAMS,
+    VERSION,
+    WEAK_BITS,
     Arm,
     BaseHeartbeat,
     CaptureReference,
     ChangeReport,
     Check,
+    CheckResult,
     Disarm,
     GetParam,
     Heartbeat,
@@ -235,12 +238,13 @@ class BaseSim:
     """
 
     def __init__(self, port: Any, *, out: TextIO | None = None, verbose: bool = False,
-                 clock: Callable[[], float] = time.monotonic, baudrate: int = 115200) -> None:
+                 clock: Callable[[], float] = time.monotonic, baudrate: int = 115200,
+                 proto_max: int = VERSION) -> None:
         self.out = out or sys.stdout
         self.verbose = verbose
         self.clock = clock
         self.link = Link(Role.BASE, clock=clock, software="robot-change base-sim",
-                         config=LinkConfig.for_baud(baudrate))
+                         config=LinkConfig.for_baud(baudrate), proto_max=proto_max)
         self.runner = LinkRunner(self.link, port)
         self.port = port
         self.t0 = clock()
@@ -318,11 +322,22 @@ class BaseSim:
         if message.TYPE == MsgType.PAUSE:
             self._latched = True
             self._resume_acked = False
+        if isinstance(message, CheckResult):
+            dx, dy, dz = message.offset_mm
+            roll, pitch, yaw = (v / 100 for v in message.rotation_cdeg)
+            weak = [n for n, bit in WEAK_BITS.items() if message.weak & bit]
+            self.say(f"     {message.outcome.name.lower()}; the robot stands {dx} mm forward, "
+                     f"{dy} mm left, {dz} mm up, roll {roll:.2f} pitch {pitch:.2f} yaw "
+                     f"{yaw:.2f} deg off its station pose; fitness "
+                     f"{message.fitness_permille / 10:.1f} %"
+                     + (f"; weak: {', '.join(weak)}" if weak else ""))
         if isinstance(message, ChangeReport):
+            frame = ("forward, left, up" if self.link.version >= 2
+                     else "camera x right, y down, z forward")
             for region in message.regions:
                 x, y, z = region.centroid_mm
                 dx, dy, dz = region.extent_mm
-                self.say(f"     {region.kind.name.lower():11s} at ({x}, {y}, {z}) mm, "
+                self.say(f"     {region.kind.name.lower():11s} at ({x}, {y}, {z}) mm ({frame}), "
                          f"{dx} x {dy} x {dz} mm, {region.points} points")
             report = self.assembler.add(message)
             if report is not None:
@@ -501,7 +516,7 @@ def check_script(path: str | Path) -> list[tuple[int, str]]:
 
 def run_base_sim(port_url: Any, script_path: str | Path | None = None, *, baudrate: int = 115200,
                  verbose: bool = False, stdin: TextIO | None = None, out: TextIO | None = None,
-                 connect_timeout: float = 5.0) -> int:
+                 connect_timeout: float = 5.0, proto_max: int = VERSION) -> int:
     """``robot-change base-sim``: exit status 0 (ok) or 1 (an expectation or a command failed).
 
     ``port_url`` is a port URL/path (opened with hw.serial_port.open_port) or an open port.
@@ -515,7 +530,7 @@ def run_base_sim(port_url: Any, script_path: str | Path | None = None, *, baudra
 
         port, owned = open_port(port_url, baudrate=baudrate, timeout=0.01), True
     try:
-        sim = BaseSim(port, out=out, verbose=verbose, baudrate=baudrate)
+        sim = BaseSim(port, out=out, verbose=verbose, baudrate=baudrate, proto_max=proto_max)
         if lines is not None:
             return sim.run_script(lines, connect_timeout)
         return sim.run_interactive(stdin or sys.stdin)

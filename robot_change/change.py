@@ -52,6 +52,7 @@ from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change import validate
 from robot_change.filters import KEY_BITS
 from robot_change.mixture import Mixture, fit_mixture
+from robot_change.mount import CameraMount
 from robot_change.registration import (
     Registration,
     RegistrationParams,
@@ -254,9 +255,10 @@ class Region:
     components: tuple[int, ...]
     point_index: np.ndarray = dataclasses.field(repr=False)
 
-    def to_dict(self) -> dict:
-        """JSON-ready summary (no point indices)."""
-        return {
+    def to_dict(self, mount: CameraMount | None = None) -> dict:
+        """JSON-ready summary (no point indices); with ``mount``, ``"base"`` holds the
+        centroid and the axis-aligned box in base_link (x forward, y left, z up, metres)."""
+        out = {
             "kind": self.kind,
             "centroid_m": [round(float(v), 4) for v in self.centroid],
             "extent_m": [round(float(v), 4) for v in self.extent],
@@ -266,6 +268,18 @@ class Region:
             "n_pixels": self.n_pixels,
             "components": list(self.components),
         }
+        if mount is not None:
+            lo, hi = self.base_box(mount)
+            out["base"] = {"centroid_m": [round(float(v), 4) for v in
+                                          mount.to_base(self.centroid[None])[0]],
+                           "extent_m": [round(float(v), 4) for v in hi - lo],
+                           "bbox_min_m": [round(float(v), 4) for v in lo],
+                           "bbox_max_m": [round(float(v), 4) for v in hi]}
+        return out
+
+    def base_box(self, mount: CameraMount) -> tuple[np.ndarray, np.ndarray]:
+        """(min (3,), max (3,)) of the region's box in base_link, metres."""
+        return mount.box_to_base(self.bbox_min, self.bbox_max)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -347,8 +361,10 @@ class ChangeSet:
         """Appeared then disappeared regions."""
         return self.appeared + self.disappeared
 
-    def summary(self) -> dict:
-        """JSON-ready summary: changed, regions, K of both mixtures, greedy traces, timings."""
+    def summary(self, mount: CameraMount = CameraMount()) -> dict:
+        """JSON-ready summary: outcome, registration (camera frames, and as the robot's offset
+        from its station pose in base_link given the camera's ``mount``), regions (camera
+        frame and base_link), K of both mixtures, greedy traces, timings."""
         return {
             "outcome": self.outcome,
             "changed": self.changed,
@@ -356,7 +372,9 @@ class ChangeSet:
             "registration": self.registration.to_dict(),
             "unobserved_fraction": round(self.unobserved_fraction, 4),
             "not_at_station_reason": self.not_at_station_reason,
-            "regions": [r.to_dict() for r in self.regions],
+            "mount": mount.to_dict(),
+            "offset_base": mount.offset(self.registration).to_dict(),
+            "regions": [r.to_dict(mount) for r in self.regions],
             "n_appeared_points": int(self.appeared_points.shape[0]),
             "n_disappeared_points": int(self.disappeared_points.shape[0]),
             "k_reference": self.k_reference,
@@ -1065,14 +1083,15 @@ class _Aligned:
 
 
 def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intrinsics | None,
-           timings: dict) -> _Aligned:
+           timings: dict, initial_pose: np.ndarray | None = None) -> _Aligned:
     """Checks, the current's clean cloud, registration, the reference moved into the current
     camera frame, the free-space checks both ways, and whether this is the station at all."""
     _check_scene_models(reference, current)
     ref = _as_epoch(reference, "reference")
     cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
     _check_pair(ref, cur, params)
-    reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration)
+    reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration,
+                         initial=initial_pose)
     timings["registration_ms"] = reg.ms
     rp = params.registration
     if not reg.within(rp):
@@ -1169,7 +1188,8 @@ def _not_at_station(method: str, params: ChangeParams, aligned: _Aligned, timing
 
 
 def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangeParams(), *,
-                   intrinsics: Intrinsics | None = None) -> ChangeSet:
+                   intrinsics: Intrinsics | None = None,
+                   initial_pose: np.ndarray | None = None) -> ChangeSet:
     """What appeared and what disappeared between the station's reference and now.
 
     The current view is first registered to the reference
@@ -1187,6 +1207,9 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
         reference's when not given; they must match).
     params : ChangeParams
         ``novelty=False`` runs the plain method (:func:`detect_plain`).
+    initial_pose : (4, 4), optional
+        Where registration starts (``T_ref_from_cur``; the identity by default: the robot
+        believes it is at its station).  WATCH passes the last check's estimate.
 
     Returns
     -------
@@ -1209,7 +1232,7 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
         return detect_plain(reference, current, params, intrinsics=intrinsics)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    aligned = _align(reference, current, params, intrinsics, timings)
+    aligned = _align(reference, current, params, intrinsics, timings, initial_pose)
     if not aligned.at_station:
         return _not_at_station("novelty", params, aligned, timings, t_start)
     ref, cur = aligned.ref, aligned.cur

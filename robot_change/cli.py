@@ -20,6 +20,7 @@ import numpy as np
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
 from robot_change.errors import ConfigError, InputError, RobotChangeError
+from robot_change.mount import CameraMount
 
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
 #: RestartPreventExitStatus.  Kept equal to robot_change.config.EXIT_CONFIG (a test checks).
@@ -310,9 +311,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
     current, current_depth, camera = _current_input(args, reference)
     detector = {"novelty": change.detect_changes, "plain": change.detect_plain,
                 "geometric": change.detect_geometric, "nn": change.detect_nn_threshold}
+    mount = CameraMount.parse(args.mount) if args.mount else CameraMount()
     changes = detector[args.method](reference, current, intrinsics=camera)
     seconds = time.perf_counter() - started
-    summary = changes.summary()
+    summary = changes.summary(mount)
     summary.update({
         "reference": args.reference, "current": args.current, "seconds": round(seconds, 3),
     })
@@ -341,13 +343,26 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
 
 def _print_change_summary(summary: dict[str, Any]) -> None:
-    verdict = "CHANGED" if summary["changed"] else "no change"
+    verdict = {"changed": "CHANGED", "no_change": "no change",
+               "not_at_station": "NOT AT STATION"}[summary["outcome"]]
     print(f"{verdict}: {summary['reference']} -> {summary['current']} "
           f"(K {summary['k_reference']} / {summary['k_current']}, {summary['seconds']:.2f} s)")
+    offset, reg = summary["offset_base"], summary["registration"]
+    print(f"  offset from the station pose (base_link): "
+          + " ".join(f"{a} {v * 100:+.1f} cm" for a, v in zip("xyz", offset["translation_m"]))
+          + ", " + " ".join(f"{a} {v:+.2f} deg" for a, v in
+                            zip(("roll", "pitch", "yaw"), offset["rpy_deg"]))
+          + f"; fitness {reg['fitness']:.2f}, unobserved {summary['unobserved_fraction']:.0%}"
+          + (f"; weak: {', '.join(offset['weak_directions'])}"
+             if offset["weak_directions"] else ""))
+    if summary["not_at_station_reason"]:
+        print(f"  {summary['not_at_station_reason']}")
     for number, region in enumerate(summary["regions"], 1):
         x, y, z = region["centroid_m"]
+        bx, by, bz = region["base"]["centroid_m"]
         print(f"  {region['kind']:11s} {number}: {region['n_points']:5d} points at "
-              f"x {x:+.2f} y {y:+.2f} z {z:.2f} m, extent "
+              f"x {x:+.2f} y {y:+.2f} z {z:.2f} m (camera), {bx:.2f} m ahead, {by:+.2f} m "
+              f"left, {bz:+.2f} m up (base), extent "
               + " x ".join(f"{v:.2f}" for v in region["extent_m"]) + " m")
     for path in summary.get("files", []):
         print(f"wrote {path}")
@@ -400,7 +415,8 @@ def cmd_base_sim(args: argparse.Namespace) -> int:
     """A simulated base controller on a serial port: interactive, or driven by a script."""
     from robot_change.basesim import run_base_sim
 
-    return run_base_sim(args.port, args.script, baudrate=args.baud, verbose=args.verbose)
+    return run_base_sim(args.port, args.script, baudrate=args.baud, verbose=args.verbose,
+                        proto_max=args.protocol)
 
 
 def cmd_link_bench(args: argparse.Namespace) -> int:
@@ -476,6 +492,10 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--out", help="folder for appeared.npy, disappeared.npy ((M,3) float32, "
                         "camera frame, m), report.json and report.png")
     detect.add_argument("--no-picture", action="store_true", help="with --out: skip report.png")
+    detect.add_argument("--mount", help="the camera on the base: x,y,z,roll,pitch,yaw of its "
+                        "body frame (x forward, y left, z up) in base_link, metres and degrees "
+                        "(default 0,0,0,0,0,0: at the base origin, looking ahead); base-frame "
+                        "positions and the robot's offset in report.json use it")
     detect.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     detect.set_defaults(func=cmd_detect)
 
@@ -507,6 +527,9 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
                           "too); exit 1 when one fails")
     base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
+    base_sim.add_argument("--protocol", type=int, choices=(1, 2), default=2,
+                          help="the highest protocol version the simulated base speaks "
+                          "(1: an older base firmware; default 2)")
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)

@@ -28,6 +28,7 @@ from typing import Any, Callable, ClassVar, Mapping
 
 from robot_change.cloud import CloudParams
 from robot_change.errors import ConfigError, InputError
+from robot_change.mount import CameraMount
 from robot_change.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.scene import SceneParams
 
@@ -129,6 +130,17 @@ def _depth_uri(value: Any) -> str:
         raise _Bad(f"a depth URI such as 'openni2://', 'openni2://SERIAL', 'oni:FILE.oni' or "
                    f"'images:DIR/' ({exc})") from None
     return text
+
+
+def _triple(limit: float, unit: str) -> Check:
+    def check(value: Any) -> tuple[float, float, float]:
+        ok = isinstance(value, (list, tuple)) and len(value) == 3 and all(
+            (_is_int(v) or isinstance(v, float)) and math.isfinite(v) and abs(v) <= limit
+            for v in value)
+        if not ok:
+            raise _Bad(f"three numbers, each within +-{limit}{unit}, e.g. [0.2, 0.0, 0.45]")
+        return tuple(float(v) for v in value)  # type: ignore[return-value]
+    return check
 
 
 def _param(name: str) -> Check:
@@ -242,6 +254,16 @@ class CameraConfig(_Section):
                                      "frames")
     read_timeout_s: float = _key(1.0, _float(0.0, 30.0, " seconds", lo_open=True),
                                  "longest wait for one frame before the camera counts as lost")
+    mount_xyz_m: tuple = _key((0.0, 0.0, 0.0), _triple(10.0, " m"),
+                              "the camera on the base: its body frame (x forward, y left, z up) "
+                              "in base_link, metres")
+    mount_rpy_deg: tuple = _key((0.0, 0.0, 0.0), _triple(180.0, " degrees"),
+                                "the camera on the base: roll, pitch, yaw of its body frame in "
+                                "base_link, degrees (a camera tilted down 10 deg: [0, 10, 0])")
+
+    def mount(self) -> CameraMount:
+        """The :class:`robot_change.mount.CameraMount` these keys describe."""
+        return CameraMount(self.mount_xyz_m, self.mount_rpy_deg)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,6 +27,8 @@ from robot_change.errors import LinkError
 from robot_change.protocol import (
     FLAG_RETRY,
     FLAG_URGENT,
+    FROZEN_TYPES,
+    MIN_VERSION,
     URGENT_COPIES,
     VERSION,
     Ack,
@@ -172,12 +174,19 @@ class Link:
     """One end of the module <-> base session (``role`` says which end), sans-IO.
 
     ``clock`` is a callable returning seconds (monotonic); every method that takes ``now`` uses
-    ``clock()`` when it is None.
+    ``clock()`` when it is None.  ``proto_max``: the highest protocol version this end offers
+    (an older peer is simulated with 1); :attr:`version` is the one the two ends agreed on.
     """
 
     def __init__(self, role: Role, *, clock: Callable[[], float] = time.monotonic,
                  config: LinkConfig | None = None, boot_id: int | None = None,
-                 software: str = "robot-change") -> None:
+                 software: str = "robot-change", proto_max: int = VERSION) -> None:
+        if not MIN_VERSION <= proto_max <= VERSION:
+            raise LinkError(f"proto_max {proto_max}: this code speaks {MIN_VERSION}..{VERSION}")
+        self.proto_max = proto_max
+        #: The session's protocol version: the highest both ends speak, MIN_VERSION until the
+        #: peer's HELLO has been heard.
+        self.version = MIN_VERSION
         self.role = Role(role)
         self.peer_role = Role.BASE if self.role == Role.MODULE else Role.MODULE
         self.clock = clock
@@ -218,6 +227,9 @@ class Link:
         if not may_send(self.role, type(message)):
             raise LinkError(f"{name} is sent by the {message.SENDER.name.lower()}, "  # type: ignore[union-attr]
                             f"not by the {self.role.name.lower()}")
+        if message.SINCE > self.version:
+            raise LinkError(f"{name} needs protocol version {message.SINCE}; this session "
+                            f"speaks {self.version} (check link.version first)")
         pending = _Pending(self._take_seq(), message, message.URGENT)
         queue = self._urgent_q if pending.urgent else self._normal_q
         queue.append(pending)
@@ -299,7 +311,7 @@ class Link:
             else:
                 self._transmit(pending, now)
         if self._heartbeat is not None and now >= self._next_heartbeat:
-            self._out += encode(self._heartbeat)
+            self._out += encode(self._heartbeat, version=self.version)
             self.stats.heartbeats_sent += 1
             self._next_heartbeat = now + cfg.heartbeat_interval
         if self.state == LinkState.UP and now - self._last_rx > cfg.silence_timeout:
@@ -324,6 +336,10 @@ class Link:
         self.stats.frames_in += 1
         message, seq = frame.message, frame.seq
         kind = message.TYPE
+        if frame.version > self.proto_max and kind not in FROZEN_TYPES:
+            if message.SEQUENCED:  # an end limited to older versions reads them as bad
+                self._nak(seq, NakReason.BAD_VERSION, kind)
+            return
         if kind == MsgType.ACK:
             self._on_ack(seq, now)
         elif kind == MsgType.NAK:
@@ -359,12 +375,15 @@ class Link:
 
     def _on_hello(self, hello: Hello, new_peer: bool, now: float) -> None:
         self.peer = hello
-        if not hello.proto_min <= VERSION <= hello.proto_max:
+        low, high = max(MIN_VERSION, hello.proto_min), min(self.proto_max, hello.proto_max)
+        if low > high:
             self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} speaks "
-                            f"protocol {hello.proto_min}..{hello.proto_max}, this end {VERSION}: "
-                            "update the older side")
-        elif new_peer and self._greeted and self._hello_seq is None:
-            self._start_hello(now)  # it restarted and does not know us yet
+                            f"protocol {hello.proto_min}..{hello.proto_max}, this end "
+                            f"{MIN_VERSION}..{self.proto_max}: update the older side")
+        else:
+            self.version = high
+            if new_peer and self._greeted and self._hello_seq is None:
+                self._start_hello(now)  # it restarted and does not know us yet
 
     def _on_ack(self, seq: int, now: float) -> None:
         pending = self._inflight.pop(seq, None)
@@ -397,7 +416,7 @@ class Link:
     # -- bytes out -----------------------------------------------------------------------------
 
     def _ack(self, frame: Frame, now: float) -> None:
-        ack = encode(Ack(), frame.seq)
+        ack = encode(Ack(), frame.seq, version=min(frame.version, self.proto_max))
         if not frame.flags & FLAG_URGENT:
             self._out += ack
             return
@@ -410,7 +429,7 @@ class Link:
         self._out += ack * self.config.urgent_copies
 
     def _nak(self, seq: int, reason: NakReason, refused_type: int) -> None:
-        self._out += encode(Nak(reason, refused_type), seq)
+        self._out += encode(Nak(reason, refused_type), seq, version=self.version)
         self.stats.naks_sent += 1
 
     def _take_seq(self) -> int:
@@ -419,7 +438,7 @@ class Link:
         return seq
 
     def _start_hello(self, now: float) -> None:
-        hello = Hello(self.role, self.boot_id, self.software)
+        hello = Hello(self.role, self.boot_id, self.software, MIN_VERSION, self.proto_max)
         pending = _Pending(self._take_seq(), hello, False)
         self._hello_seq = pending.seq
         self._inflight[pending.seq] = pending
@@ -441,7 +460,15 @@ class Link:
 
     def _transmit(self, pending: _Pending, now: float) -> None:
         flags = (FLAG_URGENT if pending.urgent else 0) | (FLAG_RETRY if pending.tries else 0)
-        frame = encode(pending.message, pending.seq, flags)
+        # HELLO goes out in the lowest version, which every peer reads (its layout is frozen)
+        version = MIN_VERSION if isinstance(pending.message, Hello) else self.version
+        if pending.message.SINCE > version:  # the peer went back to an older version
+            self._inflight.pop(pending.seq, None)
+            self._fail(pending, f"{pending.message.TYPE.name} needs protocol version "
+                       f"{pending.message.SINCE}; the {self.peer_role.name.lower()} now speaks "
+                       f"{version}")
+            return
+        frame = encode(pending.message, pending.seq, flags, version)
         self._out += frame * self.config.urgent_copies if pending.urgent else frame
         if pending.tries:
             self.stats.retransmissions += 1

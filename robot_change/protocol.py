@@ -24,7 +24,9 @@ from typing import ClassVar, Iterable
 
 from robot_change.errors import MessageError
 
-VERSION = 1
+#: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
+VERSION = 2
+MIN_VERSION = 1
 MAX_PAYLOAD = 240
 HEADER = struct.Struct("<BBHB")
 HEADER_SIZE = HEADER.size  # 5
@@ -61,6 +63,7 @@ class MsgType(IntEnum):
     STATUS = 0x15
     PARAM_VALUE = 0x16
     CAPTURED = 0x17
+    CHECK_RESULT = 0x18
     BASE_HEARTBEAT = 0x40
     STATUS_QUERY = 0x41
     CAPTURE_REFERENCE = 0x42
@@ -123,6 +126,7 @@ class PauseCause(IntEnum):
     CHANGE_WATCH = 2
     CAMERA_LOST = 3
     INTERNAL_ERROR = 4
+    NOT_AT_STATION = 5  # version 2: the robot was moved off the station it watches
 
 
 class FaultCode(IntEnum):
@@ -134,6 +138,25 @@ class FaultCode(IntEnum):
     INTERNAL_ERROR = 3
     STORAGE_ERROR = 4
     COMMAND_REFUSED = 5
+    NOT_AT_STATION = 6  # version 2
+
+
+#: Codes a version-1 peer does not know, and the version-1 code sent in their place.
+V1_PAUSE_CAUSE = {PauseCause.NOT_AT_STATION: PauseCause.CAMERA_LOST}
+V1_FAULT_CODE = {FaultCode.NOT_AT_STATION: FaultCode.COMMAND_REFUSED}
+
+
+class CheckOutcome(IntEnum):
+    """What a check found (CHECK_RESULT, version 2)."""
+
+    NO_CHANGE = 0
+    CHANGED = 1
+    NOT_AT_STATION = 2
+
+
+#: CHECK_RESULT ``weak`` bits: directions of the offset the views leave unconstrained (base
+#: frame: x forward, y left, z up; roll, pitch, yaw about them).
+WEAK_BITS = {"x": 0x01, "y": 0x02, "z": 0x04, "roll": 0x08, "pitch": 0x10, "yaw": 0x20}
 
 
 class RegionKind(IntEnum):
@@ -283,6 +306,8 @@ class Message:
     URGENT: ClassVar[bool] = False
     #: Who may send it; None: both.
     SENDER: ClassVar[Role | None] = None
+    #: The first protocol version that has it.
+    SINCE: ClassVar[int] = 1
 
     def pack(self) -> bytes:  # pragma: no cover - every subclass overrides
         raise NotImplementedError
@@ -335,7 +360,7 @@ class Hello(Message):
     role: Role
     boot_id: int
     software: str = ""
-    proto_min: int = VERSION
+    proto_min: int = MIN_VERSION
     proto_max: int = VERSION
 
     def __post_init__(self) -> None:
@@ -568,6 +593,63 @@ class Clear(_StationMsg):
     TYPE: ClassVar[MsgType] = MsgType.CLEAR
     SENDER: ClassVar[Role | None] = Role.MODULE
     station: str
+
+
+_CHECK_RESULT = struct.Struct("<BH3h3hHHB")
+
+
+@dataclass(frozen=True, slots=True)
+class CheckResult(Message):
+    """Module -> base (version 2): what a check of ``station`` found and where the robot stands.
+
+    ``outcome``: :class:`CheckOutcome`.  ``report_id``: the CHANGE_REPORT that follows (0: none).
+    ``offset_mm`` (dx, dy, dz) and ``rotation_cdeg`` (roll, pitch, yaw, centi-degrees): the
+    robot's pose now relative to its pose when the reference was captured, in the base frame
+    of that station pose (x forward, y left, z up; REP 103).  ``fitness_permille``: registered
+    overlap 0..1000; ``unobserved_permille``: points the other epoch could not see;
+    ``weak``: :data:`WEAK_BITS` of unconstrained directions.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.CHECK_RESULT
+    SENDER: ClassVar[Role | None] = Role.MODULE
+    SINCE: ClassVar[int] = 2
+    station: str
+    outcome: CheckOutcome
+    report_id: int = 0
+    offset_mm: tuple[int, int, int] = (0, 0, 0)
+    rotation_cdeg: tuple[int, int, int] = (0, 0, 0)
+    fitness_permille: int = 0
+    unobserved_permille: int = 0
+    weak: int = 0
+
+    def __post_init__(self) -> None:
+        o = "CHECK_RESULT"
+        _set(self, "station", _station(o, self.station))
+        _set(self, "outcome", _enum(o, "outcome", self.outcome, CheckOutcome))
+        _int(o, "report_id", self.report_id, 0, 0xFFFF)
+        for name in ("offset_mm", "rotation_cdeg"):
+            value = getattr(self, name)
+            if not isinstance(value, (tuple, list)) or len(value) != 3:
+                raise MessageError(f"{o}.{name} = {value!r}: must be 3 integers",
+                                   NakReason.BAD_PAYLOAD)
+            _set(self, name, tuple(_int(o, name, v, -32768, 32767) for v in value))
+        _int(o, "fitness_permille", self.fitness_permille, 0, 1000)
+        _int(o, "unobserved_permille", self.unobserved_permille, 0, 1000)
+        _int(o, "weak", self.weak, 0, 0x3F)
+
+    def pack(self) -> bytes:
+        return _CHECK_RESULT.pack(self.outcome, self.report_id, *self.offset_mm,
+                                  *self.rotation_cdeg, self.fitness_permille,
+                                  self.unobserved_permille, self.weak) + _str8(self.station)
+
+    @classmethod
+    def unpack(cls, payload: bytes) -> Message:
+        if len(payload) < _CHECK_RESULT.size:
+            _exact(cls, payload, _CHECK_RESULT.size + 2)
+        v = _CHECK_RESULT.unpack_from(payload)
+        station, end = _read_str("CHECK_RESULT", payload, _CHECK_RESULT.size)
+        _exact(cls, payload, end)
+        return cls(station, v[0], v[1], v[2:5], v[5:8], v[8], v[9], v[10])
 
 
 @dataclass(frozen=True, slots=True)
@@ -810,7 +892,7 @@ class GetParam(Message):
 
 MESSAGE_CLASSES: tuple[type[Message], ...] = (
     Hello, Ack, Nak, Heartbeat, Pause, ChangeReport, Clear, Fault, Status, ParamValue, Captured,
-    BaseHeartbeat, StatusQuery, CaptureReference, Check, Watch, Stop, Arm, Disarm, Resume,
+    CheckResult, BaseHeartbeat, StatusQuery, CaptureReference, Check, Watch, Stop, Arm, Disarm, Resume,
     SetParam, GetParam,
 )
 CLASS_BY_TYPE: dict[int, type[Message]] = {cls.TYPE: cls for cls in MESSAGE_CLASSES}
@@ -893,6 +975,11 @@ class Frame:
     message: Message
     seq: int = 0
     flags: int = 0
+    version: int = VERSION
+
+
+#: Messages whose layout is frozen across versions: read whatever version byte they carry.
+FROZEN_TYPES = frozenset((MsgType.HELLO, MsgType.ACK, MsgType.NAK))
 
 
 @dataclass(frozen=True, slots=True)
@@ -910,23 +997,28 @@ class DecodeError:
     nak: NakReason | None = None
 
 
-def encode_body(message: Message, seq: int = 0, flags: int = 0) -> bytes:
-    """The body of a frame (header, payload, CRC), before COBS: what the CRC covers."""
+def encode_body(message: Message, seq: int = 0, flags: int = 0, version: int = VERSION) -> bytes:
+    """The body of a frame (header, payload, CRC), before COBS: what the CRC covers.
+    ``version``: the header's version byte (the session's; HELLO goes out as MIN_VERSION)."""
     if not isinstance(message, Message):
         raise MessageError(f"encode() wants a protocol message, got {type(message).__name__}")
     _int("frame", "seq", seq, 0, 0xFFFF, NakReason.BAD_PAYLOAD)
     _int("frame", "flags", flags, 0, 0xFF, NakReason.BAD_PAYLOAD)
+    _int("frame", "version", version, MIN_VERSION, VERSION, NakReason.BAD_PAYLOAD)
+    if message.SINCE > version:
+        raise MessageError(f"{message.TYPE.name} exists from protocol version {message.SINCE}; "
+                           f"this session speaks {version}")
     payload = message.pack()
     if len(payload) > MAX_PAYLOAD:
         raise MessageError(f"{message.TYPE.name} payload is {len(payload)} bytes, at most "
                            f"{MAX_PAYLOAD} allowed")
-    body = HEADER.pack(VERSION, message.TYPE, seq, flags) + payload
+    body = HEADER.pack(version, message.TYPE, seq, flags) + payload
     return body + crc16(body).to_bytes(2, "big")
 
 
-def encode(message: Message, seq: int = 0, flags: int = 0) -> bytes:
+def encode(message: Message, seq: int = 0, flags: int = 0, version: int = VERSION) -> bytes:
     """The bytes of one frame on the wire: COBS(body) followed by the 0x00 delimiter."""
-    return cobs_encode(encode_body(message, seq, flags)) + b"\x00"
+    return cobs_encode(encode_body(message, seq, flags, version)) + b"\x00"
 
 
 def decode_body(body: bytes) -> Frame | DecodeError:
@@ -936,18 +1028,18 @@ def decode_body(body: bytes) -> Frame | DecodeError:
     if binascii.crc_hqx(body, 0xFFFF):  # the CRC over data + big-endian CRC leaves 0
         return DecodeError(DecodeReason.BAD_CRC, f"CRC mismatch over {len(body)} bytes")
     version, mtype, seq, flags = HEADER.unpack_from(body)
-    if version != VERSION:
+    if not MIN_VERSION <= version <= VERSION and not (version and mtype in FROZEN_TYPES):
         return DecodeError(DecodeReason.BAD_VERSION, f"protocol version {version}, this end speaks "
-                           f"{VERSION}", seq, mtype, NakReason.BAD_VERSION)
+                           f"{MIN_VERSION}..{VERSION}", seq, mtype, NakReason.BAD_VERSION)
     cls = CLASS_BY_TYPE.get(mtype)
-    if cls is None:
-        return DecodeError(DecodeReason.UNKNOWN_TYPE, f"unknown message type 0x{mtype:02X}",
-                           seq, mtype, NakReason.UNKNOWN_TYPE)
+    if cls is None or cls.SINCE > version:
+        return DecodeError(DecodeReason.UNKNOWN_TYPE, f"unknown message type 0x{mtype:02X} "
+                           f"in protocol version {version}", seq, mtype, NakReason.UNKNOWN_TYPE)
     try:
         message = cls.unpack(body[HEADER_SIZE:-CRC_SIZE])
     except MessageError as exc:
         return DecodeError(DecodeReason.BAD_PAYLOAD, str(exc), seq, mtype, NakReason(exc.reason))
-    return Frame(message, seq, flags)
+    return Frame(message, seq, flags, version)
 
 
 def decode(frame: bytes) -> Frame | DecodeError:

@@ -51,6 +51,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
+import json
 import logging
 import queue
 import threading
@@ -85,11 +86,16 @@ from robot_change.params import change_params, scene_params
 from robot_change.protocol import (
     PARAM_BY_ID,
     REGIONS_PER_PART,
+    V1_FAULT_CODE,
+    V1_PAUSE_CAUSE,
+    WEAK_BITS,
     Arm,
     BaseHeartbeat,
     Captured,
     CaptureReference,
     Check,
+    CheckOutcome,
+    CheckResult,
     Clear,
     Disarm,
     Fault,
@@ -156,15 +162,41 @@ def _clip(value: float, lo: int, hi: int) -> int:
     return int(min(hi, max(lo, round(value))))
 
 
-def _wire_regions(regions: list[Any]) -> list[Region]:
-    """change.Region (metres) -> protocol.Region (mm, clipped to the field widths)."""
+def _wire_regions(regions: list[Any], mount: Any = None) -> list[Region]:
+    """change.Region (metres) -> protocol.Region (mm, clipped to the field widths): in the
+    camera optical frame (protocol version 1), or with ``mount`` in base_link (version 2)."""
     out = []
     for r in regions:
         kind = RegionKind.APPEARED if r.kind == "appeared" else RegionKind.DISAPPEARED
-        centroid = tuple(_clip(v * 1000.0, -32768, 32767) for v in r.centroid)
-        extent = tuple(_clip(v * 1000.0, 0, 65535) for v in r.extent)
+        if mount is None:
+            centre, size = r.centroid, r.extent
+        else:
+            lo, hi = r.base_box(mount)
+            centre, size = mount.to_base(r.centroid[None])[0], hi - lo
+        centroid = tuple(_clip(v * 1000.0, -32768, 32767) for v in centre)
+        extent = tuple(_clip(v * 1000.0, 0, 65535) for v in size)
         out.append(Region(kind, centroid, extent, _clip(r.n_points, 0, 0xFFFF_FFFF)))
     return out
+
+
+def check_result(station: str, changes: Any, mount: Any, report_id: int = 0) -> CheckResult:
+    """The CHECK_RESULT (protocol version 2) of a ChangeSet: outcome and the robot's offset
+    from its station pose in base_link (mm, centi-degrees), fitness, unobserved share, weak
+    directions."""
+    offset = mount.offset(changes.registration)
+    outcome = {"changed": CheckOutcome.CHANGED, "no_change": CheckOutcome.NO_CHANGE,
+               "not_at_station": CheckOutcome.NOT_AT_STATION}[changes.outcome]
+    if outcome == CheckOutcome.CHANGED and not report_id:
+        outcome = CheckOutcome.NO_CHANGE  # every region was below the wire's size limits
+    weak = 0
+    for name in offset.weak:
+        weak |= WEAK_BITS[name]
+    return CheckResult(
+        station, outcome, report_id,
+        tuple(_clip(v * 1000.0, -32768, 32767) for v in offset.translation_m),
+        tuple(_clip(v * 100.0, -32768, 32767) for v in offset.rpy_deg),
+        _clip(changes.registration.fitness * 1000.0, 0, 1000),
+        _clip(changes.unobserved_fraction * 1000.0, 0, 1000), weak)
 
 
 def _short(text: str) -> str:
@@ -461,25 +493,53 @@ class Service(CameraThreadMixin, WatchMixin):
     def _fault(self, code: FaultCode, text: str) -> None:
         (log.info if code == FaultCode.CLEARED else log.error)("FAULT %s: %s", code.name, text)
         self.counters[f"fault_{code.name.lower()}"] += 1
+        if self.link.version < 2:
+            code = V1_FAULT_CODE.get(code, code)
         self._send(Fault(code, _short(text)))
 
     def _pause(self, cause: PauseCause) -> None:
         with self._lock:
             self.latched = True
             self._last_pause_cause = cause
-        self._send(Pause(cause))
+        self._send(Pause(V1_PAUSE_CAUSE.get(cause, cause) if self.link.version < 2 else cause))
         self.counters["pauses"] += 1
         log.warning("PAUSE %s", cause.name)
         self._refresh_heartbeat(force=True)
 
     def _report(self, station: str, changes: Any) -> int:
+        """CHECK_RESULT (version 2) then the CHANGE_REPORT parts; regions in base_link in
+        version 2, in the camera optical frame in version 1."""
         regions = self._kept_regions(changes)
         with self._lock:
             self._report_id = self._report_id % 0xFFFF + 1
             report_id = self._report_id
-        for part in split_change_report(report_id, station, _wire_regions(regions)):
+        v2 = self.link.version >= 2
+        mount = self.config.camera.mount()
+        if v2:
+            self._send(check_result(station, changes, mount, report_id))
+        for part in split_change_report(report_id, station,
+                                        _wire_regions(regions, mount if v2 else None)):
             self._send(part)
         return report_id
+
+    def _answer_no_change(self, station: str, changes: Any) -> None:
+        """CHECK_RESULT (version 2) then CLEAR."""
+        if self.link.version >= 2:
+            self._send(check_result(station, changes, self.config.camera.mount()))
+        self._send(Clear(station))
+
+    def _answer_not_at_station(self, station: str, changes: Any, what: str) -> None:
+        """CHECK_RESULT NOT_AT_STATION (version 2), or FAULT COMMAND_REFUSED (version 1)."""
+        offset = self.config.camera.mount().offset(changes.registration)
+        text = (f"{what} {station}: not at the station ({changes.not_at_station_reason}); "
+                f"offset {[round(v, 2) for v in offset.translation_m]} m "
+                f"{[round(v, 1) for v in offset.rpy_deg]} deg")
+        log.warning("%s", text)
+        self.counters["not_at_station"] += 1
+        if self.link.version >= 2:
+            self._send(check_result(station, changes, self.config.camera.mount()))
+        else:
+            self._send(Fault(FaultCode.COMMAND_REFUSED, _short(text)))
 
     def _kept_regions(self, changes: Any) -> list[Any]:
         """Regions of a ChangeSet that pass the wire's size limits, largest first."""
@@ -649,17 +709,22 @@ class Service(CameraThreadMixin, WatchMixin):
         regions = self._kept_regions(changes)
         ms = (time.perf_counter() - t0) * 1e3
         self.counters["checks"] += 1
-        log.info("CHECK %s: %s in %.0f ms (%d frames fused)", station,
-                 f"{len(regions)} changed region(s)" if regions else "no change", ms, n)
+        reg = changes.registration
+        log.info("CHECK %s: %s in %.0f ms (%d frames fused; registration %.0f mm %.1f deg, "
+                 "fitness %.2f)", station, changes.outcome if changes.outcome !=
+                 "changed" or not regions else f"{len(regions)} changed region(s)", ms, n,
+                 1e3 * float(np.linalg.norm(reg.translation_m)), reg.rotation_deg, reg.fitness)
         self.last_check = {"station": station, "regions": len(regions), "ms": ms,
-                           "frame_index": frames[-1].index}
+                           "frame_index": frames[-1].index, "outcome": changes.outcome}
         self._write_check(station, reference, depth, changes, regions)
-        if regions:
+        if changes.outcome == "not_at_station":
+            self._answer_not_at_station(station, changes, "CHECK")
+        elif regions:
             if self.armed and self.params["pause_on_change"] and not self.latched:
                 self._pause(PauseCause.CHANGE_CHECK)
             self._report(station, changes)
         else:
-            self._send(Clear(station))
+            self._answer_no_change(station, changes)
 
     def _write_check(self, station: str, reference: Any, depth: np.ndarray, changes: Any,
                      regions: list[Any]) -> None:
@@ -684,6 +749,10 @@ class Service(CameraThreadMixin, WatchMixin):
                                 region_boxes=boxes, region_kinds=kinds)
             Path(folder).mkdir(parents=True, exist_ok=True)
             write_atomically(Path(folder) / f"{station}.last-check.npz", buf.getvalue())
+            summary = changes.summary(self.config.camera.mount())
+            summary["station"] = station
+            write_atomically(Path(folder) / f"{station}.last-check.json",
+                             (json.dumps(summary, indent=1) + "\n").encode())
         except Exception:  # noqa: BLE001 -- a picture for people is never worth a fault
             log.warning("could not write the last check of %s to %s", station, folder,
                         exc_info=True)

@@ -6,7 +6,10 @@ PAUSE when a change is seen in ``watch_m`` of the last ``watch_n`` checks (once 
 CLEAR when ``watch_m`` of the last ``watch_n`` checks saw none, after which a new change pauses
 again).  A watch checks only while the base's heartbeat says PARKED or PAUSED.  A check that
 sees nothing to compare (no depth: covered lens, something against the camera) counts as a
-change (PAUSE cause CAMERA_LOST).
+change (PAUSE cause CAMERA_LOST), and so does a check that finds the robot no longer at its
+station (pushed, or crept: FAULT and PAUSE NOT_AT_STATION), since it cannot watch from there.
+Every check registers the view again, starting from the last check's estimate, so a robot
+that creeps a few centimetres is followed.
 
 ::
 
@@ -28,7 +31,7 @@ import numpy as np
 from hw.depth import DepthFrame
 from robot_change.errors import EmptySceneError, SceneMismatchError
 from robot_change.params import change_params
-from robot_change.protocol import Clear, FaultCode, ModuleState, Motion, PauseCause
+from robot_change.protocol import FaultCode, ModuleState, Motion, PauseCause
 
 __all__ = ["WatchMixin", "depth_gate"]
 
@@ -76,6 +79,8 @@ class _Watch:
         self.latest: DepthFrame | None = None
         self.latest_seq = -1
         self.latest_gate = 0
+        self.pose: np.ndarray | None = None  # the last registration (T_ref_from_cur)
+        self.off_station_reported = False
 
 
 class WatchMixin:
@@ -85,7 +90,8 @@ class WatchMixin:
     Uses the service's state (``_watch``, ``_lock``, ``store``, ``config``, ``params``,
     ``options``, ``activity``, ``motion``, ``camera_ok``, ``armed``, ``latched``, ``_pool``,
     ``_wake``, ``_cancel``, ``_commands``, ``counters``, ``watch_log``) and its methods
-    (``_fault``, ``_pause``, ``_report``, ``_send``, ``_kept_regions``, ``_refresh_heartbeat``).
+    (``_fault``, ``_pause``, ``_report``, ``_answer_no_change``, ``_send``, ``_kept_regions``,
+    ``_refresh_heartbeat``).
     """
 
     def _start_watch(self, station: str) -> None:
@@ -131,7 +137,7 @@ class WatchMixin:
         assert self._pool is not None
         params = change_params(self.config, self.params)
         future = self._pool.submit(detect_changes, watch.reference, frame.depth, params,
-                                   intrinsics=frame.intrinsics)
+                                   intrinsics=frame.intrinsics, initial_pose=watch.pose)
         future.add_done_callback(lambda _f: self._wake.set())
         watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
         watch.last_submitted = seq
@@ -178,6 +184,18 @@ class WatchMixin:
             changes = job.future.result()
             regions = self._kept_regions(changes)
             watch.error_reported = watch.blind_reported = False
+            if changes.outcome == "not_at_station":
+                blind = True  # cannot watch from here: as unsafe as a change
+                if not watch.off_station_reported:
+                    watch.off_station_reported = True
+                    self._fault(FaultCode.NOT_AT_STATION, f"WATCH {watch.station}: the robot "
+                                f"is no longer at the station ({changes.not_at_station_reason})")
+            else:
+                watch.pose = changes.registration.T_ref_from_cur
+                if watch.off_station_reported:
+                    watch.off_station_reported = False
+                    self._fault(FaultCode.CLEARED, f"WATCH {watch.station}: back at the "
+                                f"station")
         elif isinstance(exc, EmptySceneError):
             blind = True  # nothing to compare: as unsafe as a change
             if not watch.blind_reported:
@@ -213,12 +231,13 @@ class WatchMixin:
                         seen, len(watch.window), job.frame_index)
             if self.armed and self.params["pause_on_change"] and not self.latched:
                 entry["action"] = "pause"
-                self._pause(PauseCause.CAMERA_LOST if blind and not regions
-                            else PauseCause.CHANGE_WATCH)
+                off = changes is not None and changes.outcome == "not_at_station"
+                self._pause(PauseCause.NOT_AT_STATION if off else PauseCause.CAMERA_LOST
+                            if blind and not regions else PauseCause.CHANGE_WATCH)
             if changes is not None and regions:
                 self._report(watch.station, changes)
         elif watch.episode and len(watch.window) - seen >= min(m, n) and not changed:
             watch.episode = False
             entry["action"] = "clear"
             log.info("WATCH %s: the change is gone", watch.station)
-            self._send(Clear(watch.station))
+            self._answer_no_change(watch.station, changes)

@@ -215,7 +215,7 @@ def load_scene(name: str) -> Scene:
         folder=folder,
         meta=meta,
         intrinsics=Intrinsics(i["width"], i["height"], i["fx"], i["fy"], i["cx"], i["cy"]),
-        reference_oni=folder / files["reference"],
+        reference_oni=(folder / files["reference"]).resolve(),
         current_oni=folder / files["current"],
         reference_pngs=tuple(folder / f for f in files.get("reference_png", ())),
         current_pngs=tuple(folder / f for f in files.get("current_png", ())),

@@ -115,7 +115,7 @@ def test_scripted_capture_check_pause_report_resume(tmp_path, pty_line):
     assert code == 0, text
     assert "<- PAUSE cause=CHANGE_CHECK" in text
     assert "report 7 for kitchen: 13 region(s)" in text
-    assert "appeared    at (12, 0, 2000) mm, 100 x 100 x 100 mm, 512 points" in text
+    assert "appeared    at (12, 0, 2000) mm (forward, left, up), 100 x 100 x 100 mm, 512 points" in text
     assert "** base PAUSED: the module's pause latch is set" in text
 
 

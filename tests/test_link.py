@@ -98,7 +98,8 @@ def test_hello_exchange_brings_both_ends_up():
     wire.step()
     assert wire.module.state == wire.base.state == LinkState.UP
     (hello,) = received(wire.base_events, p.Hello)
-    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, 1)
+    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, 2)
+    assert wire.module.version == wire.base.version == 2
     assert wire.module.peer.boot_id == 0xBBBB
     assert any(isinstance(e, StateChanged) and e.new == LinkState.UP for e in wire.module_events)
 
@@ -317,9 +318,46 @@ def test_a_nak_fails_the_message_without_faulting_the_link():
 
 def test_incompatible_versions_are_reported():
     module = Link(p.Role.MODULE, clock=Clock())
-    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", proto_min=2, proto_max=3), 1))
+    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", proto_min=3, proto_max=4), 1))
     (change,) = [e for e in module.events() if isinstance(e, StateChanged)]
-    assert change.new == LinkState.INCOMPATIBLE and "2..3" in change.why
+    assert change.new == LinkState.INCOMPATIBLE and "3..4" in change.why
+
+
+@pytest.mark.parametrize("header_version", [1, 2])
+def test_a_newer_base_offering_1_to_2_is_answered_and_agrees_on_2(header_version):
+    # the bug of issue 12: a HELLO whose header says 2 and offers 1..2 was refused
+    module = Link(p.Role.MODULE, clock=Clock())
+    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", 1, 2), 1, version=header_version))
+    assert module.state != LinkState.INCOMPATIBLE and module.version == 2
+    out = frames(module.outgoing())
+    assert any(f.message.TYPE == p.MsgType.ACK for f in out)
+
+
+def test_an_older_base_speaking_only_1_still_works():
+    clock = Clock()
+    module = Link(p.Role.MODULE, clock=clock, boot_id=1)
+    base = Link(p.Role.BASE, clock=clock, boot_id=2, proto_max=1)
+    for _ in range(20):
+        module.poll()
+        base.poll()
+        base.receive(module.outgoing())
+        module.receive(base.outgoing())
+        clock.t += 0.01
+    assert module.state == base.state == LinkState.UP and module.version == base.version == 1
+    with pytest.raises(LinkError, match="version 2"):
+        module.send(p.CheckResult("kitchen", p.CheckOutcome.NO_CHANGE))
+    module.send(p.Clear("kitchen"))
+    for _ in range(5):
+        module.poll()
+        base.receive(module.outgoing())
+        module.receive(base.outgoing())
+        clock.t += 0.01
+    assert [e.message for e in base.events() if isinstance(e, Received)
+            and isinstance(e.message, p.Clear)] == [p.Clear("kitchen")]
+    # a v2 frame reaching an end that offers only 1 is refused, not read
+    base.receive(p.encode(p.CheckResult("kitchen", p.CheckOutcome.NO_CHANGE), 40))
+    naks = [f.message for f in frames(base.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+    assert naks and naks[0].reason == p.NakReason.BAD_VERSION
 
 
 def test_garbage_into_the_link_never_crashes():

@@ -63,6 +63,10 @@ STRATEGIES = {
                         u32, st.one_of(st.just(""), stations)),
     p.ParamValue: param_values(p.ParamValue),
     p.Captured: st.builds(p.Captured, stations),
+    p.CheckResult: st.builds(p.CheckResult, stations, st.sampled_from(p.CheckOutcome), u16,
+                             st.tuples(*[st.integers(-32768, 32767)] * 3),
+                             st.tuples(*[st.integers(-32768, 32767)] * 3),
+                             st.integers(0, 1000), st.integers(0, 1000), st.integers(0, 0x3F)),
     p.BaseHeartbeat: st.builds(p.BaseHeartbeat, st.sampled_from(p.Motion)),
     p.StatusQuery: st.just(p.StatusQuery()),
     p.CaptureReference: st.builds(p.CaptureReference, stations),
@@ -156,7 +160,7 @@ def test_doc_example_decodes_to_what_it_says(example):
     assert p.describe(frame.message) == example["message"]
     seq, flags = re.fullmatch(r"seq=(\d+) flags=0x([0-9A-F]{2})", example["header"]).groups()
     assert (frame.seq, frame.flags) == (int(seq), int(flags, 16))
-    assert p.encode(frame.message, frame.seq, frame.flags) == wire
+    assert p.encode(frame.message, frame.seq, frame.flags, frame.version) == wire
 
 
 def test_doc_parameter_table_matches_the_whitelist():
@@ -196,6 +200,21 @@ def test_bad_values_are_refused_on_construction(make, needle):
     assert isinstance(info.value, ProtocolError)
 
 
+def test_hello_ack_and_nak_are_read_whatever_their_version_byte():
+    hello = p.Hello(p.Role.BASE, 7, "fw", 1, 9)
+    for version in (1, 2, 9, 200):
+        frame = p.decode(raw_frame(version, p.MsgType.HELLO, 1, payload=hello.pack()))
+        assert isinstance(frame, p.Frame) and frame.message == hello and frame.version == version
+    assert isinstance(p.decode(raw_frame(7, p.MsgType.ACK, 4)), p.Frame)
+
+
+def test_a_version_2_message_cannot_be_sent_in_version_1():
+    result = p.CheckResult("kitchen", p.CheckOutcome.NO_CHANGE)
+    with pytest.raises(MessageError, match="version 2"):
+        p.encode(result, 3, version=1)
+    assert p.decode(p.encode(result, 3)) == p.Frame(result, 3, 0, 2)
+
+
 def test_param_errors_carry_their_nak_reason():
     with pytest.raises(MessageError) as info:
         p.SetParam(1, 0)
@@ -222,7 +241,10 @@ def good(seq: int = 1) -> bytes:
     (b"\x05\x01\x00", p.DecodeReason.BAD_COBS, None),
     (p.cobs_encode(b"\x01\x02\x03") + b"\x00", p.DecodeReason.TOO_SHORT, None),
     (good()[:-3] + bytes([good()[-3] ^ 0x40]) + good()[-2:], p.DecodeReason.BAD_CRC, None),
-    (raw_frame(2, p.MsgType.ACK, 7), p.DecodeReason.BAD_VERSION, p.NakReason.BAD_VERSION),
+    (raw_frame(3, p.MsgType.CHECK, 7, payload=b"\x01k"), p.DecodeReason.BAD_VERSION,
+     p.NakReason.BAD_VERSION),
+    (raw_frame(1, p.MsgType.CHECK_RESULT, 7, payload=bytes(20) + b"\x01k"), p.DecodeReason.UNKNOWN_TYPE,
+     p.NakReason.UNKNOWN_TYPE),
     (raw_frame(1, 0x7F, 7), p.DecodeReason.UNKNOWN_TYPE, p.NakReason.UNKNOWN_TYPE),
     (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x01\x01"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
     (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x09"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),

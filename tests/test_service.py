@@ -10,6 +10,7 @@ the service's own timeouts); the whole file runs in about half a minute.
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import threading
@@ -65,7 +66,8 @@ class Rig:
     """A service and a simulated base on the two ends of a pty pair."""
 
     def __init__(self, tmp: Path, scene_frames: dict[str, list[Path]], camera: Any = None,
-                 options: ServiceOptions | None = None, config: Config | None = None) -> None:
+                 options: ServiceOptions | None = None, config: Config | None = None,
+                 proto_max: int = p.VERSION) -> None:
         self.tmp, self.frames = tmp, scene_frames
         self.camera_dir = tmp / "camera"
         show(scene_frames, self.camera_dir, "reference")
@@ -80,7 +82,7 @@ class Rig:
         options = options or ServiceOptions(report_dir=tmp / "reports")
         self.service = Service(config or Config(), camera, self.port, self.store, options)
         self.out = io.StringIO()
-        self.sim = BaseSim(FdPort(master), out=self.out)
+        self.sim = BaseSim(FdPort(master), out=self.out, proto_max=proto_max)
 
     def __enter__(self) -> "Rig":
         self.service.start()
@@ -175,10 +177,33 @@ def test_check_with_a_change_pauses_reports_and_resume_clears_the_latch(rig: Rig
     report = next(e.obj for e in rig.sim.log if e.name == "REPORT")
     region = report.regions[0]
     assert region.kind == p.RegionKind.APPEARED
-    assert 1800 < region.centroid_mm[2] < 2700  # the box stands about 2.2 m ahead
+    # protocol 2: base_link (x forward, y left, z up); the box stands about 2.2 m ahead, on
+    # the floor below the camera
+    assert 1800 < region.centroid_mm[0] < 2700 and region.centroid_mm[2] < 0
     assert 300 < max(region.extent_mm) < 700
+    result = next(e.obj for e in rig.sim.log if e.name == "CHECK_RESULT")
+    assert result.outcome == p.CheckOutcome.CHANGED and result.report_id == report.report_id
+    assert result.fitness_permille > 800 and max(map(abs, result.offset_mm)) < 20
     saved = np.load(rig.tmp / "reports" / "office.last-check.npz")
     assert saved["appeared_mask"].sum() > 500 and saved["region_kinds"].tolist() == [1]
+    summary = json.loads((rig.tmp / "reports" / "office.last-check.json").read_text())
+    assert summary["outcome"] == "changed" and summary["station"] == "office"
+    assert summary["registration"]["fitness"] > 0.8 and "offset_base" in summary
+
+
+def test_an_older_base_gets_version_1_answers(tmp_path: Path, scene_frames) -> None:
+    with Rig(tmp_path, scene_frames, proto_max=1) as rig:
+        rig.run("capture office\nexpect CAPTURED 5")
+        rig.show("current")
+        rig.run("""
+            check office
+            expect PAUSE cause=CHANGE_CHECK 5
+            expect REPORT station=office regions=1 2
+        """)
+        assert rig.sim.link.version == rig.service.link.version == 1
+        assert not [e for e in rig.sim.log if e.name == "CHECK_RESULT"]
+        region = next(e.obj for e in rig.sim.log if e.name == "REPORT").regions[0]
+        assert 1800 < region.centroid_mm[2] < 2700  # camera optical frame, as version 1 says
 
 
 def test_disarmed_check_reports_without_pause(rig: Rig) -> None:

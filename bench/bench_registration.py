@@ -1,0 +1,179 @@
+"""Registration accuracy and speed, ours against small_gicp's GICP and Open3D's point-to-plane
+ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorithm.md).
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
+        [--sweep SEEDS]
+
+Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
+current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
+10 and 15 cm (1, 2, 4, 6 degrees) in random directions.  Every method starts from the identity
+(the robot believes it is at its station) and gets the floor: ours the two depth images, the
+peers the two depth images back-projected (0.4-5 m) and voxelised at 2 cm.  Open3D: Tukey loss
+(k = 5 cm), correspondence distances 25 -> 10 -> 4 cm, normals from 20 neighbours within 10 cm
+(ALGORITHM.md section 4's recipe).  small_gicp: GICP, 2 cm downsampling, 25 cm correspondences.
+One thread each; the methods alternate per pair and per run, so they share the machine's load.
+Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+import zlib
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from robot_change.geometry import depth_to_points  # noqa: E402
+from robot_change.registration import invert, register_depth, rotation_angle_deg  # noqa: E402
+
+LEAF = 0.02
+
+
+def _cloud(depth, intrinsics):
+    import open3d as o3d
+
+    pts = depth_to_points(depth, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
+    return pc.voxel_down_sample(LEAF)
+
+
+def ours(ref, cur, intrinsics):
+    return register_depth(ref, cur, intrinsics).T_ref_from_cur
+
+
+def open3d_icp(ref, cur, intrinsics):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    target, source = _cloud(ref, intrinsics), _cloud(cur, intrinsics)
+    target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.1, max_nn=20))
+    T = np.eye(4)
+    for dist in (0.25, 0.10, 0.04):
+        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=0.05))
+        T = reg.registration_icp(source, target, dist, T, est,
+                                 reg.ICPConvergenceCriteria(max_iteration=30)).transformation
+    return np.asarray(T)
+
+
+def small_gicp_align(ref, cur, intrinsics):
+    import small_gicp
+
+    target = depth_to_points(ref, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0].astype(np.float64)
+    source = depth_to_points(cur, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0].astype(np.float64)
+    result = small_gicp.align(target, source, np.eye(4), registration_type="GICP",
+                              downsampling_resolution=LEAF, max_correspondence_distance=0.25,
+                              num_threads=1)
+    return np.asarray(result.T_target_source)
+
+
+METHODS = {"ours": ours, "small_gicp": small_gicp_align, "open3d_icp": open3d_icp}
+
+
+def fixture_pairs():
+    from sim_fixtures import load_scene, scene_names
+
+    for name in scene_names():
+        if "_pose_" not in name:
+            continue
+        sc = load_scene(name)
+        ref = np.median(np.stack(sc.reference_frames()), axis=0).astype(np.uint16)
+        yield name, ref, sc.current_frames()[0], sc.T_ref_from_cur, sc.intrinsics
+
+
+def sweep_pairs(seeds: int):
+    import dataclasses
+
+    from sim_fixtures.scenes import SCENES, pose_offset, render_pair, true_transform
+
+    names = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_crate_moved",
+             "lab_two_changes", "lounge_chair_moved", "storage_small_object",
+             "meeting_box_added", "meeting_two_changes")
+    for tm, rd in ((0.02, 1.0), (0.05, 2.0), (0.10, 4.0), (0.15, 6.0)):
+        for name in names:
+            spec = SCENES[name]
+            for s in range(seeds):
+                seed = 7000 + s + zlib.crc32(f"{name}{tm}".encode()) % 1000
+                sp = dataclasses.replace(spec, current_pose=pose_offset(spec.reference_pose, tm,
+                                                                        rd, seed))
+                r, c = render_pair(sp)
+                ref = np.median(np.stack([spec.noise.apply(r, np.random.default_rng(
+                    [spec.seed, 0, k])) for k in range(3)]), axis=0).astype(np.uint16)
+                cur = spec.noise.apply(c, np.random.default_rng([seed, 1, 0]))
+                yield f"sweep_{name}_{int(tm * 100)}cm_{s}", ref, cur, true_transform(sp), \
+                    spec.intrinsics
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=5, help="timed runs per method and pair")
+    ap.add_argument("--sweep", type=int, default=0, help="rendered pairs per scene and level")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    pairs = list(fixture_pairs()) + (list(sweep_pairs(args.sweep)) if args.sweep else [])
+    for fn in METHODS.values():  # compile / load every library once
+        fn(pairs[0][1], pairs[0][2], pairs[0][4])
+    rows = []
+    for name, ref, cur, truth, intr in pairs:
+        times = {m: [] for m in METHODS}
+        est = {}
+        for run in range(args.runs):
+            order = list(METHODS) if run % 2 == 0 else list(METHODS)[::-1]
+            for m in order:
+                t0 = time.perf_counter()
+                est[m] = METHODS[m](ref, cur, intr)
+                times[m].append((time.perf_counter() - t0) * 1e3)
+        row = {"pair": name}
+        for m in METHODS:
+            err = invert(truth) @ est[m]
+            row[m] = {"err_mm": float(np.linalg.norm(err[:3, 3]) * 1e3),
+                      "err_deg": rotation_angle_deg(err[:3, :3]),
+                      "ms": statistics.median(times[m])}
+        rows.append(row)
+        print(f"{name:40s} " + "  ".join(f"{m} {row[m]['err_mm']:7.1f} mm {row[m]['err_deg']:5.2f}"
+                                          f" deg {row[m]['ms']:6.1f} ms" for m in METHODS),
+              flush=True)
+    summary = {}
+    for group in ("fixtures", "sweep"):
+        sel = [r for r in rows if r["pair"].startswith("sweep_") == (group == "sweep")]
+        if not sel:
+            continue
+        summary[group] = {}
+        for m in METHODS:
+            e = [r[m]["err_mm"] for r in sel]
+            d = [r[m]["err_deg"] for r in sel]
+            ok = sum(1 for r in sel if r[m]["err_mm"] <= 10 and r[m]["err_deg"] <= 0.5)
+            summary[group][m] = {"pairs": len(sel), "within_1cm_0.5deg": ok,
+                                 "median_err_mm": statistics.median(e), "max_err_mm": max(e),
+                                 "median_err_deg": statistics.median(d), "max_err_deg": max(d),
+                                 "median_ms": statistics.median(r[m]["ms"] for r in sel)}
+            s = summary[group][m]
+            print(f"{group:8s} {m:11s} within 1 cm / 0.5 deg {ok}/{len(sel)}; median "
+                  f"{s['median_err_mm']:.1f} mm {s['median_err_deg']:.3f} deg, max "
+                  f"{s['max_err_mm']:.1f} mm {s['max_err_deg']:.2f} deg; {s['median_ms']:.1f} ms")
+    if args.sweep:
+        for tm in (2, 5, 10, 15):
+            sel = [r for r in rows if r["pair"].startswith("sweep_") and f"_{tm}cm_" in r["pair"]]
+            print(f"sweep {tm:2d} cm: " + "  ".join(
+                f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
+                f"/{len(sel)}" for m in METHODS))
+    load = os.getloadavg()
+    machine = {"python": platform.python_version(), "cpu": platform.processor() or
+               platform.machine(), "cores": os.cpu_count(), "load": [round(v, 2) for v in load]}
+    print("machine:", json.dumps(machine))
+    if args.json:
+        args.json.write_text(json.dumps({"machine": machine, "summary": summary, "pairs": rows},
+                                        indent=1))
+
+
+if __name__ == "__main__":
+    main()
