@@ -66,9 +66,19 @@ def level_of(name: str) -> str:
     return ""
 
 
-def is_no_change(name: str) -> bool:
-    from sim_fixtures import load_scene
+#: The real hand-held frames (../shared/data/pcl-grabber-seq): no object change, a little camera
+#: motion between frames ~0.25 s apart; every ordered pair of the three is a no-change pair.
+HANDHELD = ("0-1", "0-2", "1-2", "1-0", "2-0", "2-1")
+HANDHELD_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl-grabber-seq"
 
+
+def is_no_change(name: str) -> bool:
+    from sim_fixtures import SCENES_DIR, load_scene
+
+    if name in HANDHELD:
+        return True
+    if not (SCENES_DIR / name / "scene.json").is_file():
+        return False  # a real table-top pair: every one has a change
     return load_scene(name).change in ("none", "none_jitter")
 
 #: Table-top pairs (objects 0.6-1.7 m away, 5-15 cm in size): a 1 cm leaf instead of 2 cm.
@@ -106,7 +116,19 @@ def method_fns(params: ChangeParams) -> dict:
             free_space_hole_radius_px=0)),
         "free_space_only": lambda r, c: detect_nn_threshold(r, c, params.replace(
             free_space=True, nn_check_m=0.0)),
+        # the peer of issue 12: Open3D's point-to-plane ICP (bench/bench_registration.py), then
+        # the 5 cm nearest-neighbour change (2.5 leaves) in its frame; needs the bench extra
+        "open3d_nn": lambda r, c: detect_nn_threshold(
+            r, c, params.replace(free_space=False, nn_check_m=nn_m(r),
+                                 registration=params.registration.replace(enabled=False)),
+            initial_pose=_open3d_pose(r, c)),
     }
+
+
+def _open3d_pose(reference, current) -> np.ndarray:
+    from bench.bench_registration import open3d_icp
+
+    return open3d_icp(reference.depth, current.depth, reference.intrinsics)
 
 
 def score(cs, ref_model, cur_model, truth_app, truth_dis, scene=None) -> dict:
@@ -189,6 +211,21 @@ def load_real(name: str, scene_params: SceneParams):
     return ref, cur, pair.truth_appeared, pair.truth_disappeared, pair
 
 
+def load_handheld(name: str, scene_params: SceneParams):
+    from hw.depth import Intrinsics
+    from hw.images import read_depth_image
+
+    frames = sorted(HANDHELD_DIR.glob("frame_*_depth.tiff"))
+    a, b = (int(i) for i in name.split("-"))
+    cam = Intrinsics(640, 480, 525.0, 525.0, 320.0, 240.0)  # the xml beside the frames
+    ref = build_scene([read_depth_image(frames[a])], scene_params, intrinsics=cam,
+                      source=f"handheld/{a}")
+    cur = build_scene([read_depth_image(frames[b])], scene_params, intrinsics=cam,
+                      source=f"handheld/{b}")
+    none = np.zeros((480, 640), bool)
+    return ref, cur, none, none, None
+
+
 def run(names, loader, methods, verbose=True):
     per = {m: [] for m in methods}
     cache = {}
@@ -260,7 +297,8 @@ def main(argv=None):
     ap.add_argument("--levels", nargs="*", default=list(LEVELS),
                     help="pose levels of the simulated scenes ('' = at the station)")
     ap.add_argument("--scenes", nargs="*")
-    ap.add_argument("--real", action="store_true", help="also the 9 real table-top pairs")
+    ap.add_argument("--real", action="store_true", help="also the 9 real table-top pairs and "
+                    "the 6 real hand-held no-change pairs")
     ap.add_argument("--methods", nargs="*", default=["ours", "plain", "nn", "geometric"])
     ap.add_argument("--single-frame", action="store_true")
     ap.add_argument("--set", nargs="*", help="ChangeParams field=value (JSON values)")
@@ -312,6 +350,12 @@ def main(argv=None):
         caches["real"] = cache
         report["results"]["real"] = {m: {"total": summarise(rows), "scenes": rows}
                                      for m, rows in per.items()}
+        if HANDHELD_DIR.is_dir():
+            print("== real hand-held no-change pairs", flush=True)
+            per, _ = run(HANDHELD, lambda n: load_handheld(n, tsp), fns, not args.quiet)
+            report["results"]["real hand-held"] = {m: {"total": summarise(rows),
+                                                       "scenes": rows}
+                                                   for m, rows in per.items()}
     for group, res in report["results"].items():
         print(f"\n== {group}: totals (paper_sigma_* scenes excluded from the sim totals)")
         print(f"{'method':10s} {'F1':>6s} {'P':>6s} {'R':>6s} | {'appF1':>6s} {'appP':>6s} "

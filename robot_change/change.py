@@ -187,11 +187,6 @@ class ChangeParams:
     # How the current view is registered to the reference before comparing (and the station
     # tolerance); RegistrationParams(enabled=False) compares in the shared pixel grid.
     registration: RegistrationParams = RegistrationParams()
-    # When more than this fraction of either cloud's observed points is seen through by the
-    # other epoch, the two views disagree too much to be one place with a change in it: the
-    # outcome is "not_at_station".  Measured (docs/evaluation.md): revisits with changes of
-    # up to ~8 % of the view 0.00-0.08; the far-offset and other-room pairs 0.65.
-    max_seen_through_fraction: float = 0.35
 
     def __post_init__(self) -> None:
         if not isinstance(self.registration, RegistrationParams):
@@ -220,8 +215,6 @@ class ChangeParams:
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
-        _num("max_seen_through_fraction", self.max_seen_through_fraction, 0.0, 1.0,
-             low_open=True)
 
     def replace(self, **changes: Any) -> ChangeParams:
         """A copy with some fields changed (validated)."""
@@ -516,14 +509,31 @@ def _window_filter(depth, radius, take_min):
     return out
 
 
+def sensing_window(depth: np.ndarray, min_fraction: float = 0.05) -> tuple[int, int, int, int]:
+    """(row0, row1, col0, col1), inclusive: the part of a depth image the sensor delivers.
+
+    Depth cameras leave strips along the image border without readings (a Kinect's right
+    columns, cropped images); rows and columns at the border with fewer than ``min_fraction``
+    readings are outside the window.  A point that lands there was not observed, rather than
+    seen through.  The whole image when it has no readings at all.
+    """
+    valid = depth > 0
+    rows = np.flatnonzero(valid.mean(axis=1) >= min_fraction)
+    cols = np.flatnonzero(valid.mean(axis=0) >= min_fraction)
+    if rows.size == 0 or cols.size == 0:
+        return 0, depth.shape[0] - 1, 0, depth.shape[1] - 1
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
 @numba.njit(cache=True, nogil=True)
-def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, height, min_m, max_m):
+def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, max_m):
     """Where each pixel of this epoch's depth image lands in the other epoch's image.
 
     ``own_depth`` (H, W) uint16 mm; (``rot`` (3, 3), ``trans`` (3,)) maps this camera's frame
-    into the other's (same intrinsics).  Returns ``target`` (P,) int64, the flat index of the
-    other image's pixel the reading projects to (-1 for no reading here; -2 when the other
-    camera could not have seen it: behind it, outside its image, or outside its depth range
+    into the other's (same intrinsics, image ``width`` pixels wide).  Returns ``target`` (P,)
+    int64, the flat index of the other image's pixel the reading projects to (-1 for no reading
+    here; -2 when the other camera could not have seen it: behind it, outside its sensing
+    ``window`` (row0, row1, col0, col1, inclusive), or outside its depth range
     ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other frame (m).
     """
     h, w = own_depth.shape
@@ -546,7 +556,7 @@ def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, height, min_m, ma
                 continue
             u = int(math.floor(fx * px / pz + cx + 0.5))
             v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= width or v >= height:
+            if v < window[0] or v > window[1] or u < window[2] or u > window[3]:
                 continue
             target[p] = v * width + u
             z_other[p] = pz
@@ -612,7 +622,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
     (open space beyond the sensor's range).  A pixel that lands behind the other camera,
-    outside its image or outside ``depth_range_m`` was not observed by it.
+    outside the part of its image it has readings in (:func:`sensing_window`) or outside
+    ``depth_range_m`` was not observed by it.
 
     Returns
     -------
@@ -637,9 +648,10 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
         target = np.where(own.ravel() > 0, np.arange(own.size), -1)
         z_other = own.ravel() * 0.001
     else:
+        window = np.array(sensing_window(other_depth), dtype=np.int64)
         target, z_other = _warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx,
                                        intrinsics.fy, intrinsics.cx, intrinsics.cy, width,
-                                       height, float(depth_range_m[0]),
+                                       window, float(depth_range_m[0]),
                                        float(depth_range_m[1]))
     other = np.ascontiguousarray(other_depth)
     near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
@@ -1084,8 +1096,8 @@ class _Aligned:
 
 def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intrinsics | None,
            timings: dict, initial_pose: np.ndarray | None = None) -> _Aligned:
-    """Checks, the current's clean cloud, registration, the reference moved into the current
-    camera frame, the free-space checks both ways, and whether this is the station at all."""
+    """Checks, the current's clean cloud, registration and whether this is the station at all,
+    the reference moved into the current camera frame, the free-space checks both ways."""
     _check_scene_models(reference, current)
     ref = _as_epoch(reference, "reference")
     cur = _current_epoch(ref, current, intrinsics, timings, _scene_model(reference))
@@ -1093,9 +1105,9 @@ def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intri
     reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration,
                          initial=initial_pose)
     timings["registration_ms"] = reg.ms
-    rp = params.registration
-    if not reg.within(rp):
-        return _Aligned(ref, cur, reg, _tolerance_reason(reg, rp))
+    reason = reg.not_at_station(params.registration)
+    if reason:
+        return _Aligned(ref, cur, reg, reason)
     identity = reg.is_identity
     if not identity:
         T = reg.inverse()
@@ -1106,25 +1118,7 @@ def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intri
                                     None if identity else reg.T_ref_from_cur)
     free_ref, obs_ref = _timed_free(ref, cur, params, timings, "disappeared_",
                                     None if identity else reg.inverse())
-    worst = max(float(free_cur[obs_cur].mean()) if obs_cur.any() else 0.0,
-                float(free_ref[obs_ref].mean()) if obs_ref.any() else 0.0)
-    reason = ""
-    if worst > params.max_seen_through_fraction:
-        reason = (f"{worst:.0%} of one view is seen through by the other (more than "
-                  f"{params.max_seen_through_fraction:.0%}): another place, or a change too "
-                  f"large to register against")
     return _Aligned(ref, cur, reg, reason, free_cur, obs_cur, free_ref, obs_ref)
-
-
-def _tolerance_reason(reg: Registration, rp: RegistrationParams) -> str:
-    """Why a registration is outside the station tolerance."""
-    moved = float(np.linalg.norm(reg.translation_m))
-    if reg.fitness < rp.min_fitness:
-        return (f"registration fitness {reg.fitness:.2f} < {rp.min_fitness:.2f}: the views "
-                f"do not overlap enough")
-    if moved > rp.max_translation_m:
-        return f"offset {moved:.2f} m > {rp.max_translation_m:.2f} m"
-    return f"rotation {reg.rotation_deg:.1f} deg > {rp.max_rotation_deg:.1f} deg"
 
 
 def _finish(method: str, params: ChangeParams, aligned: _Aligned, app: _Direction | None,
@@ -1307,11 +1301,11 @@ def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangePara
 
 def _timed_free(other: Epoch, base: Epoch, params: ChangeParams, timings: dict, prefix: str,
                 base_from_other: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_free_mask`, timed.  (free, observed)."""
+    """:func:`_free_mask`, timed."""
     t0 = time.perf_counter()
-    free, observed = _free_mask(other, base, params, base_from_other)
+    out = _free_mask(other, base, params, base_from_other)
     timings[f"{prefix}free_space_ms"] = (time.perf_counter() - t0) * 1e3
-    return free, observed
+    return out
 
 
 def _nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
@@ -1320,8 +1314,8 @@ def _nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
 
 
 def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = ChangeParams(
-        free_space=False, nn_check_m=0.05), *, intrinsics: Intrinsics | None = None
-) -> ChangeSet:
+        free_space=False, nn_check_m=0.05), *, intrinsics: Intrinsics | None = None,
+        initial_pose: np.ndarray | None = None) -> ChangeSet:
     """Baseline: a current point is appeared when no reference point is within
     ``params.nn_check_m`` (a reference point disappeared likewise); no mixture, and the
     free-space check only when ``params.free_space``.  Same registration and region grouping
@@ -1333,7 +1327,7 @@ def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = Cha
     timings: dict[str, float] = {}
     method = ("free_space" if params.nn_check_m <= 0 else "geometric") if params.free_space \
         else "nn"
-    aligned = _align(reference, current, params, intrinsics, timings)
+    aligned = _align(reference, current, params, intrinsics, timings, initial_pose)
     if not aligned.at_station:
         return _not_at_station(method, params, aligned, timings, t_start)
     ref, cur = aligned.ref, aligned.cur

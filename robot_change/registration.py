@@ -100,9 +100,15 @@ class RegistrationParams:
     weak_eigenvalue: float = 1e-4
     # Stop a level when the step is below this (metres; rotations times the cloud radius).
     tol_m: float = 1e-5
-    # Station tolerance: fitness below min_fitness, a translation above max_translation_m or a
-    # rotation above max_rotation_deg is "not at the station".
+    # Station tolerance: fitness below min_fitness, a translation above max_translation_m, a
+    # rotation above max_rotation_deg, or more than max_seen_through of either whole view seen
+    # through by the other (the views contradict each other: another place, or a change too
+    # large to register against) is "not at the station".  Seen through: a reading farther by
+    # more than seen_through_margin_m + seen_through_margin_per_m2 * z^2.
     min_fitness: float = 0.5
+    max_seen_through: float = 0.25
+    seen_through_margin_m: float = 0.03
+    seen_through_margin_per_m2: float = 0.004
     max_translation_m: float = 0.5
     max_rotation_deg: float = 20.0
     # Depth readings outside this range are not used (metres).
@@ -137,6 +143,10 @@ class RegistrationParams:
         _num("weak_eigenvalue", self.weak_eigenvalue, 0.0, 1.0)
         _num("tol_m", self.tol_m, 0.0, 1.0, low_open=True, unit=" metres")
         _num("min_fitness", self.min_fitness, 0.0, 1.0)
+        _num("max_seen_through", self.max_seen_through, 0.0, 1.0, low_open=True)
+        _num("seen_through_margin_m", self.seen_through_margin_m, 0.0, 10.0, unit=" metres")
+        _num("seen_through_margin_per_m2", self.seen_through_margin_per_m2, 0.0, 1.0,
+             unit=" per metre")
         _num("max_translation_m", self.max_translation_m, 0.0, 100.0, unit=" metres")
         _num("max_rotation_deg", self.max_rotation_deg, 0.0, 180.0)
         _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
@@ -154,7 +164,9 @@ class Registration:
 
     ``T_ref_from_cur`` (4, 4) float64 maps current camera-frame points into the reference
     camera frame (metres).  ``fitness``: fraction of the current's cells with an inlier
-    correspondence (0..1); ``rmse_m`` of those residuals (point-to-plane).  ``weak``: names
+    correspondence (0..1); ``rmse_m`` of those residuals (point-to-plane).
+    ``seen_through``: the larger of the two whole views' fractions seen through by the other
+    (finest level, floor and table included).  ``weak``: names
     (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
     there is the starting value).  ``eigenvalues`` (6,) of the scaled normal matrix per unit
     weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells`` current cells at the
@@ -171,6 +183,7 @@ class Registration:
     iterations: int
     converged: bool
     ms: float
+    seen_through: float = 0.0
 
     @property
     def translation_m(self) -> np.ndarray:
@@ -191,11 +204,21 @@ class Registration:
         """(4, 4) ``T_cur_from_ref``."""
         return invert(self.T_ref_from_cur)
 
-    def within(self, params: RegistrationParams) -> bool:
-        """True when fitness and offset are within the station tolerance of ``params``."""
-        return (self.fitness >= params.min_fitness
-                and float(np.linalg.norm(self.translation_m)) <= params.max_translation_m
-                and self.rotation_deg <= params.max_rotation_deg)
+    def not_at_station(self, params: RegistrationParams) -> str:
+        """Why the camera is not at the station by the tolerance of ``params``; "" when it is."""
+        moved = float(np.linalg.norm(self.translation_m))
+        if self.fitness < params.min_fitness:
+            return (f"registration fitness {self.fitness:.2f} < {params.min_fitness:.2f}: the "
+                    f"views do not overlap enough")
+        if moved > params.max_translation_m:
+            return f"offset {moved:.2f} m > {params.max_translation_m:.2f} m"
+        if self.rotation_deg > params.max_rotation_deg:
+            return f"rotation {self.rotation_deg:.1f} deg > {params.max_rotation_deg:.1f} deg"
+        if self.seen_through > params.max_seen_through:
+            return (f"{self.seen_through:.0%} of one view is seen through by the other (more "
+                    f"than {params.max_seen_through:.0%}): another place, or a change too large "
+                    f"to register against")
+        return ""
 
     def to_dict(self) -> dict:
         """JSON-ready: the transform, translation (m) and roll/pitch/yaw (deg) of
@@ -207,6 +230,7 @@ class Registration:
                              for v in rotation_to_rpy_deg(self.T_ref_from_cur[:3, :3])],
             "fitness": round(self.fitness, 4),
             "rmse_m": round(self.rmse_m, 5),
+            "seen_through": round(self.seen_through, 4),
             "weak_directions": list(self.weak),
             "n_pairs": self.n_pairs,
             "iterations": self.iterations,
@@ -215,9 +239,11 @@ class Registration:
         }
 
 
-def identity_registration(fitness: float = 1.0) -> Registration:
-    """The identity (registration switched off)."""
-    return Registration(np.eye(4), float(fitness), 0.0, (), np.ones(6), 0, 0, 0, True, 0.0)
+def identity_registration(transform: np.ndarray | None = None) -> Registration:
+    """A registration taken as given (registration switched off): ``transform`` (4, 4), the
+    identity by default, with fitness 1."""
+    T = np.eye(4) if transform is None else np.array(transform, dtype=np.float64)
+    return Registration(T, 1.0, 0.0, (), np.ones(6), 0, 0, 0, True, 0.0)
 
 
 # --------------------------------------------------------------------------- small geometry
@@ -513,6 +539,39 @@ def _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_d
     return k
 
 
+@numba.njit(cache=True, nogil=True)
+def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_m2):
+    """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land on a
+    reference cell with a reading, how many the reference sees *through*: its reading there is
+    farther than the point by more than ``margin_m + margin_per_m2 * z^2``.  Returns
+    (through, compared)."""
+    through = 0
+    compared = 0
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            if z <= 0.0:
+                continue
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+                continue
+            rz = ref_v[v, u, 2]
+            if rz <= 0.0:
+                continue
+            compared += 1
+            if rz > pz + margin_m + margin_per_m2 * pz * pz:
+                through += 1
+    return through, compared
+
+
 # --------------------------------------------------------------------------- the pyramid
 
 
@@ -622,7 +681,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     Returns
     -------
     Registration
-        With ``enabled=False``, the identity with fitness 1.
+        With ``enabled=False``, ``initial`` (the identity by default) taken as it is, with
+        fitness 1: for a camera bolted in place, or a transform from elsewhere.
     """
     if not isinstance(params, RegistrationParams):
         raise InputError(f"params must be a RegistrationParams, got {type(params).__name__}")
@@ -635,7 +695,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError("initial must be a finite (4, 4) rigid transform")
     if not params.enabled:
-        return identity_registration()
+        return identity_registration(T)
     t0 = time.perf_counter()
     ref_levels = _levels(ref, intrinsics, params)
     cur_levels = _levels(cur, intrinsics, params)
@@ -656,9 +716,22 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                 iterations += n_it
     fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
                                                min_cos)
+    through = _contradiction(ref_levels[-1], cur_levels[-1], T, params)
     return Registration(T, fitness, rmse, _weak_names(lam_n, vec, params.weak_eigenvalue),
                         lam_n, n_pairs, n_cells, iterations, converged,
-                        (time.perf_counter() - t0) * 1e3)
+                        (time.perf_counter() - t0) * 1e3, through)
+
+
+def _contradiction(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams) -> float:
+    """The larger of the fractions of each view that the other sees through (finest level)."""
+    out = 0.0
+    for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
+        through, compared = _seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
+                                          M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                          other.cy, params.seen_through_margin_m,
+                                          params.seen_through_margin_per_m2)
+        out = max(out, through / compared if compared else 0.0)
+    return out
 
 
 class _Pairs:

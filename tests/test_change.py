@@ -250,7 +250,7 @@ def test_window_filter_matches_numpy(radius):
                                       _window_twin(depth, radius, take_min))
 
 
-def _warp_twin(own, T, intr, depth_range):
+def _warp_twin(own, T, intr, depth_range, window=None):
     """NumPy twin of change._warp_kernel: (target (P,), z_other (P,))."""
     h, w = own.shape
     rows, cols = np.mgrid[0:h, 0:w]
@@ -263,7 +263,8 @@ def _warp_twin(own, T, intr, depth_range):
     zsafe = np.where(ok, pz, 1.0)
     u = np.floor(intr.fx * p[:, 0] / zsafe + intr.cx + 0.5).astype(np.int64)
     v = np.floor(intr.fy * p[:, 1] / zsafe + intr.cy + 0.5).astype(np.int64)
-    ok &= (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    r0, r1, c0, c1 = window if window is not None else (0, h - 1, 0, w - 1)
+    ok &= (u >= c0) & (v >= r0) & (u <= c1) & (v <= r1)
     target = np.where(own.ravel() > 0, -2, -1)
     target[ok] = v[ok] * w + u[ok]
     return target, np.where(ok, pz, 0.0)
@@ -317,13 +318,16 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     own[rng.random((h, w)) < 0.1] = 0
     other = (own.astype(np.int64) + rng.integers(-200, 400, size=(h, w))).astype(np.uint16)
     other[rng.random((h, w)) < 0.2] = 0
+    other[:, -3:] = 0  # a dead strip at the border, as a Kinect has
     pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
     T = np.eye(4)
     T[:3, :3] = rpy_deg_to_rotation(1.0, -2.0, 3.0)
     T[:3, 3] = shift
+    window = ch.sensing_window(other)
+    assert window == (0, h - 1, 0, w - 4)
     got_t, got_z = ch._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
-                                   intr.cx, intr.cy, w, h, 0.4, 2.9)
-    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9))
+                                   intr.cx, intr.cy, w, np.array(window), 0.4, 2.9)
+    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window)
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,

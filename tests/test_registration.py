@@ -180,6 +180,33 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
 
 
+def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
+    v = cur_v.reshape(-1, 3).astype(np.float64)
+    v = v[v[:, 2] > 0]
+    p = v @ R.T + t
+    p = p[p[:, 2] > 0]
+    u = np.floor(fx * p[:, 0] / p[:, 2] + cx + 0.5).astype(np.int64)
+    w = np.floor(fy * p[:, 1] / p[:, 2] + cy + 0.5).astype(np.int64)
+    inside = (u >= 0) & (w >= 0) & (u < ref_v.shape[1]) & (w < ref_v.shape[0])
+    rz = ref_v[w[inside], u[inside], 2].astype(np.float64)
+    pz = p[inside, 2]
+    ok = rz > 0
+    return int((rz[ok] > pz[ok] + margin + per_m2 * pz[ok] ** 2).sum()), int(ok.sum())
+
+
+def test_seen_through_matches_numpy(office_pair):
+    ref, cur, sc = office_pair
+    params = RegistrationParams()
+    rl = reg_mod._levels(ref, INTR, params)[-1]
+    cl = reg_mod._levels(cur, INTR, params)[-1]
+    T = sc.T_ref_from_cur
+    got = reg_mod._seen_through(cl.vertex, rl.vertex, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
+                                rl.fy, rl.cx, rl.cy, 0.03, 0.004)
+    want = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx,
+                              rl.cy, 0.03, 0.004)
+    assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
+
+
 def test_rotation_helpers_round_trip():
     R = rpy_deg_to_rotation(3.0, -4.0, 10.0)
     np.testing.assert_allclose(rotation_to_rpy_deg(R), (3.0, -4.0, 10.0), atol=1e-9)
@@ -241,6 +268,10 @@ def test_registration_switched_off_is_the_identity(office_pair):
     ref, cur, _ = office_pair
     got = register_depth(ref, cur, INTR, RegistrationParams(enabled=False))
     assert got.is_identity and got.fitness == 1.0
+    given = np.eye(4)
+    given[:3, 3] = (0.01, 0.02, 0.03)
+    taken = register_depth(ref, cur, INTR, RegistrationParams(enabled=False), initial=given)
+    np.testing.assert_array_equal(taken.T_ref_from_cur, given)
 
 
 def test_bad_input_is_refused_with_typed_errors(office_pair):
