@@ -2,7 +2,7 @@
 ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorithm.md).
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
-        [--sweep SEEDS]
+        [--sweep SEEDS [--no-fixtures]]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -117,9 +117,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=5, help="timed runs per method and pair")
     ap.add_argument("--sweep", type=int, default=0, help="rendered pairs per scene and level")
+    ap.add_argument("--no-fixtures", action="store_true", help="the rendered pairs only")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    pairs = list(fixture_pairs()) + (list(sweep_pairs(args.sweep)) if args.sweep else [])
+    pairs = ([] if args.no_fixtures else list(fixture_pairs())) + \
+        (list(sweep_pairs(args.sweep)) if args.sweep else [])
     for fn in METHODS.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
     rows = []

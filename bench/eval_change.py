@@ -373,13 +373,13 @@ def main(argv=None):
                       and s["n_regions_true"] == 0]
             errs = [s["reg_err_mm"] for s in r["scenes"] if "reg_err_mm" in s]
             degs = [s["reg_err_deg"] for s in r["scenes"] if "reg_err_deg" in s]
+            print(f"{m:10s} {t['f1']:6.3f} {t['p']:6.3f} {t['r']:6.3f} | {t['app_f1']:6.3f} "
+                  f"{t['app_p']:6.3f} {t['app_r']:6.3f} | {t['dis_f1']:6.3f} {t['dis_p']:6.3f} "
+                  f"{t['dis_r']:6.3f} | {len(fa)}/{len(nc)} {fa} | {missed}")
             if errs:
                 print(f"{'':10s} registration error median {statistics.median(errs):.1f} mm / "
                       f"{statistics.median(degs):.3f} deg, max {max(errs):.1f} mm / "
                       f"{max(degs):.3f} deg")
-            print(f"{m:10s} {t['f1']:6.3f} {t['p']:6.3f} {t['r']:6.3f} | {t['app_f1']:6.3f} "
-                  f"{t['app_p']:6.3f} {t['app_r']:6.3f} | {t['dis_f1']:6.3f} {t['dis_p']:6.3f} "
-                  f"{t['dis_r']:6.3f} | {len(fa)}/{len(nc)} {fa} | {missed}")
         paper = [s for s in res[next(iter(res))]["scenes"] if s["scene"] in PAPER]
         if paper:
             print("paper protocol: regions (true) / F1 per method")

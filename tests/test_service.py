@@ -481,3 +481,39 @@ def test_watch_checks_only_while_the_base_is_parked(rig: Rig) -> None:
         expect PAUSE cause=CHANGE_WATCH 5
     """)
     assert rig.service.counters["watch_checks"] <= checks + 2  # nothing ran while it moved
+
+
+def _frames_of(name: str, epoch: str) -> list[Path]:
+    from sim_fixtures import load_scene
+
+    folder = Path(load_scene(name).uri(epoch, "images").removeprefix("images:"))
+    return sorted(folder.glob("*.png"))
+
+
+def test_a_revisit_off_by_centimetres_is_no_change_and_says_how_far_off(tmp_path: Path,
+                                                                          scene_frames) -> None:
+    frames = {"reference": _frames_of("office_no_change", "reference"),
+              "current": _frames_of("office_no_change_pose_5cm", "current"),
+              "elsewhere": _frames_of("office_far_offset", "current")}
+    with Rig(tmp_path, frames) as rig:
+        rig.run("capture office\nexpect CAPTURED 5")
+        rig.show("current")
+        rig.run("""
+            check office
+            expect CHECK_RESULT outcome=NO_CHANGE 5
+            expect CLEAR station=office 2
+            expect-none PAUSE 0.3
+        """)
+        result = next(e.obj for e in rig.sim.log if e.name == "CHECK_RESULT")
+        # the truth: 5 cm / 2 deg; the base frame turns it, the length stays
+        assert 40 <= np.linalg.norm(result.offset_mm) <= 60
+        assert result.fitness_permille > 700 and result.weak == 0
+        rig.show("elsewhere")
+        rig.run("""
+            check office
+            expect CHECK_RESULT outcome=NOT_AT_STATION 5
+            expect-none PAUSE 0.3
+            expect-none CLEAR 0.1
+        """)
+        saved = json.loads((tmp_path / "reports" / "office.last-check.json").read_text())
+        assert saved["outcome"] == "not_at_station" and saved["not_at_station_reason"]
