@@ -1077,8 +1077,9 @@ class _Direction:
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Aligned:
     """The two epochs of a check in the current camera frame: ``ref`` with its points (and
-    mixture) mapped through the registration, ``cur`` as it is; ``registration``;
-    ``at_station`` when the registration is within the station tolerance."""
+    mixture) mapped through the registration, ``cur`` as it is; ``registration``; ``reason``
+    why this is not the station ("" when it is); the free-space results (free, observed) of
+    the current's points and, when the disappeared direction runs, of the reference's."""
 
     ref: Epoch
     cur: Epoch
@@ -1116,6 +1117,8 @@ def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intri
             mixture=ref.mixture.transformed(T) if ref.mixture is not None else None)
     free_cur, obs_cur = _timed_free(cur, ref, params, timings, "appeared_",
                                     None if identity else reg.T_ref_from_cur)
+    if not params.disappeared:
+        return _Aligned(ref, cur, reg, reason, free_cur, obs_cur)
     free_ref, obs_ref = _timed_free(ref, cur, params, timings, "disappeared_",
                                     None if identity else reg.inverse())
     return _Aligned(ref, cur, reg, reason, free_cur, obs_cur, free_ref, obs_ref)

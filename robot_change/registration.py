@@ -715,7 +715,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                                                                min_cos, pairs)
                 iterations += n_it
     fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
-                                               min_cos)
+                                               min_cos, pairs)
     through = _contradiction(ref_levels[-1], cur_levels[-1], T, params)
     return Registration(T, fitness, rmse, _weak_names(lam_n, vec, params.weak_eigenvalue),
                         lam_n, n_pairs, n_cells, iterations, converged,
@@ -813,13 +813,13 @@ def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
     return best
 
 
-def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float
-             ) -> tuple[float, float, int, int]:
-    """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level."""
+def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
+             pairs: _Pairs) -> tuple[float, float, int, int]:
+    """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level
+    (``pairs``: that level's scratch arrays)."""
     n_cells = int(np.count_nonzero(np.any(cl.normal != 0, axis=2)))
     if n_cells == 0:
         return 0.0, 0.0, 0, 0
-    pairs = _Pairs(cl)
     n = pairs.associate(rl, cl, T, params.max_distance_m[-1], min_cos)
     inl = pairs.inliers(n, params.inlier_sigmas)
     k = int(inl.sum())

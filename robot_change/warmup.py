@@ -44,14 +44,23 @@ def warm_up(config: Config | None = None) -> float:
     width, height = 160, 120
     cam = Intrinsics.openni_default(width, height)
     params = config.scene_params()
-    # regions of any size, so that every stage runs on the tiny scene (both directions)
+    # regions of any size, and any registration taken as at the station, so that every stage
+    # runs on the tiny scene (both directions; the box is a large share of it)
     change = change_params(config, config.parameters()).replace(min_region_points=1)
+    change = change.replace(registration=change.registration.replace(
+        min_fitness=0.0, max_seen_through=1.0, max_translation_m=100.0,
+        max_rotation_deg=180.0))
+    # a transform taken as given (registration off): the comparison through a transform
+    shifted = change.replace(registration=change.registration.replace(enabled=False))
+    offset = np.eye(4)
+    offset[:3, 3] = (0.01, 0.0, 0.0)
     rooms = (_synthetic_room(width, height), _synthetic_room(width, height, box=True))
     for before, after in (rooms, rooms[::-1]):
         try:
             reference = build_scene(np.stack([before] * 2), params, intrinsics=cam,
                                     source="warm-up")
             detect_changes(reference, after, change)
+            detect_changes(reference, after, shifted, initial_pose=offset)
         except (EmptySceneError, InputError):
             pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
     return time.perf_counter() - t0
