@@ -2,7 +2,7 @@
 ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorithm.md).
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
-        [--sweep SEEDS [--no-fixtures]]
+        [--sweep SEEDS [--no-fixtures]] [--methods ours,small_gicp,open3d_icp]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -118,31 +118,39 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=5, help="timed runs per method and pair")
     ap.add_argument("--sweep", type=int, default=0, help="rendered pairs per scene and level")
     ap.add_argument("--no-fixtures", action="store_true", help="the rendered pairs only")
+    ap.add_argument("--methods", default=",".join(METHODS),
+                    help="comma-separated subset (ours alone: its speed without the peers' "
+                         "threads and caches in between)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    methods = {}
+    for m in args.methods.split(","):
+        if m not in METHODS:
+            ap.error(f"unknown method {m!r}; known: {', '.join(METHODS)}")
+        methods[m] = METHODS[m]
     pairs = ([] if args.no_fixtures else list(fixture_pairs())) + \
         (list(sweep_pairs(args.sweep)) if args.sweep else [])
-    for fn in METHODS.values():  # compile / load every library once
+    for fn in methods.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
     rows = []
     for name, ref, cur, truth, intr in pairs:
-        times = {m: [] for m in METHODS}
+        times = {m: [] for m in methods}
         est = {}
         for run in range(args.runs):
-            order = list(METHODS) if run % 2 == 0 else list(METHODS)[::-1]
+            order = list(methods) if run % 2 == 0 else list(methods)[::-1]
             for m in order:
                 t0 = time.perf_counter()
-                est[m] = METHODS[m](ref, cur, intr)
+                est[m] = methods[m](ref, cur, intr)
                 times[m].append((time.perf_counter() - t0) * 1e3)
         row = {"pair": name}
-        for m in METHODS:
+        for m in methods:
             err = invert(truth) @ est[m]
             row[m] = {"err_mm": float(np.linalg.norm(err[:3, 3]) * 1e3),
                       "err_deg": rotation_angle_deg(err[:3, :3]),
                       "ms": statistics.median(times[m])}
         rows.append(row)
         print(f"{name:40s} " + "  ".join(f"{m} {row[m]['err_mm']:7.1f} mm {row[m]['err_deg']:5.2f}"
-                                          f" deg {row[m]['ms']:6.1f} ms" for m in METHODS),
+                                          f" deg {row[m]['ms']:6.1f} ms" for m in methods),
               flush=True)
     summary = {}
     for group in ("fixtures", "sweep"):
@@ -150,7 +158,7 @@ def main(argv=None):
         if not sel:
             continue
         summary[group] = {}
-        for m in METHODS:
+        for m in methods:
             e = [r[m]["err_mm"] for r in sel]
             d = [r[m]["err_deg"] for r in sel]
             ok = sum(1 for r in sel if r[m]["err_mm"] <= 10 and r[m]["err_deg"] <= 0.5)
@@ -167,7 +175,7 @@ def main(argv=None):
             sel = [r for r in rows if r["pair"].startswith("sweep_") and f"_{tm}cm_" in r["pair"]]
             print(f"sweep {tm:2d} cm: " + "  ".join(
                 f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
-                f"/{len(sel)}" for m in METHODS))
+                f"/{len(sel)}" for m in methods))
     load = os.getloadavg()
     machine = {"python": platform.python_version(), "cpu": platform.processor() or
                platform.machine(), "cores": os.cpu_count(), "load": [round(v, 2) for v in load]}

@@ -98,8 +98,9 @@ class RegistrationParams:
     inlier_sigmas: float = 3.0
     # Eigenvalues of the scaled normal matrix per unit weight below this are weak directions.
     weak_eigenvalue: float = 1e-4
-    # Stop a level when the step is below this (metres; rotations times the cloud radius).
-    tol_m: float = 1e-5
+    # Stop a level when the step is below this (metres; rotations times the cloud radius):
+    # 0.1 mm, a tenth of the depth noise at 0.5 m; a smaller one buys no accuracy.
+    tol_m: float = 1e-4
     # Station tolerance: fitness below min_fitness, a translation above max_translation_m, a
     # rotation above max_rotation_deg, or more than max_seen_through of either whole view seen
     # through by the other (the views contradict each other: another place, or a change too
@@ -356,13 +357,13 @@ def _vertex_level(depth, factor, fx, fy, cx, cy, min_mm, max_mm, band_m, band_sl
                     z = d * 0.001
                     if abs(z - za) > band:
                         continue
-                    sx += (c - cx) * z / fx
-                    sy += (r - cy) * z / fy
+                    sx += (c - cx) * z
+                    sy += (r - cy) * z
                     sz += z
                     n += 1
             if n >= need:
-                out[i, j, 0] = sx / n
-                out[i, j, 1] = sy / n
+                out[i, j, 0] = sx / (n * fx)
+                out[i, j, 1] = sy / (n * fy)
                 out[i, j, 2] = sz / n
                 count[i, j] = n
     return out, count
@@ -450,46 +451,6 @@ def _normal_map(vertex, max_step):
     return out
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _match(cur_v, cur_n, ref_v, ref_n, i, j, rot, trans, fx, fy, cx, cy, md2, min_cos):
-    """Pair current cell (i, j), moved by (rot, trans), with the reference cell it projects
-    to.  Returns (paired, px, py, pz: the moved point, mx, my, mz: the reference normal,
-    residual m . (p - q))."""
-    nx0 = cur_n[i, j, 0]
-    ny0 = cur_n[i, j, 1]
-    nz0 = cur_n[i, j, 2]
-    if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    x = cur_v[i, j, 0]
-    y = cur_v[i, j, 1]
-    z = cur_v[i, j, 2]
-    px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-    py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-    pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-    if pz <= 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    u = int(math.floor(fx * px / pz + cx + 0.5))
-    v = int(math.floor(fy * py / pz + cy + 0.5))
-    if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    mx = ref_n[v, u, 0]
-    my = ref_n[v, u, 1]
-    mz = ref_n[v, u, 2]
-    if mx == 0.0 and my == 0.0 and mz == 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    dx = px - ref_v[v, u, 0]
-    dy = py - ref_v[v, u, 1]
-    dz = pz - ref_v[v, u, 2]
-    if dx * dx + dy * dy + dz * dz > md2:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
-    ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
-    nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
-    if nx * mx + ny * my + nz * mz < min_cos:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    return True, px, py, pz, mx, my, mz, mx * dx + my * dy + mz * dz
-
-
 @numba.njit(cache=True, nogil=True)
 def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
                res, jac, zs):
@@ -502,16 +463,49 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
     = n_ref . (p - q) (metres), ``jac[k]`` = (p x n_ref, n_ref) (derivative of the residual
     under a left perturbation (rotation vector, translation)) and ``zs[k]`` the depth of p in
     the reference frame.  Returns the number of pairs.
+
+    (The body is written out, not split into a per-cell helper: numba's call of a helper
+    returning a tuple made this loop five times slower.)
     """
     k = 0
     md2 = max_dist * max_dist
+    h = ref_v.shape[0]
+    w = ref_v.shape[1]
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
-            ok, px, py, pz, mx, my, mz, r = _match(cur_v, cur_n, ref_v, ref_n, i, j, rot, trans,
-                                                   fx, fy, cx, cy, md2, min_cos)
-            if not ok:
+            nx0 = cur_n[i, j, 0]
+            ny0 = cur_n[i, j, 1]
+            nz0 = cur_n[i, j, 2]
+            if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
                 continue
-            res[k] = r
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= w or v >= h:
+                continue
+            mx = ref_n[v, u, 0]
+            my = ref_n[v, u, 1]
+            mz = ref_n[v, u, 2]
+            if mx == 0.0 and my == 0.0 and mz == 0.0:
+                continue
+            dx = px - ref_v[v, u, 0]
+            dy = py - ref_v[v, u, 1]
+            dz = pz - ref_v[v, u, 2]
+            if dx * dx + dy * dy + dz * dz > md2:
+                continue
+            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+            if nx * mx + ny * my + nz * mz < min_cos:
+                continue
+            res[k] = mx * dx + my * dy + mz * dz
             jac[k, 0] = py * mz - pz * my
             jac[k, 1] = pz * mx - px * mz
             jac[k, 2] = px * my - py * mx
@@ -525,17 +519,15 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
 
 @numba.njit(cache=True, nogil=True)
 def _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                   sigmas):
-    """The pairs :func:`_associate` would make whose residual is within ``sigmas`` depth
-    noise sigmas (:func:`depth_sigma`), counted."""
+                   sigmas, res, jac, zs):
+    """The pairs of :func:`_associate` (filling its scratch arrays ``res``, ``jac``, ``zs``)
+    whose residual is within ``sigmas`` depth noise sigmas (:func:`depth_sigma`), counted."""
+    n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                   res, jac, zs)
     k = 0
-    md2 = max_dist * max_dist
-    for i in range(cur_v.shape[0]):
-        for j in range(cur_v.shape[1]):
-            ok, _px, _py, pz, _mx, _my, _mz, r = _match(cur_v, cur_n, ref_v, ref_n, i, j, rot,
-                                                        trans, fx, fy, cx, cy, md2, min_cos)
-            if ok and abs(r) <= sigmas * depth_sigma(pz):
-                k += 1
+    for m in range(n):
+        if abs(res[m]) <= sigmas * depth_sigma(zs[m]):
+            k += 1
     return k
 
 
@@ -585,6 +577,12 @@ class _Level:
     cx: float
     cy: float
 
+    @property
+    def n_normals(self) -> int:
+        """Cells with a normal (the cells that can be paired)."""
+        n = self.normal
+        return int(np.count_nonzero((n[:, :, 0] != 0) | (n[:, :, 1] != 0) | (n[:, :, 2] != 0)))
+
 
 def _levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams
             ) -> list[_Level]:
@@ -617,21 +615,44 @@ def _check_depth(name: str, depth: Any, intrinsics: Intrinsics) -> np.ndarray:
     return np.ascontiguousarray(depth)
 
 
-def _robust_weights(res: np.ndarray, zs: np.ndarray, c: float) -> tuple[np.ndarray, float]:
-    """Per-pair weights: 1 / sigma(z)^2 times Tukey's biweight of the normalised residual,
-    scale from the median absolute normalised residual; returns (weights, scale)."""
-    sig = depth_sigma(zs)
-    e = res / sig
-    scale = max(1.4826 * float(np.median(np.abs(e))), 0.5) if e.size else 1.0
-    u = e / (c * scale)
-    tukey = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-    return tukey / (sig * sig), scale
+@numba.njit(cache=True, nogil=True)
+def _weighted_system(res, jac, zs, n, tukey_c):
+    """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
+    ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
 
-
-def _normal_equations(jac: np.ndarray, res: np.ndarray, wts: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    jw = jac * wts[:, None]
-    return jw.T @ jac, jw.T @ res
+    Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
+    normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
+    max(1.4826 median |e|, 0.5).  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
+    the weights, radius: the root of the median squared depth, m)."""
+    e = np.empty(n)
+    inv_var = np.empty(n)
+    z2 = np.empty(n)
+    for k in range(n):
+        sig = depth_sigma(zs[k])
+        e[k] = abs(res[k]) / sig
+        inv_var[k] = 1.0 / (sig * sig)
+        z2[k] = zs[k] * zs[k]
+    scale = max(1.4826 * np.median(e), 0.5)
+    radius = math.sqrt(np.median(z2))
+    cut = tukey_c * scale
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    wsum = 0.0
+    for k in range(n):
+        u = e[k] / cut
+        if u >= 1.0:
+            continue
+        wt = (1.0 - u * u) ** 2 * inv_var[k]
+        wsum += wt
+        for a in range(6):
+            ja = jac[k, a] * wt
+            b[a] += ja * res[k]
+            for c in range(a, 6):
+                A[a, c] += ja * jac[k, c]
+    for a in range(6):
+        for c in range(a):
+            A[a, c] = A[c, a]
+    return A, b, wsum, radius
 
 
 def _solve(A: np.ndarray, b: np.ndarray, radius: float, wsum: float, weak_eigenvalue: float
@@ -752,7 +773,8 @@ class _Pairs:
     def count_inliers(self, rl: _Level, cl: _Level, T: np.ndarray, max_dist: float,
                       min_cos: float, sigmas: float) -> int:
         return _count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], T[:3, 3],
-                              rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, sigmas)
+                              rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, sigmas, self.res,
+                              self.jac, self.zs)
 
     def inliers(self, n: int, sigmas: float) -> np.ndarray:
         """(n,) bool: pairs whose residual is within ``sigmas`` depth-noise sigmas."""
@@ -769,10 +791,9 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
         n = pairs.associate(rl, cl, T, params.max_distance_m[li], min_cos)
         if n < 6:
             break
-        wts, _scale = _robust_weights(pairs.res[:n], pairs.zs[:n], params.tukey_c)
-        A, b = _normal_equations(pairs.jac[:n], pairs.res[:n], wts)
-        radius = math.sqrt(float(np.median(pairs.zs[:n] ** 2)))
-        step, lam_n, vec = _solve(A, b, radius, float(wts.sum()), params.weak_eigenvalue)
+        A, b, wsum, radius = _weighted_system(pairs.res, pairs.jac, pairs.zs, n,
+                                              params.tukey_c)
+        step, lam_n, vec = _solve(A, b, radius, wsum, params.weak_eigenvalue)
         # a trust region: no step moves a point by more than half the pairing distance (a
         # first step from many wrong pairs must not throw the estimate out of the basin)
         length = math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
@@ -817,11 +838,11 @@ def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, 
              pairs: _Pairs) -> tuple[float, float, int, int]:
     """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level
     (``pairs``: that level's scratch arrays)."""
-    n_cells = int(np.count_nonzero(np.any(cl.normal != 0, axis=2)))
+    n_cells = cl.n_normals
     if n_cells == 0:
         return 0.0, 0.0, 0, 0
     n = pairs.associate(rl, cl, T, params.max_distance_m[-1], min_cos)
     inl = pairs.inliers(n, params.inlier_sigmas)
-    k = int(inl.sum())
-    rmse = math.sqrt(float((pairs.res[:n][inl] ** 2).mean())) if k else 0.0
+    k = int(np.count_nonzero(inl))
+    rmse = math.sqrt(float(np.square(pairs.res[:n][inl]).mean())) if k else 0.0
     return k / n_cells, rmse, k, n_cells

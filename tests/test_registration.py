@@ -173,11 +173,39 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(zs[:n], w_zs, atol=1e-6)
     inliers = reg_mod._count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal,
                                      T[:3, :3].copy(), T[:3, 3].copy(), rl.fx, rl.fy, rl.cx,
-                                     rl.cy, 0.1, 0.8, 3.0)
+                                     rl.cy, 0.1, 0.8, 3.0, res, jac, zs)
     sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
     quant = 2.85e-3 * w_zs ** 2 / math.sqrt(12.0)
     assert inliers == int((np.abs(w_res) <= 3.0 * np.hypot(sig, quant)).sum())
     np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
+
+
+def _weighted_system_twin(res, jac, zs, c):
+    sig = np.hypot(0.0012 + 0.0019 * (zs - 0.4) ** 2, 2.85e-3 * zs ** 2 / math.sqrt(12.0))
+    e = res / sig
+    scale = max(1.4826 * float(np.median(np.abs(e))), 0.5)
+    u = e / (c * scale)
+    wts = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0) / sig ** 2
+    jw = jac * wts[:, None]
+    return jw.T @ jac, jw.T @ res, wts.sum(), math.sqrt(float(np.median(zs ** 2)))
+
+
+@pytest.mark.parametrize("tukey_c", [1.0, 4.685])
+def test_weighted_normal_equations_match_numpy(office_pair, tukey_c):
+    ref, cur, sc = office_pair
+    params = RegistrationParams()
+    rl = reg_mod._levels(ref, INTR, params)[-1]
+    cl = reg_mod._levels(cur, INTR, params)[-1]
+    pairs = reg_mod._Pairs(cl)
+    n = pairs.associate(rl, cl, np.eye(4), 0.1, 0.8)  # identity: many large residuals
+    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c)
+    wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
+                                                   tukey_c)
+    assert n > 1000
+    np.testing.assert_allclose(A, wA, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(b, wb, rtol=1e-9, atol=1e-9)
+    assert wsum == pytest.approx(wwsum, rel=1e-12)
+    assert radius == pytest.approx(wradius, rel=1e-12)
 
 
 def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
