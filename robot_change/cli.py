@@ -293,13 +293,33 @@ def cmd_capture(args: argparse.Namespace) -> int:
     """Build a SceneModel (a station reference) from N frames and save it."""
     from robot_change.scene import build_scene
 
+    mount = CameraMount.parse(args.mount) if args.mount else None
     frames = _read_frames(args.source, args.frames)
     scene = build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
-                        source=args.source)
+                        source=args.source, mount=mount)
     scene.save(args.out)
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
-          f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s")
+          f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s"
+          + ("" if mount is None else f", mount {_mount_text(mount)}"))
     return 0
+
+
+def _mount_text(mount: CameraMount) -> str:
+    return ",".join(f"{v:g}" for v in (*mount.xyz_m, *mount.rpy_deg))
+
+
+def _detect_mount(args: argparse.Namespace, reference) -> CameraMount:
+    """``--mount`` if given, else the mounting the reference was captured with, else the
+    identity; a ``--mount`` that differs from the reference's is used, with a warning."""
+    recorded = getattr(reference, "mount", None)
+    if not args.mount:
+        return recorded if recorded is not None else CameraMount()
+    mount = CameraMount.parse(args.mount)
+    if recorded is not None and recorded != mount:
+        print(f"robot-change detect: warning: the reference was captured with the camera "
+              f"mounted at {_mount_text(recorded)}; using --mount {_mount_text(mount)}",
+              file=sys.stderr)
+    return mount
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
@@ -311,7 +331,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     current, current_depth, camera = _current_input(args, reference)
     detector = {"novelty": change.detect_changes, "plain": change.detect_plain,
                 "geometric": change.detect_geometric, "nn": change.detect_nn_threshold}
-    mount = CameraMount.parse(args.mount) if args.mount else CameraMount()
+    mount = _detect_mount(args, reference)
     changes = detector[args.method](reference, current, intrinsics=camera)
     seconds = time.perf_counter() - started
     summary = changes.summary(mount)
@@ -472,6 +492,9 @@ def build_parser() -> argparse.ArgumentParser:
     capture.add_argument("--frames", type=int, default=5, help="frames to fuse (default 5)")
     capture.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's)")
     capture.add_argument("--leaf", type=float, help="voxel size in metres (default 0.03)")
+    capture.add_argument("--mount", help="the camera on the base, recorded with the reference: "
+                         "x,y,z,roll,pitch,yaw of its body frame (x forward, y left, z up) in "
+                         "base_link, metres and degrees; detect uses it unless given --mount")
     capture.set_defaults(func=cmd_capture)
 
     detect = commands.add_parser("detect", help="compare a reference with now: what appeared, "
@@ -494,7 +517,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--no-picture", action="store_true", help="with --out: skip report.png")
     detect.add_argument("--mount", help="the camera on the base: x,y,z,roll,pitch,yaw of its "
                         "body frame (x forward, y left, z up) in base_link, metres and degrees "
-                        "(default 0,0,0,0,0,0: at the base origin, looking ahead); base-frame "
+                        "(default: the mounting the reference was captured with, else "
+                        "0,0,0,0,0,0: at the base origin, looking ahead); base-frame "
                         "positions and the robot's offset in report.json use it")
     detect.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     detect.set_defaults(func=cmd_detect)

@@ -41,6 +41,7 @@ from robot_change.errors import (
 )
 from robot_change.filters import Plane, fuse_depth
 from robot_change.mixture import CRITERIA, FitRecord, FitStep, Mixture, fit_mixture
+from robot_change.mount import CameraMount
 
 __all__ = [
     "FILE_FORMAT",
@@ -182,7 +183,8 @@ class SceneModel:
     and ``first_index`` / ``last_index`` of those frames (None for bare arrays); ``seconds``
     per stage (``fusion``, ``points``, ``voxel``, ``outliers``, ``plane``, ``cloud`` (all four),
     ``fit``, ``total``; ``read`` when built from a source); ``created`` (UTC, ISO 8601);
-    ``version`` (robot_change's); ``source`` (e.g. the depth URI).
+    ``version`` (robot_change's); ``source`` (e.g. the depth URI); ``mount``: the camera's
+    mounting on the base when the reference was captured (None: not recorded).
     """
 
     depth: np.ndarray
@@ -199,6 +201,7 @@ class SceneModel:
     created: str
     version: str
     source: str = ""
+    mount: CameraMount | None = None
 
     def __post_init__(self) -> None:
         d = self.depth
@@ -216,6 +219,8 @@ class SceneModel:
                              f"{self.cloud.pixel_voxel.shape}, the depth image {d.shape}")
         if not isinstance(self.mixture, Mixture) or not isinstance(self.params, SceneParams):
             raise InputError("SceneModel.mixture must be a Mixture and params a SceneParams")
+        if self.mount is not None and not isinstance(self.mount, CameraMount):
+            raise InputError("SceneModel.mount must be a robot_change.mount.CameraMount or None")
         if d.flags.writeable:
             d = d.copy()
             d.setflags(write=False)
@@ -390,6 +395,7 @@ def build_scene(
     *,
     intrinsics: Intrinsics | None = None,
     source: str = "",
+    mount: CameraMount | None = None,
 ) -> SceneModel:
     """Fuse frames, clean the cloud, fit the mixture: a :class:`SceneModel`.
 
@@ -405,6 +411,9 @@ def build_scene(
         Required for arrays; for DepthFrames it overrides theirs (``--intrinsics``).
     source : str
         Where the frames came from (recorded, e.g. the depth URI).
+    mount : robot_change.mount.CameraMount, optional
+        The camera's mounting on the base (recorded; ``detect`` uses it for base-frame
+        results when not told otherwise).
 
     Raises
     ------
@@ -451,7 +460,7 @@ def build_scene(
         n_frames=n_frames, first_timestamp_us=ts0, last_timestamp_us=ts1, first_index=i0,
         last_index=i1, seconds=seconds,
         created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds"),
-        version=robot_change.__version__, source=source,
+        version=robot_change.__version__, source=source, mount=mount,
     )
 
 
@@ -618,6 +627,7 @@ def _header_of(model: SceneModel, arrays: dict[str, np.ndarray]) -> dict[str, An
         "saved_by": robot_change.__version__,
         "created": model.created,
         "source": model.source,
+        "mount": None if model.mount is None else model.mount.to_dict(),
         "n_frames": model.n_frames,
         "first_timestamp_us": model.first_timestamp_us,
         "last_timestamp_us": model.last_timestamp_us,
@@ -759,5 +769,14 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
         last_index=opt_int("last_index"),
         seconds={k: float(v) for k, v in header["seconds"].items()},
         created=str(header["created"]), version=str(header["library_version"]),
-        source=str(header["source"]),
+        source=str(header["source"]), mount=_mount_from(header.get("mount")),
     )
+
+
+def _mount_from(d: Any) -> CameraMount | None:
+    """The header's ``mount`` (absent in files from before it was recorded: None)."""
+    if d is None:
+        return None
+    if not isinstance(d, dict) or "xyz_m" not in d or "rpy_deg" not in d:
+        raise SceneFileError(f"mount {d!r} is not an object with xyz_m and rpy_deg")
+    return CameraMount(tuple(d["xyz_m"]), tuple(d["rpy_deg"]))

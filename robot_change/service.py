@@ -686,7 +686,7 @@ class Service(CameraThreadMixin, WatchMixin):
         frames = self._fresh_frames(n, f"CAPTURE_REFERENCE {station}")
         t0 = time.perf_counter()
         model = build_scene(frames, scene_params(self.config, self.params),
-                            source=self.camera_uri)
+                            source=self.camera_uri, mount=self.config.camera.mount())
         path = self.store.save(station, model)
         log.info("station %s: reference of %d frames (%d points, K=%d) built in %.0f ms, saved "
                  "to %s", station, n, len(model), model.mixture.n_components,
@@ -699,6 +699,12 @@ class Service(CameraThreadMixin, WatchMixin):
 
         self._set_activity(ModuleState.CHECKING)
         reference = self.store.load(station)
+        mount = self.config.camera.mount()
+        if reference.mount is not None and reference.mount != mount:
+            log.warning("station %s: its reference was captured with the camera mounted at "
+                        "%s, the configuration says %s; base-frame results use the "
+                        "configuration (capture the station again if the camera was moved)",
+                        station, reference.mount.to_dict(), mount.to_dict())
         n = self.params["fuse_frames"]
         frames = self._fresh_frames(n, f"CHECK {station}")
         t0 = time.perf_counter()

@@ -156,6 +156,8 @@ def test_capture_then_check_without_change_answers_clear(rig: Rig) -> None:
     """)
     assert rig.store.stations() == ["office"]
     assert (rig.tmp / "reports" / "office.last-check.npz").is_file()
+    # the reference records the camera's mounting of the configuration it was captured with
+    assert rig.store.load("office").mount == rig.service.config.camera.mount()
 
 
 def test_check_with_a_change_pauses_reports_and_resume_clears_the_latch(rig: Rig) -> None:
