@@ -84,7 +84,7 @@ class RegistrationParams:
     # inlier count and ICP goes on from the best: rooms let ICP slide along the floor and
     # walls (ALGORITHM.md section 4), and a yaw error is first taken up by a sideways slide.
     search_level: int = 1
-    search_step_m: float = 0.05
+    search_step_m: float = 0.1
     search_reach_m: float = 0.4
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
@@ -564,6 +564,33 @@ def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per
     return through, compared
 
 
+@numba.njit(cache=True, nogil=True)
+def _search_scores(cur_v, cur_n, ref_v, ref_n, rot, trans, offsets, fx, fy, cx, cy, max_dist,
+                   min_cos, sigmas, margin_m, margin_per_m2, res, jac, zs):
+    """Scores of the translation offsets ``offsets`` (n, 3) (metres, added to ``trans``): per
+    offset, the inlier pairs of :func:`_count_inliers` minus the cells of either view the
+    other sees through (:func:`_seen_through`, both ways).  A wrong slide along a room fits
+    floor and walls (inliers) but puts surfaces where the other camera saw free space.
+    Returns (n,) float64."""
+    out = np.empty(offsets.shape[0])
+    rot_t = np.ascontiguousarray(rot.T)
+    t = np.empty(3)
+    back = np.empty(3)
+    for m in range(offsets.shape[0]):
+        for a in range(3):
+            t[a] = trans[a] + offsets[m, a]
+        for a in range(3):
+            back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
+        inliers = _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
+                                 min_cos, sigmas, res, jac, zs)
+        through_cur, _ = _seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy, margin_m,
+                                       margin_per_m2)
+        through_ref, _ = _seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy, margin_m,
+                                       margin_per_m2)
+        out[m] = inliers - through_cur - through_ref
+    return out
+
+
 # --------------------------------------------------------------------------- the pyramid
 
 
@@ -816,22 +843,24 @@ def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
                         params: RegistrationParams, min_cos: float, pairs: _Pairs
                         ) -> np.ndarray | None:
     """The best-scoring translation offset of ``T`` along each of the two least constrained
-    translation directions of ``A`` (score: inlier pairs within one search step); None when
-    ``T`` itself scores best."""
+    translation directions of ``A`` (:func:`_search_scores`: inliers within one search step,
+    less the cells either view sees through); None when ``T`` itself scores best."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
     steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
     steps = np.concatenate([-steps[::-1], steps])
-    reach = params.search_step_m
-    best_score = pairs.count_inliers(rl, cl, T, reach, min_cos, params.inlier_sigmas)
-    best = None
-    trial = T.copy()
-    for direction in (vecs[:, 0], vecs[:, 1]):
-        for a in steps:
-            trial[:3, 3] = T[:3, 3] + a * direction
-            score = pairs.count_inliers(rl, cl, trial, reach, min_cos, params.inlier_sigmas)
-            if score > best_score:
-                best_score, best = score, trial.copy()
-    return best
+    offsets = np.concatenate([np.zeros((1, 3)), steps[:, None] * vecs[:, 0],
+                              steps[:, None] * vecs[:, 1]])
+    scores = _search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                            T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy,
+                            params.search_step_m, min_cos, params.inlier_sigmas,
+                            params.seen_through_margin_m, params.seen_through_margin_per_m2,
+                            pairs.res, pairs.jac, pairs.zs)
+    best = int(np.argmax(scores))  # the first of equal scores: no offset wins ties
+    if best == 0:
+        return None
+    out = T.copy()
+    out[:3, 3] += offsets[best]
+    return out
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,

@@ -235,6 +235,32 @@ def test_seen_through_matches_numpy(office_pair):
     assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
 
 
+def test_translation_search_scores_match_numpy(office_pair):
+    """Each offset's score: inliers within the step, less the cells either view sees through."""
+    ref, cur, sc = office_pair
+    params = RegistrationParams()
+    rl = reg_mod._levels(ref, INTR, params)[1]
+    cl = reg_mod._levels(cur, INTR, params)[1]
+    T = sc.T_ref_from_cur
+    offsets = np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]], float)
+    pairs = reg_mod._Pairs(cl)
+    got = reg_mod._search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                                 T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8,
+                                 3.0, 0.03, 0.004, pairs.res, pairs.jac, pairs.zs)
+    for score, off in zip(got, offsets):
+        t = T[:3, 3] + off
+        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], t,
+                                        rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8)
+        inliers = int((np.abs(res) <= 3.0 * depth_sigma(zs)).sum())
+        through_cur = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], t, rl.fx, rl.fy, rl.cx,
+                                         rl.cy, 0.03, 0.004)[0]
+        back = -T[:3, :3].T @ t
+        through_ref = _seen_through_twin(rl.vertex, cl.vertex, T[:3, :3].T, back, cl.fx, cl.fy,
+                                         cl.cx, cl.cy, 0.03, 0.004)[0]
+        assert score == inliers - through_cur - through_ref
+    assert got[0] == got.max()  # the true pose scores best
+
+
 def test_rotation_helpers_round_trip():
     R = rpy_deg_to_rotation(3.0, -4.0, 10.0)
     np.testing.assert_allclose(rotation_to_rpy_deg(R), (3.0, -4.0, 10.0), atol=1e-9)
