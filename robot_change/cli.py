@@ -167,16 +167,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The daemon (robot_change.service): camera, serial line and store from the configuration,
-    until SIGTERM; SIGHUP reloads the configuration.  Exit 78 for a configuration error."""
+    until SIGTERM; SIGHUP reloads the configuration.  Exit 78 for a configuration error, 70
+    after a stall (robot_change.daemon)."""
     import logging
 
     from hw.serial_port import ReopeningPort
-    from robot_change.config import load_config
-    from robot_change.daemon import run_service
+    from robot_change import systemd
+    from robot_change.daemon import run_service, stall_bound
+    from robot_change.params import load_checked_config
     from robot_change.service import Service, ServiceOptions
     from robot_change.store import ReferenceStore
 
-    config = load_config(args.config)
+    config = load_checked_config(args.config)
     logging.basicConfig(level=config.service.log_level.upper(), stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
 
@@ -184,13 +186,25 @@ def cmd_run(args: argparse.Namespace) -> int:
         return lambda: open_depth(cfg.camera.source)
 
     port = ReopeningPort(config.serial.port, config.serial.baud, timeout=0.01)
+    service = None
     try:
         store = ReferenceStore(config.store.references)
-        options = ServiceOptions(report_dir=Path(config.store.state_dir) / "reports")
+        options = ServiceOptions(report_dir=Path(config.store.state_dir) / "reports",
+                                 stall_after_s=stall_bound(systemd.watchdog_interval()))
         service = Service(config, make_camera(config), port, store, options)
-        return run_service(service, load=lambda: load_config(args.config), make_camera=make_camera)
+        status = run_service(service, load=lambda: load_checked_config(args.config),
+                             make_camera=make_camera)
     finally:
         port.close()
+    if service is not None and service.stuck:
+        # an interpreter exit would wait for them (a hung kernel, a compile in progress)
+        logging.getLogger(__name__).warning("exiting with %s still running",
+                                            ", ".join(service.stuck))
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -418,9 +432,9 @@ def cmd_list_devices(args: argparse.Namespace) -> int:
 
 def cmd_check_config(args: argparse.Namespace) -> int:
     """Read and check a configuration file; print the effective settings."""
-    from robot_change.config import load_config
+    from robot_change.params import load_checked_config
 
-    config = load_config(args.file)
+    config = load_checked_config(args.file)
     if args.json:
         _print_json(config.as_dict())
     else:

@@ -1,9 +1,16 @@
 """The daemon's main loop around a :class:`robot_change.service.Service`.
 
 :func:`run_service`: systemd READY once the numba kernels are compiled or loaded
-(:func:`robot_change.warmup.warm_up`), WATCHDOG while the threads are alive, SIGHUP reloads
-the configuration (a new camera source is reopened; a bad file keeps the old configuration),
-SIGTERM stops cleanly.
+(:func:`robot_change.warmup.warm_up`, in a thread of its own so that SIGTERM is honoured at
+once even during a cold compile), WATCHDOG only while every part makes progress
+(:meth:`Service.healthy`), SIGHUP reloads the configuration (a new camera source is reopened;
+a refused file keeps the old configuration, and STATUS says so), SIGTERM stops within ~1 s in
+every state (a hung kernel is abandoned, not waited for).
+
+A stall (robot_change.liveness) ends the loop: the service has told the base (FAULT STALLED,
+PAUSE when watching); the loop waits up to :data:`STALL_GRACE_S` for the base's ACK of the
+FAULT, stops feeding the watchdog and returns :data:`EXIT_STALLED`, and the process exits
+for systemd to restart it (``Restart=on-failure``).  No READY is sent after STOPPING.
 """
 
 from __future__ import annotations
@@ -20,9 +27,27 @@ from robot_change.errors import ConfigError
 from robot_change.service import Service
 from robot_change.warmup import warm_up
 
-__all__ = ["run_service"]
+__all__ = ["EXIT_STALLED", "STALL_GRACE_S", "run_service", "stall_bound"]
 
 log = logging.getLogger(__name__)
+
+#: Exit status after a stall (sysexits.h EX_SOFTWARE): systemd restarts the service.
+EXIT_STALLED = 70
+#: How long a stalled daemon waits for the base to acknowledge the FAULT before it exits.
+STALL_GRACE_S = 1.5
+#: The shortest stall bound, seconds: a capture or a check on a slow computer takes ~1 s.
+MIN_STALL_S = 2.0
+#: The stall bound without a systemd watchdog, seconds (half of the unit's WatchdogSec=10).
+DEFAULT_STALL_S = 5.0
+
+
+def stall_bound(watchdog_interval: float | None) -> float:
+    """Seconds a part may go without progress: half of WatchdogSec (systemd's
+    ``watchdog_interval()``), at least :data:`MIN_STALL_S`; :data:`DEFAULT_STALL_S` without a
+    watchdog."""
+    if not watchdog_interval:
+        return DEFAULT_STALL_S
+    return max(float(watchdog_interval), MIN_STALL_S)
 
 
 def run_service(service: Service, *, load: Callable[[], Config] | None = None,
@@ -30,9 +55,11 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
                 stop: threading.Event | None = None, warm: bool = True) -> int:
     """Run ``service`` until SIGTERM/SIGINT (or ``stop``): warm-up, READY, WATCHDOG, SIGHUP.
 
-    ``load()`` reads the configuration again on SIGHUP (a :class:`ConfigError` keeps the old
-    one); ``make_camera(config)`` gives the new camera when ``[camera]`` changed.  Returns the
-    exit status (0).  Call from the main thread (signal handlers).
+    ``load()`` reads and checks the configuration again on SIGHUP (a :class:`ConfigError`
+    keeps the old one); ``make_camera(config)`` gives the new camera when ``[camera]``
+    changed.  Returns the exit status: 0, or :data:`EXIT_STALLED`.  Threads that did not stop
+    (a hung kernel) are left to the caller: :meth:`Service.close`'s list, ``service.stuck``.
+    Call from the main thread (signal handlers).
     """
     stop = stop or threading.Event()
     hup = threading.Event()
@@ -52,14 +79,14 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
         for sig, handler in ((signal.SIGTERM, on_term), (signal.SIGINT, on_term),
                              (signal.SIGHUP, on_hup)):
             previous[sig] = signal.signal(sig, handler)
+    service.stuck = []
     try:
         t0 = time.perf_counter()
-        if warm:
-            systemd.extend_timeout(300)
-            systemd.status("compiling the numba kernels (or loading them from the cache)")
-            seconds = warm_up(service.config)
-            log.info("kernels ready in %.2f s", seconds)
+        if warm and not _warm_up(service, stop, wake):
+            return _stop(service)
         service.start()
+        if stop.is_set():
+            return _stop(service)
         systemd.ready(status=f"ready in {time.perf_counter() - t0:.1f} s; idle")
         log.info("READY (%.2f s after start)", time.perf_counter() - t0)
         interval = systemd.watchdog_interval()
@@ -72,36 +99,85 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
                 break
             if hup.is_set():
                 hup.clear()
-                _reload(service, load, make_camera)
+                _reload(service, load, make_camera, stop)
             ok, why = service.healthy()
-            if ok and service.config.service.watchdog and interval:
+            if not ok:
+                return _stalled(service, why)
+            if service.config.service.watchdog and interval:
                 systemd.watchdog()
-            elif not ok:
-                log.error("not feeding the watchdog: %s", why)
             text = _status_line(service)
             if text != last_status:
                 systemd.status(text)
                 last_status = text
-        systemd.stopping()
-        log.info("stopping")
-        service.close()
-        return 0
+        return _stop(service)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
+def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> bool:
+    """Compile or load the kernels in a thread while the main thread waits for it or for a
+    signal; False when told to stop first (the thread is abandoned: it only compiles)."""
+    done = threading.Event()
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            log.info("kernels ready in %.2f s", warm_up(service.config))
+        except BaseException as exc:  # noqa: BLE001 -- re-raised in the main thread
+            failed.append(exc)
+        finally:
+            done.set()
+            wake.set()
+
+    systemd.extend_timeout(300)
+    systemd.status("compiling the numba kernels (or loading them from the cache)")
+    thread = threading.Thread(target=run, name="rc-warmup", daemon=True)
+    thread.start()
+    while not done.is_set() and not stop.is_set():
+        wake.wait(1.0)
+        wake.clear()
+    if failed:
+        raise failed[0]
+    if not done.is_set():
+        service.stuck = [thread.name]
+        return False
+    return True
+
+
+def _stop(service: Service) -> int:
+    systemd.stopping()
+    log.info("stopping")
+    service.stuck = service.stuck + service.close()
+    return 0
+
+
+def _stalled(service: Service, why: str) -> int:
+    """The service told the base; give the FAULT a moment to be acknowledged, then exit
+    without feeding the watchdog again."""
+    log.error("not feeding the watchdog: %s", why)
+    systemd.status(f"stalled ({why}); exiting for systemd to restart the service"[:200])
+    if not service.stall_told.wait(STALL_GRACE_S):
+        log.warning("the base did not acknowledge FAULT STALLED within %.1f s", STALL_GRACE_S)
+    systemd.stopping()
+    service.stuck = service.stuck + service.close(timeout=0.5)
+    return EXIT_STALLED
+
+
 def _reload(service: Service, load: Callable[[], Config] | None,
-            make_camera: Callable[[Config], Any] | None) -> None:
+            make_camera: Callable[[Config], Any] | None, stop: threading.Event) -> None:
     systemd.reloading()
+    outcome = "configuration reloaded"
     try:
         if load is None:
             log.warning("SIGHUP: no configuration file to reload")
+            outcome = "no configuration file to reload"
             return
         try:
             config = load()
         except ConfigError as exc:
             log.error("SIGHUP: the new configuration is refused, the old one stays: %s", exc)
+            outcome = f"configuration refused, the old one stays: {exc}"
             return
         logging.getLogger().setLevel(config.service.log_level.upper())
         camera = None
@@ -109,7 +185,8 @@ def _reload(service: Service, load: Callable[[], Config] | None,
             camera = make_camera(config)
         service.reload(config, camera)
     finally:
-        systemd.ready(status="configuration reloaded")
+        if not stop.is_set():  # never READY after STOPPING
+            systemd.ready(status=outcome[:200])
 
 
 def _status_line(service: Service) -> str:

@@ -5,6 +5,12 @@
     camera    source.read() at camera rate -> FrameQueue (bounded, oldest dropped and counted);
               on loss: FAULT via the controller, close, reopen with backoff 0.5 s .. 10 s
 
+Hysteresis, so a flaky source cannot make FAULT and CLEARED alternate: a reopened source counts
+as delivering again (CLEARED) only after :data:`CAMERA_HEALTHY_FRAMES` good frames in a row, and
+the back-off doubles with every loss until the source has stayed healthy for
+:data:`CAMERA_STABLE_S`; so FAULT / CLEARED come at most once per back-off period.  A loss is
+always reported at once.
+
 Every frame the camera delivers is accounted for: ``received == processed + dropped +
 queued`` (:meth:`FrameQueue.counts`).  A recording that ends counts as a lost camera (it is
 reopened, so it plays again); ``oni:...?loop=1&rate=auto`` plays one like a camera.
@@ -21,12 +27,17 @@ from typing import Callable
 from hw.depth import DepthFrame, DepthSource
 from hw.errors import DeviceLost, FrameTimeout, HwError
 
-__all__ = ["CAMERA_BACKOFF", "CameraThreadMixin", "FrameQueue"]
+__all__ = ["CAMERA_BACKOFF", "CAMERA_HEALTHY_FRAMES", "CAMERA_STABLE_S", "CameraThreadMixin",
+           "FrameQueue"]
 
 log = logging.getLogger(__name__)
 
 #: Camera reopen backoff: first wait and cap, seconds.
 CAMERA_BACKOFF = (0.5, 10.0)
+#: Good frames in a row before a reopened source counts as delivering again.
+CAMERA_HEALTHY_FRAMES = 5
+#: Seconds a source must stay healthy before the back-off starts again from its first wait.
+CAMERA_STABLE_S = 30.0
 
 
 class FrameQueue:
@@ -93,7 +104,7 @@ class CameraThreadMixin:
     into ``self.frames``, reopen with backoff after a loss.
 
     Uses the service's ``_camera``, ``_camera_swap``, ``config``, ``frames``, ``_stop``,
-    ``_wake``, ``_alive`` and ``_arrivals``; writes ``camera_ok``, ``camera_error``,
+    ``_wake``, ``progress`` and ``_arrivals``; writes ``camera_ok``, ``camera_error``,
     ``camera_losses`` and ``camera_uri`` (the controller tells the base).
     """
 
@@ -110,14 +121,17 @@ class CameraThreadMixin:
     def _camera_main(self) -> None:
         backoff = CAMERA_BACKOFF[0]
         source: DepthSource | None = None
+        good = 0  # good frames in a row since the source was (re)opened
+        healthy_since = 0.0
         try:
             while not self._stop.is_set():
-                self._alive["camera"] = time.monotonic()
+                self.progress.beat("camera")
                 if self._camera_swap is not None and source is not None:
                     self._close_source(source)
                     source = None
                     backoff = CAMERA_BACKOFF[0]
                 if source is None:
+                    good = 0
                     try:
                         source = self._make_source()
                     except Exception as exc:  # noqa: BLE001 -- any failure to open is a lost camera
@@ -139,12 +153,18 @@ class CameraThreadMixin:
                     self._sleep(backoff)
                     backoff = min(backoff * 2, CAMERA_BACKOFF[1])
                     continue
-                backoff = CAMERA_BACKOFF[0]
-                self._arrivals.append(time.monotonic())
-                if not self.camera_ok:
+                now = time.monotonic()
+                self._arrivals.append(now)
+                good += 1
+                if not self.camera_ok and (good >= CAMERA_HEALTHY_FRAMES
+                                           or not self.camera_error):
+                    # healthy again (or, at start, the first frame: nothing had failed)
                     self.camera_ok, self.camera_error = True, ""
+                    healthy_since = now
                     log.info("camera delivering frames (frame %d)", frame.index)
                     self._wake.set()
+                if self.camera_ok and now - healthy_since >= CAMERA_STABLE_S:
+                    backoff = CAMERA_BACKOFF[0]  # stable: the next loss waits little again
                 self.frames.put(frame)
         finally:
             if source is not None:
@@ -170,5 +190,5 @@ class CameraThreadMixin:
             left = end - time.monotonic()
             if left <= 0:
                 return
-            self._alive["camera"] = time.monotonic()
+            self.progress.beat("camera")
             self._stop.wait(min(0.1, left))

@@ -1,14 +1,57 @@
 """The parameters a capture or a check runs with: the configuration's, with the wire's
-parameter table (SET_PARAM) on top."""
+parameter table (SET_PARAM) on top; and the one check of a configuration that ``check-config``,
+``run`` and a reload (SIGHUP) all go through (:func:`load_checked_config`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import os
+from pathlib import Path
 
-from robot_change.config import Config
+from robot_change.config import Config, load_config
 from robot_change.errors import ConfigError, InputError
 
-__all__ = ["change_params", "scene_params"]
+__all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
+
+
+def load_checked_config(path: str | os.PathLike) -> Config:
+    """Read ``path`` (:func:`robot_change.config.load_config`) and :func:`check_config` it:
+    what ``check-config`` accepts, ``run`` starts with and a reload takes, and nothing else."""
+    config = load_config(path)
+    check_config(config)
+    return config
+
+
+def check_config(config: Config) -> None:
+    """What the file alone cannot say: the library's own parameter checks on the values the
+    daemon will run with (ChangeParams, SceneParams, the wire's parameter table), and a state
+    folder that is a folder the service can write (or create).  Raises :class:`ConfigError`."""
+    where = str(config.path) if config.path is not None else "<config>"
+    try:
+        params = config.parameters()
+        change_params(config, params)
+        scene_params(config, params)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    _check_state_dir(where, Path(config.store.state_dir))
+
+
+def _check_state_dir(where: str, path: Path) -> None:
+    """``path`` is a writable folder, or one that can be made (its nearest existing parent is
+    a writable folder)."""
+    key = f"{where}: store.state_dir = {str(path)!r}"
+    probe = path
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise ConfigError(f"{key}: {probe} is not a folder")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        what = "the folder" if probe == path else f"{path} does not exist and its parent {probe}"
+        raise ConfigError(f"{key}: {what} is not writable by this user (uid {os.getuid()}); "
+                          f"under systemd, StateDirectory= makes it")
 
 
 def change_params(config: Config, params: dict[str, int]):
@@ -17,6 +60,12 @@ def change_params(config: Config, params: dict[str, int]):
     from robot_change.change import ChangeParams
 
     fields = {f.name for f in dataclasses.fields(ChangeParams)}
+    for name in dict(config.change.extra):
+        if name not in fields:
+            near = difflib.get_close_matches(name, sorted(fields), n=1, cutoff=0.6)
+            hint = f"; did you mean change.{near[0]}?" if near else ""
+            raise ConfigError(f"change.{name}: unknown key of [change] (neither a key of the "
+                              f"file's nor a field of ChangeParams){hint}")
     extra = {k: v for k, v in dict(config.change.extra).items() if k in fields}
     extra["min_region_points"] = int(params["min_region_points"])
     try:

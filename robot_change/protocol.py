@@ -139,11 +139,13 @@ class FaultCode(IntEnum):
     STORAGE_ERROR = 4
     COMMAND_REFUSED = 5
     NOT_AT_STATION = 6  # version 2
+    STALLED = 7  # version 2: a part of the module made no progress; the module restarts
 
 
 #: Codes a version-1 peer does not know, and the version-1 code sent in their place.
 V1_PAUSE_CAUSE = {PauseCause.NOT_AT_STATION: PauseCause.CAMERA_LOST}
-V1_FAULT_CODE = {FaultCode.NOT_AT_STATION: FaultCode.COMMAND_REFUSED}
+V1_FAULT_CODE = {FaultCode.NOT_AT_STATION: FaultCode.COMMAND_REFUSED,
+                 FaultCode.STALLED: FaultCode.INTERNAL_ERROR}
 
 
 class CheckOutcome(IntEnum):

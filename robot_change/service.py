@@ -36,6 +36,15 @@ Threads and queues (nothing grows without bound)::
     link      LinkRunner.run(): bytes <-> messages; quick commands answered here
     control   commands (bounded queue), frames, capture / check / watch, heartbeat contents
     detector  (robot_change.watch) <= 2 threads running WATCH checks
+    monitor   progress of every part (robot_change.liveness): a stall is told to the base
+
+Liveness: the link, camera and control threads stamp every turn, a CHECK or capture and every
+WATCH check is a unit of work that must end, and while a watch runs (the base parked, the
+camera delivering) checks must keep finishing.  A part that makes no progress within
+``ServiceOptions.stall_after_s`` (half of WatchdogSec under systemd) is a stall: FAULT STALLED
+to the base, PAUSE (cause INTERNAL_ERROR) when armed and watching, the heartbeat's state FAULT,
+and :meth:`Service.healthy` false from then on, so the daemon stops feeding the watchdog and
+exits for systemd to restart it (``robot_change.daemon``).
 
 Every frame the camera delivers is accounted for: ``received == processed + dropped +
 queued`` (:meth:`Service.frame_counts`).  Bad input never stops the service: garbage on the line
@@ -71,6 +80,7 @@ from robot_change.errors import (
     StoreError,
 )
 from robot_change.frames import CameraThreadMixin, FrameQueue
+from robot_change.liveness import Progress
 from robot_change.link import (
     Delivered,
     Link,
@@ -142,6 +152,9 @@ class ServiceOptions:
     ``report_dir``: where the last CHECK of each station is written (fused depth, change masks,
     regions; ``<station>.last-check.npz``) for people and ``robot-change demo``; None: nowhere.
     ``link_max_wait``: the link thread's longest sleep (s), bounding the added send latency.
+    ``stall_after_s``: a part that makes no progress for this long (a check, a capture or a
+    WATCH check that does not end, a thread that does not turn) is a stall (module docstring);
+    the daemon sets it to half of systemd's WatchdogSec.
     """
 
     queue_frames: int = 4
@@ -152,6 +165,7 @@ class ServiceOptions:
     report_dir: Path | None = None
     link_max_wait: float = 0.005
     command_queue: int = 16
+    stall_after_s: float = 5.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -260,7 +274,12 @@ class Service(CameraThreadMixin, WatchMixin):
         self._camera_reported = None  # what the controller last told the base: True ok / False lost
         self._arrivals: collections.deque[float] = collections.deque(maxlen=31)
         self.last_frame_index = 0
-        self._alive: dict[str, float] = {}
+        # liveness: the camera's reads may take their timeout, and then some
+        self.progress = Progress(self.options.stall_after_s, {
+            "camera": max(self.options.stall_after_s, config.camera.read_timeout_s + 2.0)})
+        self.stalled = ""  # what stalled (set once, by the monitor thread)
+        self.stall_told = threading.Event()  # the base acknowledged the FAULT STALLED
+        self.stuck: list[str] = []  # threads that did not stop (robot_change.daemon)
         self.counters = collections.Counter()
         self.last_check: dict[str, Any] = {}
         #: the last WATCH results, newest last: t, seq, frame_index, changed, changed_in_window,
@@ -281,27 +300,35 @@ class Service(CameraThreadMixin, WatchMixin):
             self.state = ModuleState.IDLE
         self._refresh_heartbeat(force=True)
         for name, target in (("link", self._link_main), ("camera", self._camera_main),
-                             ("control", self._control_main)):
+                             ("control", self._control_main), ("monitor", self._monitor_main)):
             thread = threading.Thread(target=self._guard(name, target), name=f"rc-{name}",
                                       daemon=True)
-            self._alive[name] = time.monotonic()
+            if name != "monitor":
+                self.progress.beat(name)
             self._threads.append(thread)
             thread.start()
         log.info("service started: store %s, link %s", self.store.root,
                  getattr(self.port, "url", None) or getattr(self.port, "name", None) or self.port)
 
-    def close(self, timeout: float = 5.0) -> None:
-        """Stop every thread, close the camera; the port stays the caller's."""
+    def close(self, timeout: float = 1.0) -> list[str]:
+        """Stop every thread, close the camera; the port stays the caller's.  Waits at most
+        ``timeout`` seconds in all (a hung kernel is not waited for: SIGTERM must be quick);
+        returns the names of the threads still running (the caller then exits the process
+        with ``os._exit``, as an interpreter exit would wait for them)."""
         self._stop.set()
         self._wake.set()
+        self._cancel.set()
         end = time.monotonic() + timeout
         for thread in self._threads:
-            thread.join(max(0.1, end - time.monotonic()))
+            thread.join(max(0.05, end - time.monotonic()))
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-        stuck = [t.name for t in self._threads if t.is_alive()]
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        stuck = [t.name for t in threading.enumerate()
+                 if t is not threading.current_thread() and t.is_alive()
+                 and (t in self._threads or t.name.startswith("detector"))]
         if stuck:
             log.warning("threads still running at exit: %s", ", ".join(stuck))
+        return stuck
 
     def __enter__(self) -> "Service":
         self.start()
@@ -324,18 +351,52 @@ class Service(CameraThreadMixin, WatchMixin):
                     self._stop.wait(0.5)
         return run
 
-    def healthy(self, limits: dict[str, float] | None = None) -> tuple[bool, str]:
-        """Are the threads alive and turning?  (for the systemd watchdog)"""
-        limits = limits or {"link": 5.0, "camera": 30.0, "control": 30.0}
-        now = time.monotonic()
+    def healthy(self) -> tuple[bool, str]:
+        """Is every part making progress?  (the systemd watchdog is fed only while it is)
+        False once a stall was found (module docstring), or when a thread ended."""
+        if self.stalled:
+            return False, self.stalled
         for thread in self._threads:
             if not thread.is_alive():
                 return False, f"thread {thread.name} ended"
-        for name, limit in limits.items():
-            seen = self._alive.get(name)
-            if seen is not None and now - seen > limit:
-                return False, f"the {name} thread has not turned for {now - seen:.1f} s"
         return True, "ok"
+
+    # -- liveness (monitor thread) --------------------------------------------------------------
+
+    def _monitor_main(self) -> None:
+        while not self._stop.wait(0.1):
+            if self.stalled:
+                continue
+            why = self.progress.stalled()
+            if not why:
+                dead = [t.name for t in self._threads if not t.is_alive()]
+                why = f"thread {dead[0]} ended" if dead else ""
+            if why:
+                self._on_stall(why)
+
+    def _on_stall(self, why: str) -> None:
+        """Tell the base first: FAULT STALLED, PAUSE when armed and watching (a stalled watcher
+        must stop the robot), the heartbeat's state FAULT.  The lock is not waited for long: a
+        hung part may hold it."""
+        self.stalled = why
+        log.error("STALLED: %s; telling the base, then the module restarts", why)
+        self.counters["stalls"] += 1
+        locked = self._lock.acquire(timeout=0.5)
+        try:
+            pause = self.armed and self._watch is not None and not self.latched
+            if pause:
+                self.latched = True
+                self._last_pause_cause = PauseCause.INTERNAL_ERROR
+            self._fault(FaultCode.STALLED, f"{why}; the module restarts")
+            if pause:
+                self._send(Pause(PauseCause.INTERNAL_ERROR))
+                self.counters["pauses"] += 1
+                log.warning("PAUSE INTERNAL_ERROR (stalled while watching)")
+            if locked:  # the heartbeat's state FAULT (it reads the state under the lock)
+                self._refresh_heartbeat(force=True)
+        finally:
+            if locked:
+                self._lock.release()
 
     def reload(self, config: Config, camera: DepthSource | Callable[[], DepthSource] | None = None) -> None:
         """Take a new configuration (SIGHUP): the parameter table is reseeded from it, and a new
@@ -374,7 +435,7 @@ class Service(CameraThreadMixin, WatchMixin):
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
         with self._lock:
-            if not self.camera_ok and self._camera_reported is False:
+            if self.stalled or (not self.camera_ok and self._camera_reported is False):
                 return ModuleState.FAULT
             if self.activity == ModuleState.IDLE and self.latched:
                 return ModuleState.PAUSED
@@ -393,7 +454,7 @@ class Service(CameraThreadMixin, WatchMixin):
 
     def _link_main(self) -> None:
         while not self._stop.is_set():
-            self._alive["link"] = time.monotonic()
+            self.progress.beat("link")
             for event in self.runner.step():
                 try:
                     self._on_event(event)
@@ -408,6 +469,8 @@ class Service(CameraThreadMixin, WatchMixin):
         elif isinstance(event, Delivered):
             if isinstance(event.message, Pause):
                 self._pause_undelivered = False
+            elif isinstance(event.message, Fault) and self.stalled:
+                self.stall_told.set()
         elif isinstance(event, SendFailed):
             log.warning("%s seq %d not delivered: %s", event.message.TYPE.name, event.seq,
                         event.reason)
@@ -556,7 +619,8 @@ class Service(CameraThreadMixin, WatchMixin):
             return
         self._heartbeat_at = now
         with self._lock:
-            beat = Heartbeat(self.reported_state(), self.latched, self.armed, not self.camera_ok,
+            beat = Heartbeat(self.reported_state(), self.latched, self.armed,
+                             not self.camera_ok or bool(self.stalled),
                              min(0xFFFF, round(self.fps() * 10)), self.last_frame_index & 0xFFFF_FFFF)
         self.runner.set_heartbeat(beat)
 
@@ -564,7 +628,7 @@ class Service(CameraThreadMixin, WatchMixin):
 
     def _control_main(self) -> None:
         while not self._stop.is_set():
-            self._alive["control"] = time.monotonic()
+            self.progress.beat("control")
             self._wake.wait(0.05)
             self._wake.clear()
             self._tick()
@@ -613,6 +677,7 @@ class Service(CameraThreadMixin, WatchMixin):
         self._end_watch()
         with self._lock:
             self.station = m.station
+        work = self.progress.begin("control", f"{m.TYPE.name} {m.station}")
         try:
             if isinstance(m, CaptureReference):
                 self._capture(m.station)
@@ -642,6 +707,7 @@ class Service(CameraThreadMixin, WatchMixin):
             self._fault(FaultCode.INTERNAL_ERROR, f"{m.TYPE.name} {m.station}: internal error "
                         f"{type(exc).__name__}: {exc}")
         finally:
+            self.progress.end(work)
             with self._lock:
                 if self._watch is None:
                     self.activity = ModuleState.IDLE
@@ -669,7 +735,7 @@ class Service(CameraThreadMixin, WatchMixin):
                 raise _CameraLost(f"{len(frames)} of {n} frames within "
                                   f"{per_frame * (n + 1) + 1.0:.1f} s")
             got = self.frames.get(0.05)
-            self._alive["control"] = time.monotonic()
+            self.progress.beat("control")
             self._camera_transitions()
             self._refresh_heartbeat()
             if got is not None:

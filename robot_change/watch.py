@@ -89,7 +89,7 @@ class WatchMixin:
 
     Uses the service's state (``_watch``, ``_lock``, ``store``, ``config``, ``params``,
     ``options``, ``activity``, ``motion``, ``camera_ok``, ``armed``, ``latched``, ``_pool``,
-    ``_wake``, ``_cancel``, ``_commands``, ``counters``, ``watch_log``) and its methods
+    ``_wake``, ``_cancel``, ``_commands``, ``counters``, ``watch_log``, ``progress``) and its methods
     (``_fault``, ``_pause``, ``_report``, ``_answer_no_change``, ``_send``, ``_kept_regions``,
     ``_refresh_heartbeat``).
     """
@@ -108,6 +108,7 @@ class WatchMixin:
             watch, self._watch = self._watch, None
             if watch is not None:
                 self.activity = ModuleState.IDLE
+        self.progress.forget("watch")
         if watch is not None:
             for job in watch.jobs:
                 job.future.cancel()
@@ -138,7 +139,16 @@ class WatchMixin:
         params = change_params(self.config, self.params)
         future = self._pool.submit(detect_changes, watch.reference, frame.depth, params,
                                    intrinsics=frame.intrinsics, initial_pose=watch.pose)
-        future.add_done_callback(lambda _f: self._wake.set())
+        # a unit of work until the check really ends (a cancelled or stale one too): a check
+        # that never ends is a stalled detector (robot_change.liveness)
+        work = self.progress.begin("detector", f"WATCH {watch.station}: the check of frame "
+                                   f"{frame.index}")
+
+        def done(_future: concurrent.futures.Future) -> None:
+            self.progress.end(work)
+            self._wake.set()
+
+        future.add_done_callback(done)
         watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
         watch.last_submitted = seq
         watch.gate_baseline = depth_gate(watch.reference.depth, frame.depth, self.options.gate_step) \
@@ -163,11 +173,18 @@ class WatchMixin:
             self._watch_result(watch, job)
             if self._watch is not watch:
                 return
-        if not self._parked():
-            if watch.window:
+        if not self._parked() or not self.camera_ok:
+            # nothing to check: not a stall (a lost camera is a FAULT of its own)
+            self.progress.forget("watch")
+            if watch.window and not self._parked():
                 watch.window.clear()
                 log.info("watch of %s suspended: the base is %s", watch.station, self.motion.name)
             return
+        # frames must be checked, not only received: a check must finish every interval
+        self.progress.set_bound("watch", self.params["check_interval_ms"] / 1000.0
+                                + self.progress.bound_s)
+        if not self.progress.watches("watch"):
+            self.progress.beat("watch")  # from now on
         if (self.camera_ok and not watch.jobs and watch.latest is not None
                 and watch.latest_seq != watch.last_submitted
                 and time.monotonic() >= watch.next_check):
@@ -175,6 +192,7 @@ class WatchMixin:
 
     def _watch_result(self, watch: _Watch, job: _WatchJob) -> None:
         exc = job.future.exception()
+        self.progress.beat("watch")
         watch.checks += 1
         self.counters["watch_checks"] += 1
         blind = False

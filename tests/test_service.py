@@ -428,13 +428,14 @@ def test_reload_takes_a_new_camera_and_keeps_the_old_config_when_the_new_one_fai
     def bad() -> Config:
         raise ConfigError("x.toml: watch.watch_m = 11: must be a whole number in 1..10")
 
-    _reload(rig.service, bad, None)
+    _reload(rig.service, bad, None, threading.Event())
     assert rig.service.config is old and rig.service.params["watch_m"] == 2
     other = tmp_path / "other"
     show(rig.frames, other, "current")
     new = config_from_dict({"camera": {"source": f"images:{other}?rate=30&loop=1"},
                             "watch": {"watch_m": 1, "watch_n": 1}})
-    _reload(rig.service, lambda: new, lambda c: (lambda: open_depth(c.camera.source)))
+    _reload(rig.service, lambda: new, lambda c: (lambda: open_depth(c.camera.source)),
+            threading.Event())
     assert rig.service.params["watch_m"] == 1  # the table is reseeded from the new file
     rig.run("check office\nexpect PAUSE 5\nexpect REPORT regions=1")
 
