@@ -82,25 +82,27 @@ class Progress:
             return token
 
     def end(self, token: int) -> None:
-        """The unit of work ``token`` is over (done, failed or cancelled); its part made
-        progress."""
+        """The unit of work ``token`` is over (done, failed or cancelled): progress of its
+        part, if the part is watched (a part of units of work alone is not required to beat)."""
         now = self._clock()
         with self._lock:
             entry = self._work.pop(token, None)
-            if entry is not None:
+            if entry is not None and entry[0] in self._seen:
                 self._seen[entry[0]] = now
 
     def stalled(self) -> str:
         """What stalled, for how long ("" when every part is making progress): the unit of
-        work in flight longest past its bound if any, else the part silent longest past its."""
+        work in flight longest past its bound if any, else the part silent longest past its
+        (a part with work in flight is judged by its work)."""
         now = self._clock()
         with self._lock:
             work = [(now - t0 - self._bounds.get(part, self.bound_s),
                      f"{part}: {what} has not finished after {now - t0:.1f} s")
                     for part, what, t0 in self._work.values()]
+            busy = {part for part, _what, _t0 in self._work.values()}
             silent = [(now - seen - self._bounds.get(part, self.bound_s),
                        f"{part}: no progress for {now - seen:.1f} s")
-                      for part, seen in self._seen.items()]
+                      for part, seen in self._seen.items() if part not in busy]
         for entries in (work, silent):
             over = [entry for entry in entries if entry[0] > 0]
             if over:

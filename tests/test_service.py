@@ -520,3 +520,122 @@ def test_a_revisit_off_by_centimetres_is_no_change_and_says_how_far_off(tmp_path
         """)
         saved = json.loads((tmp_path / "reports" / "office.last-check.json").read_text())
         assert saved["outcome"] == "not_at_station" and saved["not_at_station_reason"]
+
+
+# --- liveness: injected hangs -------------------------------------------------------------------
+
+
+class Hang:
+    """Once armed, a wrapped function blocks (as a kernel stuck in native code would) until
+    released; ``entered`` says a call is stuck."""
+
+    def __init__(self) -> None:
+        self.armed, self.entered, self.release = (threading.Event(), threading.Event(),
+                                                  threading.Event())
+
+    def wrap(self, fn: Any) -> Any:
+        def hung(*args: Any, **kwargs: Any) -> Any:
+            if self.armed.is_set():
+                self.entered.set()
+                self.release.wait(60)
+            return fn(*args, **kwargs)
+        return hung
+
+
+def _hang_target(where: str) -> tuple[Any, str]:
+    import hw.images
+    import robot_change.change
+    import robot_change.scene
+
+    return {"detector": (robot_change.change, "detect_changes"),
+            "check": (robot_change.change, "detect_changes"),
+            "capture": (robot_change.scene, "build_scene"),
+            "camera": (hw.images.ImageFolderSource, "read")}[where]
+
+
+@pytest.mark.parametrize("where", ["detector", "check", "capture", "camera"])
+def test_a_hang_is_told_to_the_base_as_a_stall(tmp_path: Path, scene_frames, monkeypatch,
+                                               where: str) -> None:
+    """A detector, check, capture or camera read that makes no progress within the bound is a
+    stall: FAULT STALLED on the wire, PAUSE when armed and watching, the heartbeat's state
+    FAULT, and healthy() false from then on (the daemon stops feeding the watchdog)."""
+    hang = Hang()
+    owner, name = _hang_target(where)
+    monkeypatch.setattr(owner, name, hang.wrap(getattr(owner, name)))
+    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
+    with Rig(tmp_path, scene_frames, options=options) as rig:
+        try:
+            if where != "capture":
+                rig.run("capture office\nexpect CAPTURED 5")
+            watching = where in ("detector", "camera")
+            if watching:
+                rig.run("""
+                    set check_interval_ms 100
+                    expect PARAM_VALUE value=100
+                    watch office
+                    expect HEARTBEAT state=WATCHING 1
+                    wait 0.5
+                """)
+            assert rig.service.healthy() == (True, "ok")
+            hang.armed.set()
+            armed = time.monotonic()
+            if where in ("check", "capture"):
+                rig.run(f"{'check' if where == 'check' else 'capture'} office")
+            rig.run("expect FAULT code=STALLED 6")
+            told = time.monotonic() - armed
+            if watching:
+                rig.run("expect PAUSE cause=INTERNAL_ERROR 2")
+            else:
+                rig.run("expect-none PAUSE 0.3")
+            rig.run("expect HEARTBEAT state=FAULT fault=1 1")
+            assert hang.entered.is_set()
+            ok, why = rig.service.healthy()
+            part = {"detector": "detector", "check": "CHECK office",
+                    "capture": "CAPTURE_REFERENCE office", "camera": "watch"}[where]
+            assert not ok and part in why, why
+            # within the bound (the camera's: its read timeout + 2 s), plus the monitor's turn
+            limit = 3.0 if where == "camera" else 1.0
+            assert told < limit + 1.5, told
+        finally:
+            hang.release.set()
+
+
+def test_a_watch_that_stops_checking_is_a_stall_even_with_frames_arriving(
+        tmp_path: Path, scene_frames, monkeypatch) -> None:
+    """Frames must be checked, not only received: the detector pool refusing work (here: a
+    submit that does nothing) leaves no check in flight, and the watch still stalls."""
+    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
+    with Rig(tmp_path, scene_frames, options=options) as rig:
+        rig.run("""
+            capture office
+            expect CAPTURED 5
+            set check_interval_ms 100
+            expect PARAM_VALUE value=100
+            watch office
+            expect HEARTBEAT state=WATCHING 1
+            wait 0.3
+        """)
+        assert rig.service.healthy()[0]
+        monkeypatch.setattr(type(rig.service), "_submit", lambda *args: None)
+        rig.run("expect FAULT code=STALLED 4\nexpect PAUSE cause=INTERNAL_ERROR 2")
+        assert "watch: no progress" in rig.service.healthy()[1]
+        assert rig.service.frame_counts()["received"] > 0
+
+
+def test_a_watch_suspended_while_the_base_moves_is_not_a_stall(rig: Rig) -> None:
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+        set check_interval_ms 100
+        expect PARAM_VALUE value=100
+        watch office
+        expect HEARTBEAT state=WATCHING 1
+        motion moving
+        wait 1.5
+    """)
+    # the default bound is 5 s; force a short one to make the point quickly
+    rig.service.progress.bound_s = 0.5
+    time.sleep(1.0)
+    assert rig.service.healthy() == (True, "ok")
+    rig.run("motion parked\nwait 0.5")
+    assert rig.service.healthy() == (True, "ok")
