@@ -38,13 +38,15 @@ def toml(source: Path, port: str, state: Path, watchdog: bool = True) -> str:
 
 class Notes:
     """The test's notify socket, read all along by a thread (as systemd reads its own: a full
-    datagram queue would block the daemon's sd_notify), KEY=value lines collected."""
+    datagram queue would block the daemon's sd_notify), KEY=value lines collected (and in
+    ``stamped`` with the monotonic time they arrived)."""
 
     def __init__(self, path: Path) -> None:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(path))
         self.sock.settimeout(0.1)
         self.lines: list[str] = []
+        self.stamped: list[tuple[float, str]] = []
         self.done = threading.Event()
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()
@@ -52,9 +54,12 @@ class Notes:
     def _read(self) -> None:
         while not self.done.is_set():
             try:
-                self.lines += self.sock.recv(4096).decode().splitlines()
+                lines = self.sock.recv(4096).decode().splitlines()
             except (socket.timeout, OSError):
                 continue
+            now = time.monotonic()
+            self.stamped += [(now, line) for line in lines]
+            self.lines += lines
 
     def close(self) -> None:
         self.done.set()

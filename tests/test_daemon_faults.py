@@ -1,0 +1,172 @@
+"""The real daemon under faults (a subprocess; tests/daemon_rig.py): injected hangs reach the
+base as FAULT STALLED (and PAUSE while watching), the watchdog stops being fed and the process
+exits 70 for systemd to restart it; SIGTERM ends it within 2 s in every state, a cold compile
+and a hung kernel included, with no READY after STOPPING; ``check-config`` and ``run`` refuse
+the same files the same way, and a refused reload keeps the old configuration and says so."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from daemon_rig import REPO, Daemon
+from robot_change.daemon import EXIT_STALLED, STALL_GRACE_S
+
+BOUND = 2.0  # WATCHDOG_USEC=4 s: half of it, the floor of the stall bound
+WATCH_SETUP = """
+    capture office
+    expect CAPTURED station=office 10
+    set check_interval_ms 100
+    expect PARAM_VALUE value=100
+    watch office
+    expect HEARTBEAT state=WATCHING 3
+"""
+
+
+@pytest.mark.parametrize("where", ["detector", "check", "capture", "camera"])
+def test_a_hang_is_a_fault_a_pause_no_more_watchdog_and_an_exit(tmp_path: Path,
+                                                                where: str) -> None:
+    with Daemon(tmp_path, hang=where) as d:
+        d.wait_for("READY=1")
+        if where in ("detector", "camera"):
+            thread, result = d.base_in_thread(WATCH_SETUP + """
+                expect FAULT code=STALLED 15
+                expect PAUSE cause=INTERNAL_ERROR 3
+                expect HEARTBEAT state=FAULT fault=1 2
+            """)
+            d.wait_for("WATCH office:")
+            time.sleep(0.5)
+            d.arm()
+        else:
+            d.arm()
+            first = "" if where == "capture" else "capture office\nexpect CAPTURED 10\n"
+            verb = "capture" if where == "capture" else "check"
+            thread, result = d.base_in_thread(first + f"""
+                {verb} office
+                expect FAULT code=STALLED 15
+                expect-none PAUSE 0.3
+                expect HEARTBEAT state=FAULT fault=1 2
+            """)
+        entered = d.wait_entered()
+        code = d.proc.wait(20)
+        ended = time.monotonic()
+        thread.join(20)
+        assert result == [0], d.transcript.getvalue()[-3000:]
+        assert code == EXIT_STALLED, d.log()
+        # fed before the hang, never after the stall was found
+        assert d.pings(after=d.started), d.notes.lines
+        late = d.pings(after=entered + BOUND + 1.0)
+        assert not late, (entered, late)
+        # the camera's bound is its read timeout (1 s) + 2 s; the watch's the interval + bound
+        limit = (3.0 if where == "camera" else BOUND) + 0.5 + STALL_GRACE_S + 1.5
+        assert ended - entered < limit, ended - entered
+    text = d.log()
+    assert "STALLED" in text and "not feeding the watchdog" in text
+    assert "Traceback" not in text, text
+
+
+def _sigterm_in(d: Daemon) -> None:
+    code, seconds = d.terminate()
+    assert code == 0, d.log()
+    assert seconds <= 2.0, (seconds, d.log()[-2000:])
+    time.sleep(0.1)
+    assert "STOPPING=1" in d.notes.lines and not d.ready_after_stopping(), d.notes.lines
+
+
+def test_sigterm_when_idle_and_when_watching(tmp_path: Path) -> None:
+    for state in ("idle", "watching"):
+        (tmp_path / state).mkdir()
+        with Daemon(tmp_path / state) as d:
+            d.wait_for("READY=1")
+            if state == "watching":
+                assert d.base(WATCH_SETUP + "wait 0.5") == 0, d.transcript.getvalue()[-3000:]
+            _sigterm_in(d)
+
+
+@pytest.mark.parametrize("where", ["detector", "check"])
+def test_sigterm_with_a_hung_kernel(tmp_path: Path, where: str) -> None:
+    with Daemon(tmp_path, hang=where, watchdog_usec=60_000_000) as d:  # no stall meanwhile
+        d.wait_for("READY=1")
+        if where == "detector":
+            thread, _result = d.base_in_thread(WATCH_SETUP + "wait 4")
+            d.wait_for("WATCH office:")
+            d.arm()
+        else:
+            d.arm()
+            thread, _result = d.base_in_thread("capture office\nexpect CAPTURED 10\n"
+                                               "check office\nwait 4")
+        d.wait_entered()
+        time.sleep(0.3)
+        _sigterm_in(d)
+    assert "still running" in d.log()  # abandoned, not waited for
+
+
+def test_sigterm_during_a_cold_compile_and_no_ready_after_it(tmp_path: Path) -> None:
+    cache = tmp_path / "numba-cold"
+    with Daemon(tmp_path, env={"NUMBA_CACHE_DIR": str(cache)}) as d:
+        d.wait_for("STATUS=compiling the numba kernels (or loading them from the cache)")
+        time.sleep(2.0)  # well inside the compile (~20 s cold on 2 cores)
+        assert "READY=1" not in d.notes.lines
+        _sigterm_in(d)
+        time.sleep(1.0)
+        assert "READY=1" not in d.notes.lines
+
+
+# --------------------------------------------------------------------------- one validation
+
+
+BAD = {
+    "novelty_quantile_5": ("[change]\nnovelty_quantile = 5.0\n", "novelty_quantile=5.0"),
+    "novelty_quantile_neg": ("[change]\nnovelty_quantile = -1\n", "novelty_quantile=-1"),
+    "posterior_threshold_7": ("[change]\nposterior_threshold = 7\n", "posterior_threshold=7"),
+    "unknown_change_key": ("[change]\nnovelty_quantle = 0.02\n",
+                           "did you mean change.novelty_quantile"),
+    "state_dir_a_file": (None, "is not a folder"),
+    "watch_m_over_n": ("[watch]\nwatch_m = 4\nwatch_n = 3\n", "must be <= watch.watch_n"),
+    "not_toml": ("[camera\n", "invalid TOML"),
+}
+
+
+def _write_bad(tmp: Path, key: str) -> Path:
+    text, _ = BAD[key]
+    path = tmp / f"{key}.toml"
+    if text is None:
+        (tmp / "a-file").write_text("x")
+        text = f"[store]\nstate_dir = {str(tmp / 'a-file')!r}\n"
+    path.write_text("[serial]\nport = 'loop://'\n" + text)
+    return path
+
+
+@pytest.mark.parametrize("key", sorted(BAD))
+def test_check_config_and_run_refuse_the_same_files_the_same_way(tmp_path: Path,
+                                                                 key: str) -> None:
+    path = _write_bad(tmp_path, key)
+    out = {}
+    for command in (["check-config", str(path)], ["run", "--config", str(path)]):
+        done = subprocess.run([sys.executable, "-m", "robot_change.cli", *command], cwd=REPO,
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 78, (command, done.stdout, done.stderr)
+        assert BAD[key][1] in done.stderr and "Traceback" not in done.stderr, done.stderr
+        out[command[0]] = done.stderr.split("configuration error: ", 1)[1]
+    assert out["check-config"] == out["run"]
+
+
+def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path) -> None:
+    import signal
+
+    with Daemon(tmp_path) as d:
+        d.wait_for("READY=1")
+        assert d.base("capture office\nexpect CAPTURED 10") == 0
+        d.write_config("[change]\nnovelty_quantile = 5.0\n")
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("the new configuration is refused, the old one stays")
+        statuses = [line for line in d.notes.lines if line.startswith("STATUS=")]
+        assert any("refused, the old one stays" in s for s in statuses), statuses
+        assert not any(s == "STATUS=configuration reloaded" for s in statuses), statuses
+        # the old configuration goes on working: no INTERNAL_ERROR
+        assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
+        _sigterm_in(d)
