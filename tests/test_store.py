@@ -226,6 +226,8 @@ def _temp_files(root) -> set:
 
 
 def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scenes):
+    """24 kills: at random moments, and at each of the two writes of a save (the copy of the
+    current as the previous, then the new current), each hit several times."""
     a, b = scenes
     a.save(tmp_path / "a.npz")
     b.save(tmp_path / "b.npz")
@@ -235,18 +237,20 @@ def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scen
     script.write_text(WRITER)
     rng = random.Random(7)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    killed_mid_write = 0
-    for trial in range(8):
+    hits = {"dock.prev.scene.npz": 0, "dock.scene.npz": 0}
+    for trial in range(24):
         child = subprocess.Popen([sys.executable, str(script), str(root), str(tmp_path / "a.npz"),
                                   str(tmp_path / "b.npz")], stdout=subprocess.PIPE, env=env)
         stale = _temp_files(root)  # left by earlier kills
+        target = list(hits)[(trial // 2) % 2]
         try:
             assert child.stdout.readline() == b"ready\n"
             if trial % 2:
                 time.sleep(rng.uniform(0.0, 0.7))  # a random moment of the save loop
-            else:  # the moment a temp file appears: the middle of a write
+            else:  # the moment the temp file of one of the two writes appears
                 deadline = time.monotonic() + 10
-                while _temp_files(root) <= stale and time.monotonic() < deadline:
+                while time.monotonic() < deadline and not any(
+                        p.name.startswith(f".{target}.") for p in _temp_files(root) - stale):
                     pass
             child.send_signal(signal.SIGKILL)
         finally:
@@ -254,14 +258,16 @@ def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scen
             child.wait(timeout=30)
             child.stdout.close()
         assert child.returncode == -signal.SIGKILL
-        killed_mid_write += bool(_temp_files(root) - stale)
+        for p in _temp_files(root) - stale:
+            for name in hits:
+                hits[name] += p.name.startswith(f".{name}.")
         store = ReferenceStore(root)
         current = store.load("dock")  # whole and verified, whichever it is
         assert any(same(current, s) for s in scenes)
         if store.previous_path("dock").exists():
             assert any(same(store.load_previous("dock"), s) for s in scenes)
         assert not (root / "quarantine").exists()
-    assert killed_mid_write >= 1, "no kill landed in the middle of a write"
+    assert min(hits.values()) >= 3, f"kills in the middle of each write: {hits}"
     removed = ReferenceStore(root).remove_stale_temp_files()
     assert len(removed) >= 1
     assert sorted(p.name for p in root.iterdir()) == ["dock.prev.scene.npz", "dock.scene.npz"]
