@@ -19,7 +19,7 @@ import tty
 from pathlib import Path
 
 from hw.serial_port import FdPort
-from robot_change.basesim import run_base_sim
+from robot_change.basesim import BaseSim, check_script
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
@@ -62,6 +62,7 @@ class Daemon:
                                      env=full, stdout=self._log, stderr=subprocess.STDOUT)
         self.transcript = io.StringIO()
         self._base_threads: list[threading.Thread] = []
+        self.sims: list[BaseSim] = []
 
     def write_config(self, extra: str = "") -> None:
         source = f"images:{camera_folder()}?rate=30&loop=1"
@@ -104,11 +105,22 @@ class Daemon:
         raise AssertionError(f"{what!r} not seen within {timeout} s:\n{self.log()}")
 
     def base(self, text: str, connect_timeout: float = 10.0) -> int:
-        """Run a basesim script against the daemon; returns its exit code (0: all held)."""
+        """Run a basesim script against the daemon; returns its exit code (0: all held).  The
+        simulated base is kept in ``sims`` (``sim.log``: what came, with monotonic times)."""
         script = self.tmp / f"script{time.monotonic_ns()}.txt"
         script.write_text("\n".join(line.strip() for line in text.strip().splitlines()) + "\n")
-        return run_base_sim(FdPort(self.master), script, out=self.transcript,
-                            connect_timeout=connect_timeout)
+        sim = BaseSim(FdPort(self.master), out=self.transcript)
+        self.sims.append(sim)
+        return sim.run_script(check_script(script), connect_timeout)
+
+    def first(self, name: str, **fields: object) -> float | None:
+        """When the simulated base first got a ``name`` message with these field values."""
+        for sim in self.sims:
+            for entry in sim.log:
+                if entry.name == name and all(getattr(entry.obj, k, None) == v
+                                              for k, v in fields.items()):
+                    return entry.t
+        return None
 
     def base_in_thread(self, text: str) -> tuple[threading.Thread, list[int]]:
         result: list[int] = []
