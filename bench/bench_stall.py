@@ -25,17 +25,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from daemon_rig import WATCH_SETUP as SETUP  # noqa: E402
 from daemon_rig import Daemon  # noqa: E402
 from robot_change.protocol import FaultCode, PauseCause  # noqa: E402
-
-SETUP = """
-    capture office
-    expect CAPTURED station=office 10
-    set check_interval_ms 200
-    expect PARAM_VALUE value=200
-    watch office
-    expect HEARTBEAT state=WATCHING 3
-"""
 
 
 def one(kind: str, watchdog_sec: float) -> dict:

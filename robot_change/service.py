@@ -323,9 +323,10 @@ class Service(CameraThreadMixin, WatchMixin):
             thread.join(max(0.05, end - time.monotonic()))
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
-        stuck = [t.name for t in threading.enumerate()
-                 if t is not threading.current_thread() and t.is_alive()
-                 and (t in self._threads or t.name.startswith("detector"))]
+        detectors = [t for t in threading.enumerate() if t.name.startswith("detector")]
+        for thread in detectors:  # idle workers end at once; a hung one is not waited for
+            thread.join(max(0.05, end - time.monotonic()))
+        stuck = [t.name for t in self._threads + detectors if t.is_alive()]
         if stuck:
             log.warning("threads still running at exit: %s", ", ".join(stuck))
         return stuck

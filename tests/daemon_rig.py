@@ -28,6 +28,17 @@ sys.path.insert(0, str(TESTS))
 from test_daemon_e2e import Notes  # noqa: E402
 
 
+#: A base's script that captures station "office" and watches it (checks every 100 ms).
+WATCH_SETUP = """
+    capture office
+    expect CAPTURED station=office 10
+    set check_interval_ms 100
+    expect PARAM_VALUE value=100
+    watch office
+    expect HEARTBEAT state=WATCHING 3
+"""
+
+
 def camera_folder() -> Path:
     """The PNG frames of office_box_added's reference (decoded from its .oni once)."""
     from sim_fixtures import load_scene

@@ -13,18 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from daemon_rig import REPO, Daemon
+from daemon_rig import REPO, WATCH_SETUP, Daemon
 from robot_change.daemon import EXIT_STALLED, STALL_GRACE_S
 
 BOUND = 2.0  # WATCHDOG_USEC=4 s: half of it, the floor of the stall bound
-WATCH_SETUP = """
-    capture office
-    expect CAPTURED station=office 10
-    set check_interval_ms 100
-    expect PARAM_VALUE value=100
-    watch office
-    expect HEARTBEAT state=WATCHING 3
-"""
 
 
 @pytest.mark.parametrize("where", ["detector", "check", "capture", "camera"])
@@ -164,6 +156,9 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         d.write_config("[change]\nnovelty_quantile = 5.0\n")
         d.proc.send_signal(signal.SIGHUP)
         d.wait_for("the new configuration is refused, the old one stays")
+        end = time.monotonic() + 5  # the STATUS follows the log line
+        while time.monotonic() < end and not any("refused" in line for line in d.notes.lines):
+            time.sleep(0.02)
         statuses = [line for line in d.notes.lines if line.startswith("STATUS=")]
         assert any("refused, the old one stays" in s for s in statuses), statuses
         assert not any(s == "STATUS=configuration reloaded" for s in statuses), statuses

@@ -525,6 +525,17 @@ def test_a_revisit_off_by_centimetres_is_no_change_and_says_how_far_off(tmp_path
 # --- liveness: injected hangs -------------------------------------------------------------------
 
 
+#: Capture station "office" and watch it, checking every 100 ms.
+WATCH_SCRIPT = """
+    capture office
+    expect CAPTURED 5
+    set check_interval_ms 100
+    expect PARAM_VALUE value=100
+    watch office
+    expect HEARTBEAT state=WATCHING 1
+"""
+
+
 class Hang:
     """Once armed, a wrapped function blocks (as a kernel stuck in native code would) until
     released; ``entered`` says a call is stuck."""
@@ -565,17 +576,11 @@ def test_a_hang_is_told_to_the_base_as_a_stall(tmp_path: Path, scene_frames, mon
     options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
     with Rig(tmp_path, scene_frames, options=options) as rig:
         try:
-            if where != "capture":
-                rig.run("capture office\nexpect CAPTURED 5")
             watching = where in ("detector", "camera")
             if watching:
-                rig.run("""
-                    set check_interval_ms 100
-                    expect PARAM_VALUE value=100
-                    watch office
-                    expect HEARTBEAT state=WATCHING 1
-                    wait 0.5
-                """)
+                rig.run(WATCH_SCRIPT + "wait 0.5")
+            elif where == "check":
+                rig.run("capture office\nexpect CAPTURED 5")
             assert rig.service.healthy() == (True, "ok")
             hang.armed.set()
             armed = time.monotonic()
@@ -606,15 +611,7 @@ def test_a_watch_that_stops_checking_is_a_stall_even_with_frames_arriving(
     submit that does nothing) leaves no check in flight, and the watch still stalls."""
     options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
     with Rig(tmp_path, scene_frames, options=options) as rig:
-        rig.run("""
-            capture office
-            expect CAPTURED 5
-            set check_interval_ms 100
-            expect PARAM_VALUE value=100
-            watch office
-            expect HEARTBEAT state=WATCHING 1
-            wait 0.3
-        """)
+        rig.run(WATCH_SCRIPT + "wait 0.3")
         assert rig.service.healthy()[0]
         monkeypatch.setattr(type(rig.service), "_submit", lambda *args: None)
         rig.run("expect FAULT code=STALLED 4\nexpect PAUSE cause=INTERNAL_ERROR 2")
@@ -623,19 +620,51 @@ def test_a_watch_that_stops_checking_is_a_stall_even_with_frames_arriving(
 
 
 def test_a_watch_suspended_while_the_base_moves_is_not_a_stall(rig: Rig) -> None:
-    rig.run("""
-        capture office
-        expect CAPTURED 5
-        set check_interval_ms 100
-        expect PARAM_VALUE value=100
-        watch office
-        expect HEARTBEAT state=WATCHING 1
-        motion moving
-        wait 1.5
-    """)
+    rig.run(WATCH_SCRIPT + "motion moving\nwait 1.5")
     # the default bound is 5 s; force a short one to make the point quickly
     rig.service.progress.bound_s = 0.5
     time.sleep(1.0)
     assert rig.service.healthy() == (True, "ok")
     rig.run("motion parked\nwait 0.5")
     assert rig.service.healthy() == (True, "ok")
+
+
+def test_a_flaky_camera_reports_fault_and_cleared_at_most_once_per_backoff(
+        tmp_path: Path, scene_frames) -> None:
+    """A looped folder with one corrupt image: without hysteresis FAULT / CLEARED alternated
+    every ~0.5 s.  Now a reopened camera counts as back after 5 good frames, and the back-off
+    (0.5 s, doubling) is not reset by them: the gaps between losses grow."""
+    from robot_change.frames import CAMERA_HEALTHY_FRAMES
+
+    folder = tmp_path / "flaky"
+    folder.mkdir()
+    good = 2 * CAMERA_HEALTHY_FRAMES
+    for i in range(good):
+        shutil.copyfile(scene_frames["reference"][i % len(scene_frames["reference"])],
+                        folder / f"{i:03d}.png")
+    (folder / f"{good:03d}.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    camera = lambda: open_depth(f"images:{folder}?rate=30&loop=1")  # noqa: E731
+    with Rig(tmp_path, scene_frames, camera=camera) as rig:
+        rig.run("expect FAULT code=CAMERA_LOST 3\nwait 6")
+        lost = [e.t for e in rig.sim.log
+                if e.name == "FAULT" and e.obj.code == p.FaultCode.CAMERA_LOST]
+        cleared = [e.t for e in rig.sim.log
+                   if e.name == "FAULT" and e.obj.code == p.FaultCode.CLEARED]
+    assert 2 <= len(lost) <= 5, lost  # was ~9 in 6 s
+    assert len(cleared) <= len(lost)
+    gaps = np.diff(lost)
+    assert (gaps[1:] > 1.3 * gaps[:-1]).all(), gaps  # the back-off doubles
+
+
+def test_a_camera_never_healthy_for_long_enough_stays_lost(tmp_path: Path, scene_frames) -> None:
+    from robot_change.frames import CAMERA_HEALTHY_FRAMES
+
+    folder = tmp_path / "flaky"
+    folder.mkdir()
+    for i in range(CAMERA_HEALTHY_FRAMES - 2):
+        shutil.copyfile(scene_frames["reference"][i], folder / f"{i:03d}.png")
+    (folder / "099.png").write_bytes(b"garbage")
+    camera = lambda: open_depth(f"images:{folder}?rate=30&loop=1")  # noqa: E731
+    with Rig(tmp_path, scene_frames, camera=camera) as rig:
+        rig.run("expect FAULT code=CAMERA_LOST 3\nexpect-none FAULT 3")
+        assert not rig.service.camera_ok

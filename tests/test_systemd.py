@@ -155,6 +155,30 @@ def test_unit_keeps_usb_serial_and_the_jit_working():
     assert int(s["WatchdogSec"][0]) > 2 * 1  # more than two camera read timeouts
 
 
+def _size_mb(value: str) -> float:
+    units = {"K": 1 / 1024, "M": 1.0, "G": 1024.0}
+    return float(value[:-1]) * units[value[-1]] if value[-1] in units else float(value) / 2**20
+
+
+def test_unit_limits_fit_the_soak_and_stop_a_leak():
+    s = unit_settings()
+    high, top = _size_mb(s["MemoryHigh"][0]), _size_mb(s["MemoryMax"][0])
+    assert 2 * (214 + 102) <= high < top <= 1024  # the soak's RSS (daemon + reader), with room
+    assert 16 <= int(s["TasksMax"][0]) <= 128
+    assert s["PrivateMounts"] == ["yes"]
+    # the stall bound is half of WatchdogSec: captures and checks must fit in it
+    assert int(s["WatchdogSec"][0]) / 2 >= 5
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_systemd_analyze_security_is_no_worse_than_1_5():
+    done = subprocess.run(["systemd-analyze", "security", "--offline=true", str(UNIT)],
+                          capture_output=True, text=True, timeout=60)
+    match = re.search(r"Overall exposure level for robot-change\.service: ([0-9.]+)", done.stdout)
+    assert match, done.stdout[-2000:] + done.stderr
+    assert float(match.group(1)) <= 1.5
+
+
 def _verify(path) -> list[str]:
     done = subprocess.run(["systemd-analyze", "verify", str(path)], capture_output=True,
                           text=True, timeout=60)
