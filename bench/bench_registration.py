@@ -3,7 +3,7 @@ ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorit
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
         [--sweep SEEDS [--no-fixtures] [--sweep-levels 2,5,10,15] [--sweep-seed-base N]
-         [--sweep-tag T]] [--methods ours,small_gicp,open3d_icp]
+         [--sweep-tag T]] [--tabletop SEEDS] [--methods ours,small_gicp,open3d_icp]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -12,6 +12,9 @@ current one frame, the change in view) and, with ``--sweep``, freshly rendered p
 peers the two depth images back-projected (0.4-5 m) and voxelised at 2 cm.  Open3D: Tukey loss
 (k = 5 cm), correspondence distances 25 -> 10 -> 4 cm, normals from 20 neighbours within 10 cm
 (ALGORITHM.md section 4's recipe).  small_gicp: GICP, 2 cm downsampling, 25 cm correspondences.
+With ``--tabletop``: the real table-top pairs (../shared/data/osd-tabletop, the change in view)
+with the current re-rendered from a camera displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its
+back-projected points moved and splatted into a z-buffer (disocclusions stay holes).
 One thread each; the methods alternate per pair and per run, so they share the machine's load.
 Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
 """
@@ -121,6 +124,45 @@ def sweep_pairs(seeds: int, levels=(2, 5, 10, 15), seed_base: int = 7000, tag: s
                     spec.intrinsics
 
 
+def reproject(depth, intrinsics, T_new_from_old):
+    """(H, W) uint16 mm: ``depth`` seen from a camera moved by ``T_new_from_old`` (4, 4): each
+    reading back-projected, moved and splatted into a z-buffer; holes stay 0."""
+    pts, _ = depth_to_points(depth, intrinsics, min_depth_m=0.1, max_depth_m=20.0)
+    p = pts.astype(np.float64) @ T_new_from_old[:3, :3].T + T_new_from_old[:3, 3]
+    p = p[p[:, 2] > 0.1]
+    u = np.floor(intrinsics.fx * p[:, 0] / p[:, 2] + intrinsics.cx + 0.5).astype(np.int64)
+    v = np.floor(intrinsics.fy * p[:, 1] / p[:, 2] + intrinsics.cy + 0.5).astype(np.int64)
+    inside = (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
+    out = np.full(depth.shape, np.iinfo(np.int64).max)
+    np.minimum.at(out, (v[inside], u[inside]), np.round(p[inside, 2] * 1000).astype(np.int64))
+    out[out == np.iinfo(np.int64).max] = 0
+    return out.astype(np.uint16)
+
+
+def tabletop_pairs(seeds: int):
+    """The real table-top pairs, the current displaced (module docstring); skipped with a
+    message when ../shared/data is absent."""
+    from sim_fixtures.scenes import Pose, pose_offset
+    from sim_fixtures.tabletop import TabletopDataMissing, load_tabletop_pair
+    from sim_fixtures.tabletop import tabletop_pairs as names
+
+    try:
+        pairs = [load_tabletop_pair(name) for name in names()]
+    except TabletopDataMissing as exc:
+        print(f"--tabletop skipped: {exc}", file=sys.stderr)
+        return
+    for level in (5, 10, 15):
+        tm, rd = LEVELS[level]
+        for pr in pairs:
+            for s in range(seeds):
+                seed = 5000 + s + zlib.crc32(f"{pr.name}{tm}".encode()) % 1000
+                old = Pose((0.0, 0.0, 0.0))
+                truth = invert(old.matrix()) @ pose_offset(old, tm, rd, seed).matrix()
+                cur = reproject(pr.current, pr.intrinsics, invert(truth))  # T_ref_from_cur
+                yield f"tabletop_{pr.name}_{level}cm_{s}", pr.reference, cur, truth, \
+                    pr.intrinsics
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=5, help="timed runs per method and pair")
@@ -129,6 +171,8 @@ def main(argv=None):
     ap.add_argument("--sweep-levels", default="2,5,10,15", help="offset levels in cm")
     ap.add_argument("--sweep-seed-base", type=int, default=7000)
     ap.add_argument("--sweep-tag", default="", help="mixed into each pair's seed")
+    ap.add_argument("--tabletop", type=int, default=0,
+                    help="displaced real table-top pairs per pair and level")
     ap.add_argument("--methods", default=",".join(METHODS),
                     help="comma-separated subset (ours alone: its speed without the peers' "
                          "threads and caches in between)")
@@ -141,7 +185,8 @@ def main(argv=None):
         methods[m] = METHODS[m]
     pairs = ([] if args.no_fixtures else list(fixture_pairs())) + \
         (list(sweep_pairs(args.sweep, tuple(int(v) for v in args.sweep_levels.split(",")),
-                          args.sweep_seed_base, args.sweep_tag)) if args.sweep else [])
+                          args.sweep_seed_base, args.sweep_tag)) if args.sweep else []) + \
+        (list(tabletop_pairs(args.tabletop)) if args.tabletop else [])
     for fn in methods.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
     rows = []
@@ -165,8 +210,9 @@ def main(argv=None):
                                           f" deg {row[m]['ms']:6.1f} ms" for m in methods),
               flush=True)
     summary = {}
-    for group in ("fixtures", "sweep"):
-        sel = [r for r in rows if r["pair"].startswith("sweep_") == (group == "sweep")]
+    for group in ("fixtures", "sweep", "tabletop"):
+        sel = [r for r in rows if r["pair"].split("_")[0] == group] if group != "fixtures" \
+            else [r for r in rows if not r["pair"].startswith(("sweep_", "tabletop_"))]
         if not sel:
             continue
         summary[group] = {}
@@ -182,12 +228,14 @@ def main(argv=None):
             print(f"{group:8s} {m:11s} within 1 cm / 0.5 deg {ok}/{len(sel)}; median "
                   f"{s['median_err_mm']:.1f} mm {s['median_err_deg']:.3f} deg, max "
                   f"{s['max_err_mm']:.1f} mm {s['max_err_deg']:.2f} deg; {s['median_ms']:.1f} ms")
-    if args.sweep:
-        for tm in (int(v) for v in args.sweep_levels.split(",")):
-            sel = [r for r in rows if r["pair"].startswith("sweep_") and f"_{tm}cm_" in r["pair"]]
-            print(f"sweep {tm:2d} cm: " + "  ".join(
-                f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
-                f"/{len(sel)}" for m in methods))
+    groups = ([("sweep", tm) for tm in (int(v) for v in args.sweep_levels.split(","))]
+              if args.sweep else []) + ([("tabletop", tm) for tm in (5, 10, 15)]
+                                        if args.tabletop else [])
+    for group, tm in groups:
+        sel = [r for r in rows if r["pair"].startswith(f"{group}_") and f"_{tm}cm_" in r["pair"]]
+        print(f"{group} {tm:2d} cm: " + "  ".join(
+            f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
+            f"/{len(sel)}" for m in methods))
     load = os.getloadavg()
     machine = {"python": platform.python_version(), "cpu": platform.processor() or
                platform.machine(), "cores": os.cpu_count(), "load": [round(v, 2) for v in load]}
