@@ -1,11 +1,64 @@
 """robot_change: notice when the room in front of a robot is no longer the room it remembers.
 
 depth -> point cloud -> voxel grid -> outlier removal -> plane removal -> Gaussian mixture
-(split-EM stopped by MDL) -> greedy Earth Mover's Distance against the station's reference.
+(split-EM stopped by MDL) -> registration to the station's reference -> free-space check,
+novelty components and EMD -> what appeared, what disappeared, where.
+
+The public API is what this package's face names (``__all__``); it stays stable while modules
+move underneath::
+
+    from hw import open_depth
+    from robot_change import build_scene, detect_changes
+
+Names are imported on first use, so ``import robot_change`` stays light (the numba kernels
+load with the first call that needs them).
 """
 
-from robot_change.errors import ConfigError, InputError, ProtocolError, RobotChangeError
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
-__all__ = ["ConfigError", "InputError", "ProtocolError", "RobotChangeError", "__version__"]
+from robot_change.errors import (  # noqa: E402 -- after __version__, which modules read
+    ConfigError,
+    InputError,
+    ProtocolError,
+    RobotChangeError,
+)
+
+#: public name -> the module that defines it (the one place that knows where things live)
+_API = {
+    "CameraMount": "robot_change.mount",
+    "ChangeParams": "robot_change.change",
+    "ChangeSet": "robot_change.change",
+    "CloudParams": "robot_change.cloud",
+    "Mixture": "robot_change.mixture",
+    "Registration": "robot_change.registration",
+    "RegistrationParams": "robot_change.registration",
+    "SceneModel": "robot_change.scene",
+    "SceneParams": "robot_change.scene",
+    "build_scene": "robot_change.scene",
+    "clean_cloud": "robot_change.cloud",
+    "detect_changes": "robot_change.change",
+    "emd": "robot_change.transport",
+    "fit_mixture": "robot_change.mixture",
+    "register_depth": "robot_change.registration",
+}
+
+__all__ = sorted([*_API, "ConfigError", "InputError", "ProtocolError", "RobotChangeError",
+                  "__version__"])
+
+
+def __getattr__(name: str) -> Any:
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'robot_change' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once found, an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

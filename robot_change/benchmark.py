@@ -17,7 +17,7 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change import em
 from robot_change.cloud import CloudParams, clean_cloud
-from robot_change.emd import emd, greedy_emd, ground_distance
+from robot_change.transport import emd, greedy_emd, ground_distance
 from robot_change.geometry import depth_to_points
 from robot_change.mixture import fit_mixture
 

@@ -801,7 +801,7 @@ def _mask_of(epoch: Epoch, rows: np.ndarray) -> np.ndarray:
 
 
 def _ground(ma: Mixture, mb: Mixture, kind: str) -> np.ndarray:
-    from robot_change import emd as emd_mod
+    from robot_change import transport as emd_mod
     if kind == "euclidean":
         return emd_mod.ground_distance(ma.means, mb.means, kind="euclidean")
     return emd_mod.ground_distance(ma.means, mb.means, ma.covariances, mb.covariances,
@@ -830,7 +830,7 @@ def accept_trajectory(order: np.ndarray, emd_after: np.ndarray, weights: np.ndar
 
 def _greedy(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n_points: int,
             params: ChangeParams) -> GreedyTrace:
-    from robot_change import emd as emd_mod
+    from robot_change import transport as emd_mod
     cand_idx = np.flatnonzero(candidates)
     if cand_idx.size == 0:
         return GreedyTrace(cand_idx, np.zeros(0, np.int64),

@@ -30,3 +30,32 @@ def test_ci_runs_the_readme_test_command():
 
 def test_setup_script_is_executable():
     assert (REPO / "setup.sh").stat().st_mode & 0o111
+
+
+def test_the_library_example_runs_and_finds_the_box(tmp_path):
+    """The README's Python example, as a script of its own, from the checkout."""
+    import subprocess
+    import sys
+
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    block = text.split("## As a library", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    script = tmp_path / "example.py"
+    script.write_text(block)
+    done = subprocess.run([sys.executable, str(script)], cwd=REPO, capture_output=True,
+                          text=True, timeout=300,
+                          env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("changed")
+    assert any(line.startswith("appeared") for line in lines[1:]), done.stdout
+
+
+def test_the_public_api_is_the_package_face():
+    import robot_change
+
+    for name in robot_change.__all__:
+        assert getattr(robot_change, name) is not None, name
+    assert {"build_scene", "detect_changes", "fit_mixture", "emd", "clean_cloud", "SceneModel",
+            "ChangeParams", "CloudParams", "Mixture"} <= set(robot_change.__all__)
+    with __import__("pytest").raises(AttributeError):
+        robot_change.no_such_name  # noqa: B018

@@ -740,7 +740,7 @@ def _check_cost(cost, ka: int, kb: int) -> np.ndarray:
 
 def _raise_solver_failure(status: int, shape) -> None:
     raise RuntimeError(f"transportation simplex failed (status {status}) on a {shape} problem; "
-                       "this is a bug in robot_change.emd: please report it with the inputs")
+                       "this is a bug in robot_change.transport: please report it with the inputs")
 
 
 def emd(weights_a, weights_b, cost) -> EmdResult:
