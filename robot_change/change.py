@@ -176,7 +176,11 @@ class ChangeParams:
     # Voxels are connected when their indices differ by at most this much per axis
     # (1 = the 26-neighbourhood).
     region_connectivity: int = 1
+    # A region needs this many points (also the smallest group seeded as a novelty component)
+    # and a box at least this long along its longest side (m); the daemon's wire parameters
+    # min_region_points / min_region_extent_mm start from these.
     min_region_points: int = 12
+    min_region_extent_m: float = 0.01
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -213,6 +217,7 @@ class ChangeParams:
         _int("free_space_hole_radius_px", self.free_space_hole_radius_px, 0, 50)
         _int("region_connectivity", self.region_connectivity, 1, 3)
         _int("min_region_points", self.min_region_points, 1, 10**9)
+        _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
 
@@ -780,6 +785,8 @@ def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangePa
         rows = idx[labels == lab]
         pts = epoch.points[rows].astype(np.float64)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if float(np.max(hi - lo)) < params.min_region_extent_m:
+            continue
         comps: tuple[int, ...] = ()
         if posterior is not None and change_components is not None and len(change_components):
             mass = posterior[rows][:, change_components].sum(axis=0)

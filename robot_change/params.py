@@ -56,7 +56,8 @@ def _check_state_dir(where: str, path: Path) -> None:
 
 def change_params(config: Config, params: dict[str, int]):
     """The :class:`robot_change.change.ChangeParams` of a check: the configuration's free-form
-    ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points``."""
+    ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points`` and
+    ``min_region_extent_mm`` (whose defaults are ChangeParams' own: one set of defaults)."""
     from robot_change.change import ChangeParams
 
     fields = {f.name for f in dataclasses.fields(ChangeParams)}
@@ -68,6 +69,7 @@ def change_params(config: Config, params: dict[str, int]):
                               f"file's nor a field of ChangeParams){hint}")
     extra = {k: v for k, v in dict(config.change.extra).items() if k in fields}
     extra["min_region_points"] = int(params["min_region_points"])
+    extra["min_region_extent_m"] = int(params["min_region_extent_mm"]) / 1000.0
     try:
         return ChangeParams(**extra)
     except InputError as exc:

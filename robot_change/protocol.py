@@ -195,10 +195,10 @@ PARAMS: tuple[Param, ...] = (
     Param(1, "watch_m", 1, 10, 3, "checks", "WATCH pauses when a change is seen in M ..."),
     Param(2, "watch_n", 1, 10, 5, "checks", "... of the last N checks (M <= N)"),
     Param(3, "check_interval_ms", 100, 10_000, 500, "ms", "time between two WATCH checks"),
-    Param(4, "min_region_points", 10, 100_000, 200, "points", "smaller changed regions are ignored"),
+    Param(4, "min_region_points", 10, 100_000, 12, "points", "smaller changed regions are ignored"),
     Param(5, "pause_on_change", 0, 1, 1, "bool", "1: a change raises PAUSE; 0: report only"),
     Param(6, "fuse_frames", 1, 30, 5, "frames", "depth frames fused per capture or check"),
-    Param(7, "min_region_extent_mm", 10, 5_000, 50, "mm", "smaller changed regions are ignored"),
+    Param(7, "min_region_extent_mm", 10, 5_000, 10, "mm", "smaller changed regions are ignored"),
     Param(8, "max_depth_mm", 500, 10_000, 5_000, "mm", "depth beyond this is not used"),
 )
 PARAM_BY_ID = {p.id: p for p in PARAMS}

@@ -606,12 +606,10 @@ class Service(CameraThreadMixin, WatchMixin):
             self._send(Fault(FaultCode.COMMAND_REFUSED, _short(text)))
 
     def _kept_regions(self, changes: Any) -> list[Any]:
-        """Regions of a ChangeSet that pass the wire's size limits, largest first."""
-        min_points = self.params["min_region_points"]
-        min_extent = self.params["min_region_extent_mm"] / 1000.0
-        kept = [r for r in changes.regions
-                if r.n_points >= min_points and float(np.max(r.extent)) >= min_extent]
-        kept.sort(key=lambda r: -r.n_points)
+        """The regions of a ChangeSet to report, largest first, at most MAX_REPORT_REGIONS (the
+        size limits of the wire's parameters were applied by the check itself:
+        robot_change.params.change_params)."""
+        kept = sorted(changes.regions, key=lambda r: -r.n_points)
         return kept[:MAX_REPORT_REGIONS]
 
     def _refresh_heartbeat(self, force: bool = False) -> None:

@@ -38,9 +38,11 @@ __all__ = ["WatchMixin", "depth_gate"]
 log = logging.getLogger(__name__)
 
 
-def depth_gate(reference: np.ndarray, depth: np.ndarray, step: int = 4) -> int:
+def depth_gate(reference: np.ndarray, depth: np.ndarray, margin_m: float, margin_per_m2: float,
+               step: int = 4) -> int:
     """How many sampled pixels (every ``step``-th of every ``step``-th row) read nearer or
-    farther than the reference by more than the sensor's noise (30 mm + 4 mm per m^2).
+    farther than the reference by more than the sensor's noise, ``margin_m + margin_per_m2 *
+    z^2`` (the free-space check's margin: ChangeParams.free_space_margin_m / _per_m2).
 
     A cheap per-frame trigger for WATCH checks, never a decision: a jump in this count means the
     scene is no longer what the last check saw, so a check runs at once.  ~0.3 ms at VGA.
@@ -48,7 +50,7 @@ def depth_gate(reference: np.ndarray, depth: np.ndarray, step: int = 4) -> int:
     r = reference[::step, ::step].astype(np.float32)
     c = depth[::step, ::step].astype(np.float32)
     both = (r > 0) & (c > 0)
-    margin = 30.0 + 4e-6 * r * r
+    margin = 1000.0 * margin_m + 1e-3 * margin_per_m2 * r * r  # mm, r in mm
     return int(np.count_nonzero(both & (np.abs(c - r) > margin)))
 
 
@@ -114,6 +116,11 @@ class WatchMixin:
                 job.future.cancel()
             log.info("watch of %s ended after %d checks", watch.station, watch.checks)
 
+    def _gate(self, reference: np.ndarray, depth: np.ndarray) -> int:
+        params = change_params(self.config, self.params)
+        return depth_gate(reference, depth, params.free_space_margin_m,
+                          params.free_space_margin_per_m2, self.options.gate_step)
+
     def _parked(self) -> bool:
         return self.motion in (Motion.PARKED, Motion.PAUSED)
 
@@ -124,7 +131,7 @@ class WatchMixin:
         watch.latest, watch.latest_seq = frame, seq
         if frame.depth.shape != ref.shape:
             return  # the check itself reports the mismatch
-        watch.latest_gate = depth_gate(ref, frame.depth, self.options.gate_step)
+        watch.latest_gate = self._gate(ref, frame.depth)
         base = watch.gate_baseline
         if (base is not None and self._parked() and self.camera_ok
                 and abs(watch.latest_gate - base) > self.options.gate_pixels + self.options.gate_fraction * base
@@ -151,7 +158,7 @@ class WatchMixin:
         future.add_done_callback(done)
         watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
         watch.last_submitted = seq
-        watch.gate_baseline = depth_gate(watch.reference.depth, frame.depth, self.options.gate_step) \
+        watch.gate_baseline = self._gate(watch.reference.depth, frame.depth) \
             if frame.depth.shape == watch.reference.depth.shape else None
         watch.next_check = time.monotonic() + self.params["check_interval_ms"] / 1000.0
 

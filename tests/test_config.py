@@ -18,7 +18,7 @@ from robot_change.config import (
     load_config,
 )
 from robot_change.errors import ConfigError
-from robot_change.protocol import PARAMS
+from robot_change.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.scene import SceneParams
 
 EXAMPLE = REPO / "systemd" / "robot-change.toml"
@@ -202,3 +202,26 @@ def test_exit_status_for_config_errors_is_ex_config():
 def test_each_key_belongs_to_one_section():
     names = [name for table in Config.default().as_dict().values() for name in table]
     assert len(names) == len(set(names))
+
+
+def test_the_library_and_the_daemon_run_one_set_of_defaults():
+    """What `detect` (the library's ChangeParams) and the robot (configuration + wire
+    parameters) decide with, when nobody overrides anything, is the same."""
+    from robot_change.change import ChangeParams
+    from robot_change.params import change_params
+
+    config = Config()
+    assert change_params(config, config.parameters()) == ChangeParams()
+    assert PARAM_BY_NAME["min_region_points"].default == ChangeParams().min_region_points
+    assert PARAM_BY_NAME["min_region_extent_mm"].default == round(
+        ChangeParams().min_region_extent_m * 1000)
+
+
+def test_unknown_change_keys_are_refused_with_a_hint(tmp_path):
+    from robot_change.params import check_config
+
+    path = tmp_path / "c.toml"
+    path.write_text("[change]\nfree_space_margn_m = 0.5\n")
+    config = load_config(path)
+    with pytest.raises(ConfigError, match="did you mean change.free_space_margin_m"):
+        check_config(config)

@@ -135,8 +135,11 @@ def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
     from robot_change.filters import fuse_depth
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
-    quiet = max(depth_gate(fused, f) for f in ref)
-    moved = min(depth_gate(fused, f) for f in cur)
+    from robot_change.change import ChangeParams
+
+    margins = ChangeParams().free_space_margin_m, ChangeParams().free_space_margin_per_m2
+    quiet = max(depth_gate(fused, f, *margins) for f in ref)
+    moved = min(depth_gate(fused, f, *margins) for f in cur)
     options = ServiceOptions()
     assert moved - quiet > 4 * (options.gate_pixels + options.gate_fraction * quiet)
 
