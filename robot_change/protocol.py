@@ -16,12 +16,12 @@ examples are checked by the tests against this module.
 from __future__ import annotations
 
 import binascii
-import re
 import struct
 from dataclasses import dataclass, fields
 from enum import Enum, IntEnum
 from typing import ClassVar, Iterable
 
+from robot_change import validate
 from robot_change.errors import MessageError
 
 #: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
@@ -40,7 +40,7 @@ URGENT_COPIES = 8
 FLAG_URGENT = 0x01
 FLAG_RETRY = 0x02
 #: Longest station name, in bytes.
-MAX_STATION = 32
+MAX_STATION = validate.MAX_STATION
 #: Regions per CHANGE_REPORT part (fits any station name within the payload limit).
 REGIONS_PER_PART = 11
 
@@ -234,18 +234,13 @@ def _bool(owner: str, name: str, value: object) -> bool:
     raise MessageError(f"{owner}.{name} = {value!r}: must be true or false", NakReason.BAD_PAYLOAD)
 
 
-_STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,31}\Z")
-
-
 def _station(owner: str, value: object, empty_ok: bool = False) -> str:
     if empty_ok and value == "":
         return ""
-    if not isinstance(value, str) or not _STATION.match(value):
-        raise MessageError(
-            f"{owner}.station = {value!r}: a station name is 1..{MAX_STATION} ASCII letters, digits, "
-            "'_' or '-', starting with a letter or digit (a name, never a path)",
-            NakReason.BAD_PAYLOAD)
-    return value
+    if not validate.is_station(value):
+        raise MessageError(f"{owner}.station = {value!r}: {validate.STATION_RULE}",
+                           NakReason.BAD_PAYLOAD)
+    return value  # type: ignore[return-value]
 
 
 def _text(owner: str, name: str, value: object, limit: int) -> str:

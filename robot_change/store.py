@@ -21,12 +21,12 @@ import dataclasses
 import datetime
 import logging
 import os
-import re
 import shutil
 from pathlib import Path
 from typing import Any
 
 from hw.atomic import AtomicFile, write_atomically
+from robot_change import validate
 from robot_change.errors import ReferenceMissing, SceneFileError, StationNameError, StoreError
 
 __all__ = ["ReferenceStore", "StationInfo", "check_station", "CURRENT", "PREVIOUS"]
@@ -37,18 +37,15 @@ log = logging.getLogger(__name__)
 CURRENT = ".scene.npz"
 PREVIOUS = ".prev.scene.npz"
 QUARANTINE = "quarantine"
-MAX_STATION = 32
-# As the protocol's station field (robot_change.protocol): no '.', so "a.prev" cannot name the
-# previous reference of station "a", and no path can be formed.
-_STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,%d}\Z" % (MAX_STATION - 1))
+MAX_STATION = validate.MAX_STATION
 
 
 def check_station(station: Any) -> str:
-    """``station`` if it is a valid station name, else :class:`StationNameError`."""
-    if not isinstance(station, str) or not _STATION.match(station):
-        raise StationNameError(
-            f"station {station!r}: a station name is 1..{MAX_STATION} ASCII letters, digits, "
-            "'_' or '-', starting with a letter or digit (a name, never a path)")
+    """``station`` if it is a valid station name (the protocol's rule,
+    :data:`robot_change.validate.STATION_RULE`: no '.', so "a.prev" cannot name the previous
+    reference of station "a", and no path can be formed), else :class:`StationNameError`."""
+    if not validate.is_station(station):
+        raise StationNameError(f"station {station!r}: {validate.STATION_RULE}")
     return station
 
 
@@ -193,7 +190,7 @@ class ReferenceStore:
                      if p.name.endswith(CURRENT) and p.is_file()]
         except FileNotFoundError:
             return []
-        return sorted(n for n in names if _STATION.match(n))
+        return sorted(n for n in names if validate.is_station(n))
 
     def info(self, station: str) -> StationInfo:
         """Files held for ``station`` (current, previous, quarantined); reads no file."""

@@ -1,4 +1,5 @@
-"""Checks for the frozen parameter dataclasses (CloudParams, ChangeParams, ...).
+"""Checks for the frozen parameter dataclasses (CloudParams, ChangeParams, ...), and the rule
+of a station name (the protocol and the store both hold names to it).
 
 One wording for every error: ``Owner.name=value: must be ...``, an :class:`InputError` that
 names the field, the value given and what is allowed.
@@ -7,11 +8,25 @@ names the field, the value given and what is allowed.
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, Iterable
 
 import numpy as np
 
 from robot_change.errors import InputError
+
+
+#: Longest station name, characters.
+MAX_STATION = 32
+_STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,%d}\Z" % (MAX_STATION - 1))
+#: What a station name is, for error messages.
+STATION_RULE = (f"a station name is 1..{MAX_STATION} ASCII letters, digits, '_' or '-', "
+                "starting with a letter or digit (a name, never a path)")
+
+
+def is_station(value: Any) -> bool:
+    """Is ``value`` a valid station name (:data:`STATION_RULE`)?"""
+    return isinstance(value, str) and _STATION.match(value) is not None
 
 
 def number(owner: str, name: str, value: Any, low: float, high: float, *,
