@@ -55,6 +55,7 @@ import numpy as np
 
 import openni.openni2  # noqa: F401  -- the binding (pure Python; the native library loads in the reader)
 
+from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import (
     BackendUnavailable,
@@ -490,7 +491,7 @@ class OpenNI2Source(DepthSource):
         self._delivered = 0
         self._last_heard = 0.0
         self._restart_due: float | None = None  # live: when to try reconnecting
-        self._backoff = 0.5
+        self._backoff = Backoff(0.5, 10.0)
         self._failed_restarts = 0
         self.loop = bool(loop)
         self._due: float | None = None  # rate: when the next frame may be handed out
@@ -711,12 +712,11 @@ class OpenNI2Source(DepthSource):
         try:
             self._start_reader(skip=0)
         except (DeviceNotFound, DeviceError) as exc:
-            self._restart_due = time.monotonic() + self._backoff
-            self._backoff = min(self._backoff * 2, 10.0)
+            self._restart_due = time.monotonic() + self._backoff.next()
             raise DeviceLost(f"{self.uri}: camera still missing ({exc}); next attempt in "
                              f"{self._restart_due - time.monotonic():.1f} s") from exc
         self.stats.restarts += 1
-        self._backoff = 0.5
+        self._backoff.reset()
         self._restart_due = None
         self._last_index = None  # a reconnected camera counts its frames from the start again
 

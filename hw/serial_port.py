@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import serial
 
+from hw.backoff import Backoff
 from hw.errors import PortError, UriError
 
 #: What open_port() accepts, for error messages.
@@ -90,7 +91,7 @@ class ReopeningPort:
         self.on_change = on_change
         self._opener, self._clock, self._sleep = opener, clock, sleep
         self._port: Any = None
-        self._delay = backoff[0]
+        self._wait = Backoff(*backoff)
         self._retry_at = 0.0
         self.last_error: PortError | None = None
         self.opens = 0
@@ -115,11 +116,10 @@ class ReopeningPort:
             self._port = self._opener(self.url, self.baudrate, self.timeout)
         except PortError as exc:
             self.last_error = exc
-            self._retry_at = now + self._delay
-            self._delay = min(self._delay * 2, self.backoff[1])
+            self._retry_at = now + self._wait.next()
             return False
         self.opens += 1
-        self._delay = self.backoff[0]
+        self._wait.reset()
         self.last_error = None
         if self.on_change:
             self.on_change(True, None)
@@ -135,7 +135,7 @@ class ReopeningPort:
         self.last_error = PortError(
             f"serial port {self.url} vanished ({exc}); reopening every {self.backoff[1]:g} s at "
             "most: check the USB cable and adapter")
-        self._retry_at = self._clock() + self._delay
+        self._retry_at = self._clock() + self._wait.current
         if self.on_change:
             self.on_change(False, self.last_error)
 

@@ -24,6 +24,7 @@ import threading
 import time
 from typing import Callable
 
+from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource
 from hw.errors import DeviceLost, FrameTimeout, HwError
 
@@ -119,7 +120,7 @@ class CameraThreadMixin:
         return source
 
     def _camera_main(self) -> None:
-        backoff = CAMERA_BACKOFF[0]
+        backoff = Backoff(*CAMERA_BACKOFF)
         source: DepthSource | None = None
         good = 0  # good frames in a row since the source was (re)opened
         healthy_since = 0.0
@@ -129,15 +130,14 @@ class CameraThreadMixin:
                 if self._camera_swap is not None and source is not None:
                     self._close_source(source)
                     source = None
-                    backoff = CAMERA_BACKOFF[0]
+                    backoff.reset()
                 if source is None:
                     good = 0
                     try:
                         source = self._make_source()
                     except Exception as exc:  # noqa: BLE001 -- any failure to open is a lost camera
                         self._camera_down(f"cannot open the camera: {exc}")
-                        self._sleep(backoff)
-                        backoff = min(backoff * 2, CAMERA_BACKOFF[1])
+                        self._sleep(backoff.next())
                         continue
                 try:
                     frame = source.read(timeout=self.config.camera.read_timeout_s)
@@ -150,8 +150,7 @@ class CameraThreadMixin:
                     self._camera_down(why)
                     self._close_source(source)
                     source = None
-                    self._sleep(backoff)
-                    backoff = min(backoff * 2, CAMERA_BACKOFF[1])
+                    self._sleep(backoff.next())
                     continue
                 now = time.monotonic()
                 self._arrivals.append(now)
@@ -164,7 +163,7 @@ class CameraThreadMixin:
                     log.info("camera delivering frames (frame %d)", frame.index)
                     self._wake.set()
                 if self.camera_ok and now - healthy_since >= CAMERA_STABLE_S:
-                    backoff = CAMERA_BACKOFF[0]  # stable: the next loss waits little again
+                    backoff.reset()  # stable: the next loss waits little again
                 self.frames.put(frame)
         finally:
             if source is not None:
