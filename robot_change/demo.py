@@ -177,16 +177,19 @@ def _picture(state: Path, out_dir: Path, config: Path) -> Path:
     state/reports/) compared again with the stored reference, with the same parameters (the
     detection is seeded, so the picture shows what the daemon found), drawn by
     :func:`robot_change.report.draw_change`."""
-    import numpy as np
-
+    from robot_change import npzfile
     from robot_change.change import detect_changes
     from robot_change.config import load_config
-    from robot_change.report import draw_change
+    from robot_change.errors import RobotChangeError
     from robot_change.params import change_params
+    from robot_change.report import draw_change
+    from robot_change.service import CHECK_FORMAT
     from robot_change.store import ReferenceStore
 
     settings = load_config(config)
-    saved = np.load(state / "reports" / f"{STATION}.last-check.npz")
+    _header, saved = npzfile.read(state / "reports" / f"{STATION}.last-check.npz",
+                                  CHECK_FORMAT, 1, ["depth"], RobotChangeError,
+                                  "run the demo again")
     reference = ReferenceStore(state / "references").load(STATION)
     depth = saved["depth"]
     changes = detect_changes(reference, depth, change_params(settings, settings.parameters()))

@@ -13,8 +13,6 @@ Numeric module: arrays in, arrays out; the only I/O is :meth:`Mixture.save` /
 from __future__ import annotations
 
 import hashlib
-import io
-import json
 import math
 import time
 import warnings
@@ -26,8 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
-from hw.atomic import write_atomically
-from robot_change import em
+from robot_change import em, npzfile
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
 
 __all__ = [
@@ -44,7 +41,7 @@ __all__ = [
 
 CRITERIA = ("mdl", "bic", "aic")
 FILE_FORMAT = "robot_change.mixture"
-FILE_VERSION = 1
+FILE_VERSION = 2  # 2: the checksum of robot_change.npzfile (1: of the arrays alone)
 #: Free parameters of one full-covariance 3-D Gaussian (3 for the mean, 6 for the covariance).
 N_PARAMS_COMPONENT = 9
 #: Default voxel leaf (m) the covariance floor is tied to when neither is given (the default
@@ -209,34 +206,21 @@ class Mixture:
 
     # ----------------------------------------------------------------------- files
 
-    def _checksum(self) -> str:
-        h = hashlib.sha256()
-        for a in (self.weights, self.means, self.covariances):
-            h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
-        return h.hexdigest()
-
     def save(self, path) -> None:
-        """Write to ``path`` (.npz with a JSON header), atomically: temp file, fsync, rename.
-
-        The header holds the format name, the version, K, the criterion the fit used (if
-        known) and a SHA-256 of the arrays, checked by :meth:`load`.
-        """
-        path = Path(path)
-        header = {
-            "format": FILE_FORMAT,
-            "version": FILE_VERSION,
-            "n_components": self.n_components,
-            "criterion": self.record.criterion if self.record is not None else None,
-            "sha256": self._checksum(),
-        }
-        buf = io.BytesIO()
-        np.savez(buf, header=np.array(json.dumps(header, sort_keys=True)),
-                 weights=self.weights, means=self.means, covariances=self.covariances)
-        write_atomically(path, buf.getvalue())
+        """Write to ``path`` (a robot_change.npzfile: arrays ``weights``, ``means``,
+        ``covariances``, a JSON header with K and the criterion the fit used, if known, and a
+        SHA-256 over both), atomically."""
+        npzfile.write(path, FILE_FORMAT, FILE_VERSION,
+                      {"weights": self.weights, "means": self.means,
+                       "covariances": self.covariances},
+                      {"n_components": self.n_components,
+                       "criterion": self.record.criterion if self.record is not None else None},
+                      compress=False)
 
     @classmethod
     def load(cls, path) -> Mixture:
-        """Read a mixture written by :meth:`save`; verify format, version and checksum.
+        """Read a mixture written by :meth:`save` (version 1 files too); verify format, version
+        and checksum.
 
         Raises
         ------
@@ -248,37 +232,29 @@ class Mixture:
         """
         path = Path(path)
         redo = "fit and save the mixture again"
+        header, arrays = npzfile.read(path, FILE_FORMAT, FILE_VERSION,
+                                      ("weights", "means", "covariances"), MixtureFileError,
+                                      redo, verify=_verify)
         try:
-            with np.load(path, allow_pickle=False) as data:
-                header = json.loads(str(data["header"][()]))
-                arrays = {k: np.array(data[k]) for k in ("weights", "means", "covariances")}
-        except FileNotFoundError:
-            raise
-        except Exception as exc:  # zipfile.BadZipFile, KeyError, ValueError, EOFError, ...
-            raise MixtureFileError(f"{path}: not a readable mixture file "
-                                   f"({type(exc).__name__}: {exc}); {redo}") from exc
-        if not isinstance(header, dict) or header.get("format") != FILE_FORMAT:
-            fmt = header.get("format") if isinstance(header, dict) else None
-            raise MixtureFileError(f"{path}: format {fmt!r} is not {FILE_FORMAT!r}; "
-                                   f"is this the right file?")
-        version = header.get("version")
-        if not isinstance(version, int) or version < 1:
-            raise MixtureFileError(f"{path}: bad version {version!r}; {redo}")
-        if version > FILE_VERSION:
-            raise MixtureFileError(f"{path}: version {version} is newer than this robot_change "
-                                   f"reads ({FILE_VERSION}); upgrade robot_change")
-        try:
-            mixture = cls(**arrays)
+            mixture = cls(arrays["weights"], arrays["means"], arrays["covariances"])
         except InputError as exc:
             raise MixtureFileError(f"{path}: the arrays do not form a valid mixture ({exc}); "
                                    f"{redo}") from exc
         if header.get("n_components") != mixture.n_components:
             raise MixtureFileError(f"{path}: header says K = {header.get('n_components')}, "
                                    f"arrays hold {mixture.n_components}; {redo}")
-        if header.get("sha256") != mixture._checksum():
-            raise MixtureFileError(f"{path}: checksum mismatch, the file was changed or "
-                                   f"damaged after it was written; {redo}")
         return mixture
+
+
+def _verify(header: dict, arrays: dict[str, np.ndarray]) -> bool:
+    """The checksum of a mixture file: robot_change.npzfile's since version 2; version 1 hashed
+    the three arrays alone (as float64, little-endian)."""
+    if header.get("version") == 1:
+        h = hashlib.sha256()
+        for name in ("weights", "means", "covariances"):
+            h.update(np.ascontiguousarray(arrays[name], dtype="<f8").tobytes())
+        return header.get("sha256") == h.hexdigest()
+    return header.get("sha256") == npzfile.checksum(header, arrays)
 
 
 # --------------------------------------------------------------------------- fit record

@@ -18,9 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import hashlib
-import io
-import json
 import math
 import time
 from pathlib import Path
@@ -29,9 +26,9 @@ from typing import Any
 import numpy as np
 
 import robot_change
-from hw.atomic import write_atomically
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import FrameError
+from robot_change import npzfile
 from robot_change.cloud import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
 from robot_change.errors import (
     EmptySceneError,
@@ -260,12 +257,7 @@ class SceneModel:
         params, provenance, the cloud's counts and timings, the fit record, the arrays' dtypes
         and shapes, and a SHA-256 over the header and the arrays (checked by :meth:`load`).
         """
-        arrays = _arrays_of(self)
-        header = _header_of(self, arrays)
-        header["sha256"] = _checksum(header, arrays)
-        buf = io.BytesIO()
-        np.savez_compressed(buf, header=np.array(json.dumps(header, sort_keys=True)), **arrays)
-        write_atomically(Path(path), buf.getvalue())
+        npzfile.write(path, FILE_FORMAT, FILE_VERSION, _arrays_of(self), _header_of(self))
 
     @classmethod
     def load(cls, path) -> SceneModel:
@@ -618,13 +610,12 @@ def _record_from_dict(d: dict | None) -> FitRecord | None:
     return FitRecord(**d)
 
 
-def _header_of(model: SceneModel, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+def _header_of(model: SceneModel) -> dict[str, Any]:
+    """The header fields of a scene (robot_change.npzfile adds format, version, saved_by, the
+    arrays' dtypes and shapes and the checksum)."""
     c = model.cloud
     return {
-        "format": FILE_FORMAT,
-        "version": FILE_VERSION,
         "library_version": model.version,
-        "saved_by": robot_change.__version__,
         "created": model.created,
         "source": model.source,
         "mount": None if model.mount is None else model.mount.to_dict(),
@@ -644,51 +635,12 @@ def _header_of(model: SceneModel, arrays: dict[str, np.ndarray]) -> dict[str, An
             "plane_iterations": c.plane.iterations,
         },
         "fit": _record_to_dict(model.mixture.record),
-        "arrays": {k: [a.dtype.str, list(a.shape)] for k, a in arrays.items()},
     }
-
-
-def _checksum(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
-    """SHA-256 over the header (without its ``sha256``, canonical JSON) and every array
-    (name, dtype, shape, little-endian bytes) in name order."""
-    h = hashlib.sha256()
-    body = {k: v for k, v in header.items() if k != "sha256"}
-    h.update(json.dumps(body, sort_keys=True).encode())
-    for name in sorted(arrays):
-        a = arrays[name]
-        h.update(f"\n{name} {a.dtype.str} {a.shape}\n".encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
 
 
 def _load(cls, path: Path) -> SceneModel:
     redo = "build and save the reference again"
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise SceneFileError(f"{path}: a single .npy array, not a scene file (.npz); "
-                                 "is this the right file?")
-        with loaded as data:
-            names = set(data.files)
-            if "header" not in names:
-                raise SceneFileError(f"{path}: no header, not a scene file "
-                                     f"(arrays: {sorted(names)}); is this the right file?")
-            header = json.loads(str(data["header"][()]))
-            if not isinstance(header, dict):
-                raise SceneFileError(f"{path}: the header is not a JSON object; {redo}")
-            _check_format(path, header)
-            missing = sorted(set(_ARRAYS) - names)
-            if missing:
-                raise SceneFileError(f"{path}: arrays {missing} are missing; {redo}")
-            arrays = {k: np.array(data[k]) for k in _ARRAYS}
-    except (FileNotFoundError, SceneFileError):
-        raise
-    except Exception as exc:  # BadZipFile, zlib.error, EOFError, ValueError, KeyError, ...
-        raise SceneFileError(f"{path}: not a readable scene file, truncated or damaged "
-                             f"({type(exc).__name__}: {exc}); {redo}") from exc
-    if header.get("sha256") != _checksum(header, arrays):
-        raise SceneFileError(f"{path}: checksum mismatch, the file was changed or damaged after "
-                             f"it was written; {redo}")
+    header, arrays = npzfile.read(path, FILE_FORMAT, FILE_VERSION, _ARRAYS, SceneFileError, redo)
     try:
         return _model_from(cls, header, arrays)
     except SceneFileError:
@@ -696,23 +648,6 @@ def _load(cls, path: Path) -> SceneModel:
     except (InputError, FrameError, KeyError, TypeError, ValueError) as exc:
         raise SceneFileError(f"{path}: the file does not hold a valid scene "
                              f"({type(exc).__name__}: {exc}); {redo}") from exc
-
-
-def _check_format(path: Path, header: dict[str, Any]) -> None:
-    if header.get("format") != FILE_FORMAT:
-        raise SceneFileError(f"{path}: format {header.get('format')!r} is not {FILE_FORMAT!r}; "
-                             "is this the right file? (a mixture alone is read by "
-                             "Mixture.load)")
-    version = header.get("version")
-    if not _is_int(version) or version < 1:
-        raise SceneFileError(f"{path}: bad format version {version!r}; build and save the "
-                             "reference again")
-    if version > FILE_VERSION:
-        raise SceneFileError(
-            f"{path}: scene format version {version}, made by robot_change "
-            f"{header.get('library_version', '?')}; this robot_change "
-            f"{robot_change.__version__} reads up to version {FILE_VERSION}: upgrade "
-            "robot_change (or rebuild the reference with this version)")
 
 
 def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> SceneModel:

@@ -79,6 +79,8 @@ from robot_change.errors import (
     SceneMismatchError,
     StoreError,
 )
+from hw.atomic import write_atomically
+from robot_change import npzfile
 from robot_change.frames import CameraThreadMixin, FrameQueue
 from robot_change.liveness import Progress
 from robot_change.link import (
@@ -133,6 +135,11 @@ from robot_change.watch import WatchMixin, _Watch
 __all__ = ["Service", "ServiceOptions"]
 
 log = logging.getLogger(__name__)
+
+#: Format of ``<station>.last-check.npz`` (robot_change.npzfile): the last CHECK's fused depth,
+#: the reference's, the change masks (H, W) bool, intrinsics (6,) w h fx fy cx cy, region boxes
+#: (R, 10) min xyz, max xyz, centroid xyz (m, camera frame), points; region kinds (R,) 1 / 2.
+CHECK_FORMAT = "robot_change.check"
 
 #: Most CHANGE_REPORT regions sent for one report (the largest first): 255 parts of 11.
 MAX_REPORT_REGIONS = 255 * REGIONS_PER_PART
@@ -803,23 +810,17 @@ class Service(CameraThreadMixin, WatchMixin):
         if folder is None:
             return
         try:
-            import io
-
-            from hw.atomic import write_atomically
-
             cam = reference.intrinsics
-            buf = io.BytesIO()
             boxes = np.array([[*r.bbox_min, *r.bbox_max, *r.centroid, r.n_points]
                               for r in regions], dtype=np.float64).reshape(-1, 10)
             kinds = np.array([1 if r.kind == "appeared" else 2 for r in regions], np.uint8)
-            np.savez_compressed(buf, depth=depth, reference_depth=reference.depth,
-                                appeared_mask=changes.appeared_mask,
-                                disappeared_mask=changes.disappeared_mask,
-                                intrinsics=np.array([cam.width, cam.height, cam.fx, cam.fy,
-                                                     cam.cx, cam.cy]),
-                                region_boxes=boxes, region_kinds=kinds)
             Path(folder).mkdir(parents=True, exist_ok=True)
-            write_atomically(Path(folder) / f"{station}.last-check.npz", buf.getvalue())
+            npzfile.write(Path(folder) / f"{station}.last-check.npz", CHECK_FORMAT, 1, {
+                "depth": depth, "reference_depth": reference.depth,
+                "appeared_mask": changes.appeared_mask,
+                "disappeared_mask": changes.disappeared_mask,
+                "intrinsics": np.array([cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy]),
+                "region_boxes": boxes, "region_kinds": kinds}, {"station": station})
             summary = changes.summary(self.config.camera.mount())
             summary["station"] = station
             write_atomically(Path(folder) / f"{station}.last-check.json",

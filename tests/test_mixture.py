@@ -424,29 +424,53 @@ def test_save_load_round_trip(tmp_path):
         assert not b.flags.writeable
     with np.load(path) as data:
         header = json.loads(str(data["header"][()]))
-    assert header["criterion"] == "bic" and header["version"] == 1
+    assert header["criterion"] == "bic" and header["version"] == 2
     assert header["n_components"] == m.n_components
     assert [p.name for p in tmp_path.iterdir()] == ["ref.npz"]  # no temp file left
 
 
-def _rewrite(path, header=None, **arrays):
+def _rewrite(path, header=None, resign=False, **arrays):
+    """Change header fields or arrays of a saved file; ``resign``: with a valid checksum."""
+    from robot_change.npzfile import checksum
+
     with np.load(path) as data:
         items = {k: data[k] for k in data.files}
-    if header is not None:
-        h = json.loads(str(items["header"][()]))
-        h.update(header)
-        items["header"] = np.array(json.dumps(h))
+    h = json.loads(str(items["header"][()]))
+    h.update(header or {})
     items.update(arrays)
+    if resign:
+        h["sha256"] = checksum(h, {k: v for k, v in items.items() if k != "header"})
+    items["header"] = np.array(json.dumps(h))
     np.savez(path, **items)
+
+
+def test_a_version_1_file_still_loads(tmp_path):
+    """Version 1 hashed the arrays alone; such files stay readable."""
+    import hashlib
+
+    m = small_mixture()
+    h = hashlib.sha256()
+    for a in (m.weights, m.means, m.covariances):
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    header = {"format": "robot_change.mixture", "version": 1, "n_components": m.n_components,
+              "criterion": None, "sha256": h.hexdigest()}
+    path = tmp_path / "v1.npz"
+    np.savez(path, header=np.array(json.dumps(header)), weights=m.weights, means=m.means,
+             covariances=m.covariances)
+    back = Mixture.load(path)
+    np.testing.assert_array_equal(back.means, m.means)
+    _rewrite(path, means=np.array(m.means) + 1e-9)
+    with pytest.raises(MixtureFileError, match="checksum"):
+        Mixture.load(path)
 
 
 def test_load_refuses_newer_version_wrong_format_bad_checksum(tmp_path):
     m = small_mixture()
-    for change, match in (({"version": 2}, "newer"), ({"format": "other"}, "format"),
-                          ({"n_components": 3}, "K = 3")):
+    for change, match in (({"version": 3}, "reads up to version 2"),
+                          ({"format": "other"}, "format"), ({"n_components": 3}, "K = 3")):
         p = tmp_path / f"m{len(match)}.npz"
         m.save(p)
-        _rewrite(p, header=change)
+        _rewrite(p, header=change, resign=True)
         with pytest.raises(MixtureFileError, match=match):
             Mixture.load(p)
     p = tmp_path / "tampered.npz"

@@ -17,7 +17,8 @@ import pytest
 from robot_change.errors import InputError, SceneFileError
 from robot_change.mount import CameraMount
 from robot_change.registration import Registration, invert, rpy_deg_to_rotation
-from robot_change.scene import SceneModel, _checksum, build_scene
+from robot_change.npzfile import checksum
+from robot_change.scene import SceneModel, build_scene
 from sim_fixtures import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -107,7 +108,7 @@ def _rewrite_header(src: Path, dst: Path, change) -> None:
         arrays = {k: np.array(data[k]) for k in data.files if k != "header"}
         header = json.loads(str(data["header"][()]))
     change(header)
-    header["sha256"] = _checksum(header, arrays)
+    header["sha256"] = checksum(header, arrays)
     np.savez_compressed(dst, header=np.array(json.dumps(header, sort_keys=True)), **arrays)
 
 

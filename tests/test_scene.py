@@ -24,12 +24,12 @@ from robot_change.errors import (
     SceneMismatchError,
 )
 from robot_change.mixture import Mixture
+from robot_change.npzfile import checksum as _checksum
 from robot_change.scene import (
     FILE_FORMAT,
     FILE_VERSION,
     SceneModel,
     SceneParams,
-    _checksum,
     build_scene,
     build_scene_from_source,
     check_compatible,
