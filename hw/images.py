@@ -2,8 +2,7 @@
 
 ``open_depth("images:tum/depth?scale=5000&rate=30&loop=1")`` reaches :func:`open_images`.
 Frames come in natural name order (``frame_2`` before ``frame_10``), one file decoded per
-:meth:`ImageFolderSource.read`, converted to uint16 millimetres.  The codecs are our own
-(:mod:`hw.png`, :mod:`hw.tiff`); nothing here needs Pillow.
+:meth:`ImageFolderSource.read` (:mod:`hw.imagefile`, Pillow), converted to uint16 millimetres.
 """
 
 from __future__ import annotations
@@ -21,8 +20,7 @@ import numpy as np
 
 from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, FrameTimeout, UriError
-from hw.png import PNG_SIGNATURE, decode_png, read_file
-from hw.tiff import decode_tiff
+from hw.imagefile import decode_image, read_file
 
 #: Frame period (µs) assumed when file names carry no time: 30 Hz, as OpenNI cameras.
 DEFAULT_PERIOD_US = 1_000_000 // 30
@@ -44,17 +42,8 @@ def read_depth_image(path: str | Path, scale: float = 1000.0) -> np.ndarray:
     :class:`DepthFileError` for a missing, corrupt or unsupported file, including an 8-bit
     image (not depth).
     """
-    data = read_file(path)
     name = str(path)
-    if data.startswith(PNG_SIGNATURE):
-        raw = decode_png(data, name)
-    elif data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        raw = decode_tiff(data, name)
-    elif not data:
-        raise DepthFileError(f"{name}: the file is empty")
-    else:
-        raise DepthFileError(f"{name}: neither a PNG nor a TIFF (by its first bytes); depth "
-                             "images must be 16-bit grayscale PNG or TIFF")
+    raw = decode_image(read_file(path), name)
     if raw.dtype != np.uint16:
         raise DepthFileError(f"{name}: 8-bit grayscale image is not a depth image; depth "
                              "images are 16-bit (millimetres, or raw units with a scale)")

@@ -42,9 +42,9 @@ class UnknownScene(KeyError):
 
 
 def _read_png(path: Path) -> np.ndarray:
-    from hw.png import read_png
+    from hw.imagefile import read_image
 
-    return read_png(path)
+    return read_image(path)
 
 
 #: scene.json layout this loader reads (``make_fixtures.FORMAT_VERSION``).
@@ -159,7 +159,7 @@ def _check_epoch(epoch: str) -> str:
 
 def _png_copy(scene: Scene, epoch: str) -> Path:
     """A folder of ``000.png ...`` holding the frames of ``scene``'s ``epoch`` recording."""
-    from hw.png import write_png
+    from hw.imagefile import write_png
 
     path = scene.recording(epoch)
     digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]

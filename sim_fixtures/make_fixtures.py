@@ -70,7 +70,7 @@ FPS = 30
 def write_image(path: Path, array: np.ndarray) -> None:
     """Write (H, W) uint16 / uint8 as PNG with our codec (zlib level 6: level 9 saves ~2 % on
     noisy depth and takes 10x longer)."""
-    from hw.png import write_png
+    from hw.imagefile import write_png
 
     write_png(path, array, level=6)
 

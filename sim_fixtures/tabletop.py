@@ -263,7 +263,7 @@ def load_tabletop_pair(name: str, data_dir: str | Path | None = None) -> Tableto
     if name not in PAIRS:
         raise UnknownScene(f"no table-top pair {name!r}; known pairs: {', '.join(PAIRS)}")
     from hw.images import read_depth_image
-    from hw.png import read_png
+    from hw.imagefile import read_image
 
     folder = Path(DEFAULT_DATA_DIR if data_dir is None else data_dir)
     derived = folder / "derived"
@@ -277,8 +277,8 @@ def load_tabletop_pair(name: str, data_dir: str | Path | None = None) -> Tableto
     cur_path = derived / f"{cur_name}_depth_mm.png"
     reference = _read(ref_path, read_depth_image)
     current = _read(cur_path, read_depth_image)
-    reference_labels = _read(derived / f"{ref_name}_label.png", read_png)
-    current_labels = _read(derived / f"{cur_name}_label.png", read_png)
+    reference_labels = _read(derived / f"{ref_name}_label.png", read_image)
+    current_labels = _read(derived / f"{cur_name}_label.png", read_image)
     appeared, disappeared = tabletop_truth(reference, reference_labels, current, current_labels)
     return TabletopPair(
         name=name,

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import REPO
 from hw.oni import write_oni
-from hw.png import read_png, write_png
+from hw.imagefile import read_image, write_png
 
 
 def run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
@@ -117,7 +117,7 @@ def test_a_corrupt_oni_is_refused_before_the_native_library_sees_it(tmp_path):
 
 
 def test_the_demo_frame_is_a_vga_depth_image():
-    depth = read_png(REPO / "sim_fixtures" / "frames" / "room_vga.png")
+    depth = read_image(REPO / "sim_fixtures" / "frames" / "room_vga.png")
     assert depth.shape == (480, 640) and depth.dtype == np.uint16
 
 

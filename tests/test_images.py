@@ -19,7 +19,7 @@ from hw.images import (
     stem_timestamp_us,
     to_millimetres,
 )
-from hw.png import write_png
+from hw.imagefile import write_png
 
 RNG = np.random.default_rng(3)
 
@@ -224,7 +224,7 @@ def test_corrupt_file_in_a_folder_is_named_and_skipped(tmp_path):
     (tmp_path / "seq" / "2.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
     with open_images(str(tmp_path / "seq")) as source:
         source.read()
-        with pytest.raises(errors.DepthFileError, match=r"2\.png: truncated PNG"):
+        with pytest.raises(errors.DepthFileError, match=r"2\.png: truncated or corrupt PNG"):
             source.read()
         assert source.read().index == 2
 

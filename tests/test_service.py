@@ -128,10 +128,10 @@ def test_frame_queue_drops_the_oldest_and_accounts_for_every_frame(scene_frames)
 
 
 def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
-    from hw.png import read_png
+    from hw.imagefile import read_image
 
-    ref = [read_png(f) for f in scene_frames["reference"]]
-    cur = [read_png(f) for f in scene_frames["current"]]
+    ref = [read_image(f) for f in scene_frames["reference"]]
+    cur = [read_image(f) for f in scene_frames["current"]]
     from robot_change.filters import fuse_depth
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth

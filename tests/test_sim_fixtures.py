@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics, open_depth
-from hw.png import read_png
+from hw.imagefile import read_image
 from sim_fixtures import DEMO_FRAME, SCENES_DIR, UnknownScene, load_scene, scene_names
 from sim_fixtures import render as render_mod
 from hw.oni import read_oni_frames, read_oni_header
@@ -497,7 +497,7 @@ def test_stored_recordings_play_through_openni2_and_as_images(name, tmp_path, mo
 
 
 def test_demo_frame_is_a_mostly_valid_room():
-    depth = read_png(DEMO_FRAME)
+    depth = read_image(DEMO_FRAME)
     assert depth.dtype == np.uint16 and depth.shape == (480, 640)
     valid = depth > 0
     assert valid.mean() > 0.9
