@@ -32,7 +32,7 @@ import json, statistics, sys
 sys.path.insert(0, sys.argv[1])
 from hw.depth import Intrinsics
 from hw.images import read_depth_image
-from robot_change.cloud import CloudParams, clean_cloud
+from robot_change.cloud.chain import CloudParams, clean_cloud
 depth = read_depth_image(sys.argv[2], scale=float(sys.argv[3]))
 camera = Intrinsics.openni_default(depth.shape[1], depth.shape[0])
 params = CloudParams(leaf_m=float(sys.argv[4]))

@@ -1,4 +1,4 @@
-"""Benchmark of robot_change.mixture: one EM iteration (K = 8) and the whole split-EM fit.
+"""Benchmark of robot_change.mixture.model: one EM iteration (K = 8) and the whole split-EM fit.
 
     .venv/bin/python bench/bench_mixture.py [--runs 7] [--json]
 
@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.benchmark import benchmark_em, median_ms  # noqa: E402
-from robot_change.mixture import CRITERIA, fit_mixture  # noqa: E402
+from robot_change.tools.benchmark import benchmark_em, median_ms  # noqa: E402
+from robot_change.mixture.model import CRITERIA, fit_mixture  # noqa: E402
 
 
 def _grid(origin, u, v, spacing):

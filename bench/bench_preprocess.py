@@ -4,7 +4,7 @@
 
 For each real VGA frame in ../shared/data (the TUM office frame, depth / 5000 m, and OSD
 table-top frames, millimetres) prints the medians over ``--runs`` calls of
-``robot_change.cloud.clean_cloud`` after ``--warmup`` calls (``robot_change.benchmark.
+``robot_change.cloud.chain.clean_cloud`` after ``--warmup`` calls (``robot_change.tools.benchmark.
 bench_preprocess``): ``voxel_ms`` (depth to voxel grid, back-projection included),
 ``outlier_ms`` (statistical outlier removal), ``plane_ms`` (RANSAC + refit), ``preprocess_ms``
 (the whole call), with the point counts after each stage; ``points_ms`` is back-projection alone,
@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT))
 
 from hw.depth import Intrinsics  # noqa: E402
 from hw.images import read_depth_image  # noqa: E402
-from robot_change.benchmark import bench_preprocess, machine_info  # noqa: E402
-from robot_change.cloud import CloudParams  # noqa: E402
-from robot_change.filters import fuse_depth  # noqa: E402
+from robot_change.tools.benchmark import bench_preprocess, machine_info  # noqa: E402
+from robot_change.cloud.chain import CloudParams  # noqa: E402
+from robot_change.cloud.filters import fuse_depth  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 STAGES = ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change import protocol as p  # noqa: E402
+from robot_change.link import protocol as p  # noqa: E402
 
 REGIONS = [p.Region(p.RegionKind.APPEARED, (i, -i, 2000), (300, 200, 100), 1000 + i) for i in range(11)]
 KINDS = {

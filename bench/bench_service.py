@@ -60,11 +60,11 @@ from hw.serial_port import (
     FdPort,  # noqa: E402
     open_port,  # noqa: E402
 )
-from robot_change.basesim import BaseSim  # noqa: E402
-from robot_change.config import Config  # noqa: E402
-from robot_change.service import Service  # noqa: E402
-from robot_change.store import ReferenceStore  # noqa: E402
-from robot_change.warmup import warm_up  # noqa: E402
+from robot_change.tools.basesim import BaseSim  # noqa: E402
+from robot_change.service.config import Config  # noqa: E402
+from robot_change.service.core import Service  # noqa: E402
+from robot_change.service.store import ReferenceStore  # noqa: E402
+from robot_change.service.warmup import warm_up  # noqa: E402
 
 SCENE = ROOT / "sim_fixtures" / "scenes" / "office_box_added"
 
@@ -236,7 +236,7 @@ def bench_latency(trials: int, seed: int = 0) -> dict:
 #: (SIGTERM) their counts go as JSON to the file named by the first argument.
 _OBSERVED_RUN = """
 import json, sys
-import robot_change.cli as cli, robot_change.daemon as daemon
+import robot_change.cli as cli, robot_change.service.daemon as daemon
 out = sys.argv.pop(1)
 sources, services = [], []
 real_open, real_run = cli.open_depth, daemon.run_service

@@ -1,4 +1,4 @@
-"""Evaluation of change detection (robot_change.change) on the simulated scenes and the real
+"""Evaluation of change detection (robot_change.change.detect) on the simulated scenes and the real
 table-top pairs, for our method and the baselines.  docs/evaluation.md reports its output.
 
     .venv/bin/python bench/eval_change.py [--split dev|holdout|all] [--real] [--methods ...]
@@ -42,15 +42,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.change import (  # noqa: E402
+from robot_change.change.detect import (  # noqa: E402
     ChangeParams,
     detect_changes,
     detect_geometric,
     detect_nn_threshold,
     detect_plain,
 )
-from robot_change.cloud import CloudParams  # noqa: E402
-from robot_change.scene import SceneParams, build_scene  # noqa: E402
+from robot_change.cloud.chain import CloudParams  # noqa: E402
+from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
@@ -161,7 +161,7 @@ def score(cs, ref_model, cur_model, truth_app, truth_dis, scene=None) -> dict:
     out["registration_ms"] = reg.ms
     out["weak"] = list(reg.weak)
     if scene is not None and hasattr(scene, "T_ref_from_cur"):
-        from robot_change.registration import invert, rotation_angle_deg
+        from robot_change.change.registration import invert, rotation_angle_deg
 
         err = invert(scene.T_ref_from_cur) @ reg.T_ref_from_cur
         out["reg_err_mm"] = float(np.linalg.norm(err[:3, 3]) * 1e3)
@@ -266,7 +266,7 @@ def speed(n_runs: int = 15) -> dict:
     """detect_ms: saved reference (loaded) + one current VGA frame -> ChangeSet, median."""
     import tempfile
 
-    from robot_change.scene import SceneModel
+    from robot_change.change.scene import SceneModel
     from sim_fixtures import load_scene
 
     out = {}

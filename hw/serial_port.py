@@ -6,7 +6,7 @@ every failure into :class:`hw.errors.PortError` (or :class:`hw.errors.UriError` 
 scheme) whose message says what to do.  :class:`ReopeningPort` keeps a port usable across the
 device vanishing (a USB serial adapter unplugged): reads return nothing and writes are dropped
 while it is gone, and it is reopened with backoff.  Framing and sessions live elsewhere
-(robot_change.protocol, robot_change.link); this module imports nothing from robot_change.
+(robot_change.link.protocol, robot_change.link.session); this module imports nothing from robot_change.
 """
 
 from __future__ import annotations

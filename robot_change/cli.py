@@ -20,10 +20,10 @@ import numpy as np
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
 from robot_change.errors import ConfigError, InputError, RobotChangeError
-from robot_change.mount import CameraMount
+from robot_change.change.mount import CameraMount
 
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
-#: RestartPreventExitStatus.  Kept equal to robot_change.config.EXIT_CONFIG (a test checks).
+#: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
 EXIT_CONFIG = 78
 
 #: The source checkout's bundled fixtures (absent from a wheel install: pass --source there).
@@ -52,8 +52,8 @@ def _read_depth(uri: str, frames: int, intrinsics: str | None) -> tuple[np.ndarr
 
     Returns ((H, W) uint16 mm, intrinsics, number of frames read).
     """
-    from robot_change.filters import fuse_depth
-    from robot_change.scene import SceneParams
+    from robot_change.cloud.filters import fuse_depth
+    from robot_change.change.scene import SceneParams
 
     read = _read_frames(uri, frames)
     camera = _camera(read, intrinsics)
@@ -73,7 +73,7 @@ def _camera(frames: list[DepthFrame], intrinsics: str | None) -> Intrinsics:
 
 
 def _cloud_params(args: argparse.Namespace):
-    from robot_change.cloud import CloudParams
+    from robot_change.cloud.chain import CloudParams
 
     overrides = {}
     if getattr(args, "leaf", None) is not None:
@@ -102,7 +102,7 @@ def _print_json(payload: dict[str, Any]) -> None:
 
 def cmd_cloud(args: argparse.Namespace) -> int:
     """Depth -> clean cloud: print a summary, optionally save the points and a picture."""
-    from robot_change.cloud import clean_cloud
+    from robot_change.cloud.chain import clean_cloud
 
     started = time.perf_counter()
     depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
@@ -125,7 +125,7 @@ def cmd_cloud(args: argparse.Namespace) -> int:
         np.save(out_dir / "cloud.npy", cloud.points)
         summary["files"] = [str(out_dir / "cloud.npy")]
         if not args.no_picture:
-            from robot_change.report import draw_cloud
+            from robot_change.tools.report import draw_cloud
 
             picture = draw_cloud(depth, camera, cloud, out_dir / "cloud.png", title=args.source)
             summary["files"].append(str(picture))
@@ -159,24 +159,24 @@ def _print_cloud_summary(summary: dict[str, Any]) -> None:
 def cmd_demo(args: argparse.Namespace) -> int:
     """The README's main job on a bundled recording: the real daemon in a subprocess, the
     simulated base on a pty pair; capture a reference, the scene changes, check, PAUSE and
-    CHANGE_REPORT, and report.png of what changed (robot_change.demo)."""
-    from robot_change.demo import run_demo
+    CHANGE_REPORT, and report.png of what changed (robot_change.tools.demo)."""
+    from robot_change.tools.demo import run_demo
 
     return run_demo(Path(args.out), SIM_FIXTURES)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """The daemon (robot_change.service): camera, serial line and store from the configuration,
+    """The daemon (robot_change.service.core): camera, serial line and store from the configuration,
     until SIGTERM; SIGHUP reloads the configuration.  Exit 78 for a configuration error, 70
-    after a stall (robot_change.daemon)."""
+    after a stall (robot_change.service.daemon)."""
     import logging
 
     from hw.serial_port import ReopeningPort
-    from robot_change import systemd
-    from robot_change.daemon import run_service, stall_bound
-    from robot_change.params import load_checked_config
-    from robot_change.service import Service, ServiceOptions
-    from robot_change.store import ReferenceStore
+    from robot_change.service import systemd
+    from robot_change.service.daemon import run_service, stall_bound
+    from robot_change.service.params import load_checked_config
+    from robot_change.service.core import Service, ServiceOptions
+    from robot_change.service.store import ReferenceStore
 
     config = load_checked_config(args.config)
     logging.basicConfig(level=config.service.log_level.upper(), stream=sys.stderr,
@@ -209,7 +209,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
-    from robot_change.benchmark import (bench_detect, bench_emd, bench_preprocess, benchmark_em,
+    from robot_change.tools.benchmark import (bench_detect, bench_emd, bench_preprocess, benchmark_em,
                                         machine_info)
 
     source = args.source or _bundled(DEMO_FRAME)
@@ -220,7 +220,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     # the mixture and change detection on a bundled room scene: its reference (3 fused frames,
     # a room-sized cloud of ~20k points) and one current frame
     from hw.oni import read_oni_frames
-    from robot_change.scene import build_scene
+    from robot_change.change.scene import build_scene
 
     scene_dir = SIM_FIXTURES / "scenes" / DETECT_SCENE
     reference_frames = read_oni_frames(_bundled(scene_dir / "reference.oni"))
@@ -271,14 +271,14 @@ def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
 
 
 def _scene_params(args: argparse.Namespace):
-    from robot_change.scene import SceneParams
+    from robot_change.change.scene import SceneParams
 
     return SceneParams(cloud=_cloud_params(args))
 
 
 def _reference_scene(args: argparse.Namespace):
     """The reference as a SceneModel: loaded from a file, or built from frames of a URI."""
-    from robot_change.scene import SceneModel, build_scene
+    from robot_change.change.scene import SceneModel, build_scene
 
     if _is_scene_file(args.reference):
         return SceneModel.load(args.reference)
@@ -290,8 +290,8 @@ def _reference_scene(args: argparse.Namespace):
 def _current_input(args: argparse.Namespace, reference):
     """The current epoch: a saved SceneModel, or the fused depth of a URI's frames and the
     intrinsics to read it with."""
-    from robot_change.filters import fuse_depth
-    from robot_change.scene import SceneModel
+    from robot_change.cloud.filters import fuse_depth
+    from robot_change.change.scene import SceneModel
 
     if _is_scene_file(args.current):
         scene = SceneModel.load(args.current)
@@ -305,7 +305,7 @@ def _current_input(args: argparse.Namespace, reference):
 
 def cmd_capture(args: argparse.Namespace) -> int:
     """Build a SceneModel (a station reference) from N frames and save it."""
-    from robot_change.scene import build_scene
+    from robot_change.change.scene import build_scene
 
     mount = CameraMount.parse(args.mount) if args.mount else None
     frames = _read_frames(args.source, args.frames)
@@ -338,7 +338,7 @@ def _detect_mount(args: argparse.Namespace, reference) -> CameraMount:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     """Compare a reference with now: what appeared, what disappeared, where."""
-    from robot_change import change
+    from robot_change.change import detect as change
 
     started = time.perf_counter()
     reference = _reference_scene(args)
@@ -360,7 +360,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         summary["files"] = [str(out / name) for name in
                             ("appeared.npy", "disappeared.npy", "report.json")]
         if not args.no_picture:
-            from robot_change.report import draw_change
+            from robot_change.tools.report import draw_change
 
             draw_change(reference.depth, current_depth, camera, changes, out / "report.png",
                         title=f"{args.reference} -> {args.current}")
@@ -432,7 +432,7 @@ def cmd_list_devices(args: argparse.Namespace) -> int:
 
 def cmd_check_config(args: argparse.Namespace) -> int:
     """Read and check a configuration file; print the effective settings."""
-    from robot_change.params import load_checked_config
+    from robot_change.service.params import load_checked_config
 
     config = load_checked_config(args.file)
     if args.json:
@@ -447,7 +447,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 def cmd_base_sim(args: argparse.Namespace) -> int:
     """A simulated base controller on a serial port: interactive, or driven by a script."""
-    from robot_change.basesim import run_base_sim
+    from robot_change.tools.basesim import run_base_sim
 
     return run_base_sim(args.port, args.script, baudrate=args.baud, verbose=args.verbose,
                         proto_max=args.protocol)
@@ -455,7 +455,7 @@ def cmd_base_sim(args: argparse.Namespace) -> int:
 
 def cmd_link_bench(args: argparse.Namespace) -> int:
     """PAUSE round trips over a pty pair through a noisy, baud-paced relay."""
-    from robot_change.linkbench import run_link_bench
+    from robot_change.tools.linkbench import run_link_bench
 
     result = run_link_bench(args.corrupt, args.count, args.baud, args.json, seed=args.seed)
     return 0 if result["delivered"] == result["sent"] else 1

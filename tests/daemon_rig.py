@@ -1,5 +1,5 @@
 """A real ``robot-change run`` subprocess for fault tests and bench/bench_stall.py: an image
-folder as the camera, one end of a pty pair for the base (robot_change.basesim on the other),
+folder as the camera, one end of a pty pair for the base (robot_change.tools.basesim on the other),
 a test socket as systemd's notify socket, optionally a hang injected (tests/hang_daemon.py).
 
 Every wait is bounded.
@@ -19,7 +19,7 @@ import tty
 from pathlib import Path
 
 from hw.serial_port import FdPort
-from robot_change.basesim import BaseSim, check_script
+from robot_change.tools.basesim import BaseSim, check_script
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent

@@ -2,8 +2,8 @@
 
     python tests/hang_daemon.py WHERE ARM_FILE run --config FILE
 
-WHERE: ``detector`` / ``check`` (robot_change.change.detect_changes), ``capture``
-(robot_change.scene.build_scene) or ``camera`` (the image-folder source's read).  Once
+WHERE: ``detector`` / ``check`` (robot_change.change.detect.detect_changes), ``capture``
+(robot_change.change.scene.build_scene) or ``camera`` (the image-folder source's read).  Once
 ``ARM_FILE`` exists, the next call blocks for good (as a kernel stuck in native code would)
 after creating ``ARM_FILE.entered``.  Everything else is ``robot_change.cli.main``.  Used by
 tests/test_daemon_faults.py and bench/bench_stall.py; never by the product.
@@ -21,12 +21,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def _patch(where: str, arm: Path) -> None:
     import hw.images
-    import robot_change.change
-    import robot_change.scene
+    import robot_change.change.detect
+    import robot_change.change.scene
 
-    owner, name = {"detector": (robot_change.change, "detect_changes"),
-                   "check": (robot_change.change, "detect_changes"),
-                   "capture": (robot_change.scene, "build_scene"),
+    owner, name = {"detector": (robot_change.change.detect, "detect_changes"),
+                   "check": (robot_change.change.detect, "detect_changes"),
+                   "capture": (robot_change.change.scene, "build_scene"),
                    "camera": (hw.images.ImageFolderSource, "read")}[where]
     real = getattr(owner, name)
     forever = threading.Event()

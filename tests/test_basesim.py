@@ -1,4 +1,4 @@
-"""robot_change.basesim: scripted and interactive runs against a fake module over a pty pair."""
+"""robot_change.tools.basesim: scripted and interactive runs against a fake module over a pty pair."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from robot_change import protocol as p
-from robot_change.basesim import parse_command, run_base_sim
+from robot_change.link import protocol as p
+from robot_change.tools.basesim import parse_command, run_base_sim
 from robot_change.errors import InputError
-from robot_change.link import Link, LinkRunner, Received
+from robot_change.link.session import Link, LinkRunner, Received
 from hw.serial_port import FdPort
 
 
@@ -198,7 +198,7 @@ def test_commands_become_messages():
 def test_expect_takes_the_replies_to_one_command_in_any_order_and_never_twice():
     import io
 
-    from robot_change.basesim import BaseSim, BaseState
+    from robot_change.tools.basesim import BaseSim, BaseState
     from hw.serial_port import open_port
 
     sim = BaseSim(open_port("loop://"), out=io.StringIO())
@@ -218,7 +218,7 @@ def test_expect_after_a_programmatic_command_ignores_what_came_before_it():
     import io
 
     from hw.serial_port import open_port
-    from robot_change.basesim import BaseSim
+    from robot_change.tools.basesim import BaseSim
 
     sim = BaseSim(open_port("loop://"), out=io.StringIO())
     sim._record("HEARTBEAT", p.Heartbeat(p.ModuleState.IDLE, paused=False))  # long ago

@@ -1,4 +1,4 @@
-"""robot_change.change: change detection on simulated scenes, the switches, bad input, and the
+"""robot_change.change.detect: change detection on simulated scenes, the switches, bad input, and the
 numba kernels against NumPy twins.  Kept fast: four scenes, each built once per module."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from robot_change import change as ch
-from robot_change.change import (
+from robot_change.change import detect as ch
+from robot_change.change.detect import (
     ChangeParams,
     ChangeSet,
     detect_changes,
@@ -20,10 +20,10 @@ from robot_change.change import (
     free_space_votes,
     label_voxel_components,
 )
-from robot_change.cloud import CloudParams
+from robot_change.cloud.chain import CloudParams
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
-from robot_change.filters import pack_keys
-from robot_change.scene import SceneParams, build_scene
+from robot_change.cloud.filters import pack_keys
+from robot_change.change.scene import SceneParams, build_scene
 from sim_fixtures import load_scene
 
 SCENES = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_crate_moved")
@@ -309,7 +309,7 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero):
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.03, -0.02, 0.05), (0.4, 0.0, 0.0)])
 def test_free_space_through_a_transform_matches_numpy(shift):
     from hw.depth import Intrinsics
-    from robot_change.registration import rpy_deg_to_rotation
+    from robot_change.change.registration import rpy_deg_to_rotation
 
     rng = np.random.default_rng(11)
     h, w, n = 30, 40, 60

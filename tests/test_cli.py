@@ -123,7 +123,7 @@ def test_the_demo_frame_is_a_vga_depth_image():
 
 def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tmp_path):
     from robot_change.cli import EXIT_CONFIG
-    from robot_change.config import EXIT_CONFIG as CONFIG_EXIT
+    from robot_change.service.config import EXIT_CONFIG as CONFIG_EXIT
 
     assert EXIT_CONFIG == CONFIG_EXIT == 78
     result = run("check-config", str(REPO / "systemd" / "robot-change.toml"))

@@ -1,4 +1,4 @@
-"""robot_change.cloud: CloudParams and the whole depth -> clean cloud chain, on a rendered
+"""robot_change.cloud.chain: CloudParams and the whole depth -> clean cloud chain, on a rendered
 scene and on real table-top and office depth frames."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 from hw.depth import Intrinsics
 from hw.images import read_depth_image
-from robot_change.cloud import (
+from robot_change.cloud.chain import (
     PIXEL_KEPT,
     PIXEL_NO_POINT,
     PIXEL_OUTLIER,
@@ -21,8 +21,8 @@ from robot_change.cloud import (
     clean_cloud,
 )
 from robot_change.errors import InputError
-from robot_change.filters import pack_keys
-from robot_change.geometry import depth_to_points
+from robot_change.cloud.filters import pack_keys
+from robot_change.cloud.geometry import depth_to_points
 
 INTR = Intrinsics.openni_default()
 RNG = np.random.default_rng(21)
@@ -130,8 +130,8 @@ def test_clean_cloud_bookkeeping(scene):
 def test_clean_cloud_equals_the_stages_run_by_hand(scene):
     """Twin of clean_cloud's bookkeeping (including the numba pixel-map kernel): the public
     stages called one by one, the maps built with NumPy."""
-    from robot_change.depth_voxels import depth_voxel_grid
-    from robot_change.filters import fit_plane_ransac, statistical_outliers
+    from robot_change.cloud.depth_voxels import depth_voxel_grid
+    from robot_change.cloud.filters import fit_plane_ransac, statistical_outliers
 
     depth, _ = scene
     params = LEVEL

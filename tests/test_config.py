@@ -1,4 +1,4 @@
-"""robot_change.config: TOML -> frozen dataclasses; every error names file, key, value, rule."""
+"""robot_change.service.config: TOML -> frozen dataclasses; every error names file, key, value, rule."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import re
 import pytest
 
 from conftest import REPO
-from robot_change.cloud import CloudParams
-from robot_change.config import (
+from robot_change.cloud.chain import CloudParams
+from robot_change.service.config import (
     EXIT_CONFIG,
     Config,
     StoreConfig,
@@ -18,8 +18,8 @@ from robot_change.config import (
     load_config,
 )
 from robot_change.errors import ConfigError
-from robot_change.protocol import PARAM_BY_NAME, PARAMS
-from robot_change.scene import SceneParams
+from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
+from robot_change.change.scene import SceneParams
 
 EXAMPLE = REPO / "systemd" / "robot-change.toml"
 
@@ -207,8 +207,8 @@ def test_each_key_belongs_to_one_section():
 def test_the_library_and_the_daemon_run_one_set_of_defaults():
     """What `detect` (the library's ChangeParams) and the robot (configuration + wire
     parameters) decide with, when nobody overrides anything, is the same."""
-    from robot_change.change import ChangeParams
-    from robot_change.params import change_params
+    from robot_change.change.detect import ChangeParams
+    from robot_change.service.params import change_params
 
     config = Config()
     assert change_params(config, config.parameters()) == ChangeParams()
@@ -218,7 +218,7 @@ def test_the_library_and_the_daemon_run_one_set_of_defaults():
 
 
 def test_unknown_change_keys_are_refused_with_a_hint(tmp_path):
-    from robot_change.params import check_config
+    from robot_change.service.params import check_config
 
     path = tmp_path / "c.toml"
     path.write_text("[change]\nfree_space_margn_m = 0.5\n")

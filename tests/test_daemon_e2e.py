@@ -1,5 +1,5 @@
 """``robot-change run`` as a real subprocess: a .oni fixture as the camera, the scripted base
-(robot_change.basesim) on the other end of a pty pair, systemd's notify socket played by a test
+(robot_change.tools.basesim) on the other end of a pty pair, systemd's notify socket played by a test
 socket.  Plus the configuration errors (exit 78) and ``robot-change demo``.
 
 Every wait is bounded: basesim's expect timeouts, ``subprocess`` timeouts, socket timeouts.
@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, SIM_FIXTURES
-from robot_change.basesim import run_base_sim
+from robot_change.tools.basesim import run_base_sim
 from hw.serial_port import FdPort
 
 SCENE = SIM_FIXTURES / "scenes" / "office_box_added"

@@ -1,4 +1,4 @@
-"""robot_change.depth_voxels: the fused depth -> voxel grid kernel against its NumPy twin
+"""robot_change.cloud.depth_voxels: the fused depth -> voxel grid kernel against its NumPy twin
 (geometry's back-projection twin + the filters' voxel twin with image rows as band rows)."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from test_geometry import twin_depth_to_points
 
 from hw.depth import Intrinsics
 from hw.images import read_depth_image
-from robot_change.depth_voxels import _depth_voxel_kernel, depth_voxel_grid
+from robot_change.cloud.depth_voxels import _depth_voxel_kernel, depth_voxel_grid
 from robot_change.errors import InputError
-from robot_change.filters import voxel_grid, voxel_table_size
-from robot_change.geometry import depth_kernel_args, depth_to_points
+from robot_change.cloud.filters import voxel_grid, voxel_table_size
+from robot_change.cloud.geometry import depth_kernel_args, depth_to_points
 
 from conftest import SHARED_DATA, SIM_FIXTURES
 

@@ -1,4 +1,4 @@
-"""robot_change.transport: exact EMD, ground distances, greedy EMD, and their NumPy/SciPy twins.
+"""robot_change.change.transport: exact EMD, ground distances, greedy EMD, and their NumPy/SciPy twins.
 
 References: scipy.optimize.linprog (HiGHS) for every EMD value, POT's ``ot.emd2`` when
 installed, ``scipy.linalg.sqrtm`` for the 2-Wasserstein ground distance, and plain NumPy
@@ -17,11 +17,11 @@ from scipy.linalg import sqrtm
 from scipy.optimize import linprog
 from scipy.spatial.distance import cdist
 
-from robot_change import transport as E
-from robot_change.transport import (STOP_REASONS, EmdResult, GreedyResult, emd, greedy_emd,
+from robot_change.change import transport as E
+from robot_change.change.transport import (STOP_REASONS, EmdResult, GreedyResult, emd, greedy_emd,
                               ground_distance, mixture_emd)
 from robot_change.errors import InputError
-from robot_change.mixture import Mixture
+from robot_change.mixture.model import Mixture
 
 TOL = 1e-9
 

@@ -1,4 +1,4 @@
-"""robot_change.filters: every numba kernel against a plain NumPy twin, plus edge cases."""
+"""robot_change.cloud.filters: every numba kernel against a plain NumPy twin, plus edge cases."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from hw.depth import Intrinsics
 from robot_change.errors import InputError
-from robot_change.filters import (
+from robot_change.cloud.filters import (
     KEY_MAX_INDEX,
     KEY_MIN_INDEX,
     RANSAC_BAIL_SIGMAS,
@@ -32,7 +32,7 @@ from robot_change.filters import (
     voxel_grid,
     voxel_table_size,
 )
-from robot_change.geometry import depth_to_points
+from robot_change.cloud.geometry import depth_to_points
 
 RNG = np.random.default_rng(7)
 

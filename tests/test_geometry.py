@@ -1,4 +1,4 @@
-"""robot_change.geometry: depth image -> points and back, against plain NumPy twins."""
+"""robot_change.cloud.geometry: depth image -> points and back, against plain NumPy twins."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from hw.depth import Intrinsics
 from robot_change.errors import InputError
-from robot_change.geometry import depth_to_points, project_points
+from robot_change.cloud.geometry import depth_to_points, project_points
 
 RNG = np.random.default_rng(11)
 

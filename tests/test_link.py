@@ -1,4 +1,4 @@
-"""robot_change.link: the session, stepped with a fake clock; then over a real pty pair."""
+"""robot_change.link.session: the session, stepped with a fake clock; then over a real pty pair."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import tty
 import pytest
 
 from hw.serial_port import FdPort
-from robot_change import protocol as p
+from robot_change.link import protocol as p
 from robot_change.errors import LinkError
-from robot_change.link import (
+from robot_change.link.session import (
     Delivered,
     Link,
     LinkConfig,
@@ -474,7 +474,7 @@ def test_link_bench_small_run_reports_every_figure():
     import io
     import json
 
-    from robot_change.linkbench import run_link_bench
+    from robot_change.tools.linkbench import run_link_bench
 
     out = io.StringIO()
     result = run_link_bench(0.05, 5, 115200, json=True, seed=3, out=out)

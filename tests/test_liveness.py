@@ -1,4 +1,4 @@
-"""robot_change.liveness: progress stamps, units of work, the verdict (a fake clock)."""
+"""robot_change.service.liveness: progress stamps, units of work, the verdict (a fake clock)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import threading
 
 import pytest
 
-from robot_change.daemon import DEFAULT_STALL_S, MIN_STALL_S, stall_bound
-from robot_change.liveness import Progress
+from robot_change.service.daemon import DEFAULT_STALL_S, MIN_STALL_S, stall_bound
+from robot_change.service.liveness import Progress
 
 
 class Clock:

@@ -1,4 +1,4 @@
-"""Tests of robot_change.mixture and its numba kernels (robot_change.em).
+"""Tests of robot_change.mixture.model and its numba kernels (robot_change.mixture.em).
 
 Every kernel is checked against a plain NumPy twin written here; EM at fixed K against
 scikit-learn's GaussianMixture; split-EM on data drawn from known mixtures.
@@ -16,9 +16,9 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.special import logsumexp
 
-from robot_change import em
+from robot_change.mixture import em
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
-from robot_change.mixture import (
+from robot_change.mixture.model import (
     Mixture,
     criterion_value,
     fit_mixture,

@@ -1,4 +1,4 @@
-"""The camera's mounting on the base (robot_change.mount): optical frame -> base_link (REP 103),
+"""The camera's mounting on the base (robot_change.change.mount): optical frame -> base_link (REP 103),
 the robot's offset from its station pose, weak directions named in the base frame, and the
 mounting recorded with a reference (SceneModel, ``capture --mount``, ``detect``)."""
 
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from robot_change.errors import InputError, SceneFileError
-from robot_change.mount import CameraMount
-from robot_change.registration import Registration, invert, rpy_deg_to_rotation
+from robot_change.change.mount import CameraMount
+from robot_change.change.registration import Registration, invert, rpy_deg_to_rotation
 from robot_change.npzfile import checksum
-from robot_change.scene import SceneModel, build_scene
+from robot_change.change.scene import SceneModel, build_scene
 from sim_fixtures import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]

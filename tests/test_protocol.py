@@ -1,4 +1,4 @@
-"""robot_change.protocol: COBS, CRC, every message's layout, the decoder under abuse, the doc."""
+"""robot_change.link.protocol: COBS, CRC, every message's layout, the decoder under abuse, the doc."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from robot_change import protocol as p
+from robot_change.link import protocol as p
 from robot_change.errors import MessageError, ProtocolError
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"

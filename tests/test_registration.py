@@ -1,4 +1,4 @@
-"""Registration of the current view to the reference (robot_change.registration): the kernels
+"""Registration of the current view to the reference (robot_change.change.registration): the kernels
 against plain NumPy twins, accuracy against the revisit fixtures' true transforms (with the
 change in view), weak directions of a bare wall, and the not-at-station outcome."""
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change import registration as reg_mod
-from robot_change.change import ChangeParams, detect_changes
+from robot_change.change import registration as reg_mod
+from robot_change.change.detect import ChangeParams, detect_changes
 from robot_change.errors import InputError
-from robot_change.registration import (
+from robot_change.change.registration import (
     RegistrationParams,
     depth_sigma,
     invert,
@@ -22,7 +22,7 @@ from robot_change.registration import (
     rotation_to_rpy_deg,
     rpy_deg_to_rotation,
 )
-from robot_change.scene import build_scene
+from robot_change.change.scene import build_scene
 from sim_fixtures import load_scene, scene_names
 
 INTR = Intrinsics.openni_default()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from hw.depth import Intrinsics
-from robot_change.cloud import clean_cloud
-from robot_change.report import draw_cloud, mixture_ellipses
+from robot_change.cloud.chain import clean_cloud
+from robot_change.tools.report import draw_cloud, mixture_ellipses
 
 
 def test_a_sphere_straight_ahead_projects_to_a_centred_circle():

@@ -1,4 +1,4 @@
-"""Tests of robot_change.scene: building a SceneModel, its file, and compatibility checks.
+"""Tests of robot_change.change.scene: building a SceneModel, its file, and compatibility checks.
 
 Builds are ~0.1 s each; the sim scene's models are built once per module.
 """
@@ -15,7 +15,7 @@ import pytest
 
 import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics, open_depth
-from robot_change.cloud import PIXEL_KEPT, CloudParams
+from robot_change.cloud.chain import PIXEL_KEPT, CloudParams
 from robot_change.errors import (
     EmptySceneError,
     InputError,
@@ -23,9 +23,9 @@ from robot_change.errors import (
     SceneFileError,
     SceneMismatchError,
 )
-from robot_change.mixture import Mixture
+from robot_change.mixture.model import Mixture
 from robot_change.npzfile import checksum as _checksum
-from robot_change.scene import (
+from robot_change.change.scene import (
     FILE_FORMAT,
     FILE_VERSION,
     SceneModel,
@@ -365,7 +365,7 @@ def test_format_1_file_loads_with_its_cloud_rebuilt(tmp_path):
     """A reference saved before the key layout change (format 1: keys packed x, y, z from the
     top) still loads: the cloud is rebuilt from its depth image with the current layout, the
     mixture is the stored one, and saving it again writes the current format."""
-    from robot_change.filters import KEY_BITS, unpack_keys
+    from robot_change.cloud.filters import KEY_BITS, unpack_keys
 
     legacy = SIM_FIXTURES / "legacy" / "office_reference_v1.npz"
     header, arrays = read_npz(legacy)

@@ -1,4 +1,4 @@
-"""robot_change.service in process: the real link over a pty pair, the simulated base, a real
+"""robot_change.service.core in process: the real link over a pty pair, the simulated base, a real
 images source paced like a camera, a real store.
 
 The "camera" is a folder of 16-bit PNGs read at 30 fps in a loop; the scene changes when the
@@ -24,16 +24,16 @@ import pytest
 
 from hw.depth import open_depth
 from hw.serial_port import open_port
-from robot_change import protocol as p
-from robot_change.basesim import BaseSim
-from robot_change.config import Config, config_from_dict
-from robot_change.daemon import _reload
+from robot_change.link import protocol as p
+from robot_change.tools.basesim import BaseSim
+from robot_change.service.config import Config, config_from_dict
+from robot_change.service.daemon import _reload
 from robot_change.errors import ConfigError
-from robot_change.frames import FrameQueue
-from robot_change.service import Service, ServiceOptions
-from robot_change.store import ReferenceStore
-from robot_change.warmup import warm_up
-from robot_change.watch import depth_gate
+from robot_change.service.camera import FrameQueue
+from robot_change.service.core import Service, ServiceOptions
+from robot_change.service.store import ReferenceStore
+from robot_change.service.warmup import warm_up
+from robot_change.service.watch import depth_gate
 from hw.serial_port import FdPort
 
 SCENE = "office_box_added"
@@ -132,10 +132,10 @@ def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
 
     ref = [read_image(f) for f in scene_frames["reference"]]
     cur = [read_image(f) for f in scene_frames["current"]]
-    from robot_change.filters import fuse_depth
+    from robot_change.cloud.filters import fuse_depth
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
-    from robot_change.change import ChangeParams
+    from robot_change.change.detect import ChangeParams
 
     margins = ChangeParams().free_space_margin_m, ChangeParams().free_space_margin_per_m2
     quiet = max(depth_gate(fused, f, *margins) for f in ref)
@@ -260,12 +260,12 @@ def test_corrupt_reference_is_quarantined_and_reported_not_a_crash(rig: Rig) -> 
 
 def test_exception_inside_a_command_is_internal_error_and_the_service_goes_on(
         rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
-    import robot_change.scene
+    import robot_change.change.scene
 
     def broken(*args: object, **kwargs: object) -> None:
         raise RuntimeError("simulated bug")
 
-    monkeypatch.setattr(robot_change.scene, "build_scene", broken)
+    monkeypatch.setattr(robot_change.change.scene, "build_scene", broken)
     rig.run("capture office\nexpect FAULT code=INTERNAL_ERROR 5")
     monkeypatch.undo()
     rig.run("capture office\nexpect CAPTURED 5\nstatus\nexpect STATUS state=IDLE")
@@ -558,12 +558,12 @@ class Hang:
 
 def _hang_target(where: str) -> tuple[Any, str]:
     import hw.images
-    import robot_change.change
-    import robot_change.scene
+    import robot_change.change.detect
+    import robot_change.change.scene
 
-    return {"detector": (robot_change.change, "detect_changes"),
-            "check": (robot_change.change, "detect_changes"),
-            "capture": (robot_change.scene, "build_scene"),
+    return {"detector": (robot_change.change.detect, "detect_changes"),
+            "check": (robot_change.change.detect, "detect_changes"),
+            "capture": (robot_change.change.scene, "build_scene"),
             "camera": (hw.images.ImageFolderSource, "read")}[where]
 
 
@@ -637,7 +637,7 @@ def test_a_flaky_camera_reports_fault_and_cleared_at_most_once_per_backoff(
     """A looped folder with one corrupt image: without hysteresis FAULT / CLEARED alternated
     every ~0.5 s.  Now a reopened camera counts as back after 5 good frames, and the back-off
     (0.5 s, doubling) is not reset by them: the gaps between losses grow."""
-    from robot_change.frames import CAMERA_HEALTHY_FRAMES
+    from robot_change.service.camera import CAMERA_HEALTHY_FRAMES
 
     folder = tmp_path / "flaky"
     folder.mkdir()
@@ -660,7 +660,7 @@ def test_a_flaky_camera_reports_fault_and_cleared_at_most_once_per_backoff(
 
 
 def test_a_camera_never_healthy_for_long_enough_stays_lost(tmp_path: Path, scene_frames) -> None:
-    from robot_change.frames import CAMERA_HEALTHY_FRAMES
+    from robot_change.service.camera import CAMERA_HEALTHY_FRAMES
 
     folder = tmp_path / "flaky"
     folder.mkdir()

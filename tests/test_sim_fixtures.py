@@ -408,7 +408,7 @@ def test_stored_truth_is_consistent_with_object_ids():
 
 
 def test_revisits_are_displaced_as_named_with_truth_the_other_camera_can_see():
-    from robot_change.registration import rotation_angle_deg
+    from robot_change.change.registration import rotation_angle_deg
     from sim_fixtures.scenes import POSE_LEVELS
 
     revisits = [n for n in scene_names() if "_pose_" in n]

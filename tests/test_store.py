@@ -1,4 +1,4 @@
-"""robot_change.store: verified per-station references; a bad file is quarantined and reported,
+"""robot_change.service.store: verified per-station references; a bad file is quarantined and reported,
 never used; a kill -9 in the middle of a save leaves the previous reference whole."""
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import pytest
 from conftest import REPO, SIM_FIXTURES
 from hw.depth import open_depth
 from robot_change.errors import MessageError, ReferenceMissing, StationNameError, StoreError
-from robot_change.protocol import Captured
-from robot_change.scene import SceneModel, build_scene
-from robot_change.store import ReferenceStore, check_station
+from robot_change.link.protocol import Captured
+from robot_change.change.scene import SceneModel, build_scene
+from robot_change.service.store import ReferenceStore, check_station
 
 
 @pytest.fixture(scope="module")
@@ -208,8 +208,8 @@ def test_saving_over_a_bad_reference_keeps_the_good_previous(tmp_path, scenes):
 
 WRITER = """
 import sys
-from robot_change.scene import SceneModel
-from robot_change.store import ReferenceStore
+from robot_change.change.scene import SceneModel
+from robot_change.service.store import ReferenceStore
 root, first, second = sys.argv[1:]
 scenes = [SceneModel.load(first), SceneModel.load(second)]
 store = ReferenceStore(root)

@@ -1,4 +1,4 @@
-"""robot_change.systemd: sd_notify datagrams on a real unix socket, the watchdog interval, and
+"""robot_change.service.systemd: sd_notify datagrams on a real unix socket, the watchdog interval, and
 the unit and udev files under systemd/ (systemd-analyze verify must print nothing unexpected)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import uuid
 
 import pytest
 
-from robot_change import systemd
+from robot_change.service import systemd
 from conftest import REPO
 
 UNIT = REPO / "systemd" / "robot-change.service"
@@ -141,7 +141,7 @@ def test_unit_keeps_usb_serial_and_the_jit_working():
     s = unit_settings()
     assert s["Type"] == ["notify"]
     assert s["Restart"] == ["on-failure"]
-    from robot_change.config import EXIT_CONFIG
+    from robot_change.service.config import EXIT_CONFIG
     assert s["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
     assert "PrivateDevices" not in s and "MemoryDenyWriteExecute" not in s
     assert s["DevicePolicy"] == ["closed"]
@@ -248,7 +248,7 @@ def test_notify_never_blocks_on_a_socket_nobody_reads(tmp_path, monkeypatch):
     import socket as socket_module
     import time
 
-    from robot_change import systemd
+    from robot_change.service import systemd
 
     path = tmp_path / "full.sock"
     server = socket_module.socket(socket_module.AF_UNIX, socket_module.SOCK_DGRAM)

@@ -21,7 +21,7 @@ a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
   free) are not moved along and are reported (Zhang, Kaess & Singh 2016);
 * **fitness**: the fraction of current cells with an inlier correspondence at the end, and the
   RMSE of those.  Low fitness, or an offset beyond the station tolerance, is "not at the
-  station", a different answer from "changed" (decided in :mod:`robot_change.change`).
+  station", a different answer from "changed" (decided in :mod:`robot_change.change.detect`).
 
 The floor stays in: registration runs on the depth images, before plane removal.
 

@@ -1,13 +1,13 @@
-"""The daemon's main loop around a :class:`robot_change.service.Service`.
+"""The daemon's main loop around a :class:`robot_change.service.core.Service`.
 
 :func:`run_service`: systemd READY once the numba kernels are compiled or loaded
-(:func:`robot_change.warmup.warm_up`, in a thread of its own so that SIGTERM is honoured at
+(:func:`robot_change.service.warmup.warm_up`, in a thread of its own so that SIGTERM is honoured at
 once even during a cold compile), WATCHDOG only while every part makes progress
 (:meth:`Service.healthy`), SIGHUP reloads the configuration (a new camera source is reopened;
 a refused file keeps the old configuration, and STATUS says so), SIGTERM stops within ~1 s in
 every state (a hung kernel is abandoned, not waited for).
 
-A stall (robot_change.liveness) ends the loop: the service has told the base (FAULT STALLED,
+A stall (robot_change.service.liveness) ends the loop: the service has told the base (FAULT STALLED,
 PAUSE when watching); the loop waits up to :data:`STALL_GRACE_S` for the base's ACK of the
 FAULT, stops feeding the watchdog and returns :data:`EXIT_STALLED`, and the process exits
 for systemd to restart it (``Restart=on-failure``).  No READY is sent after STOPPING.
@@ -21,11 +21,11 @@ import threading
 import time
 from typing import Any, Callable
 
-from robot_change import systemd
-from robot_change.config import Config
+from robot_change.service import systemd
+from robot_change.service.config import Config
 from robot_change.errors import ConfigError
-from robot_change.service import Service
-from robot_change.warmup import warm_up
+from robot_change.service.core import Service
+from robot_change.service.warmup import warm_up
 
 __all__ = ["EXIT_STALLED", "STALL_GRACE_S", "run_service", "stall_bound"]
 

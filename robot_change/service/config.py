@@ -5,7 +5,7 @@
 
 Sections: ``camera``, ``serial``, ``store``, ``cloud``, ``mixture``, ``change``, ``watch``,
 ``service``; ``systemd/robot-change.toml`` documents every key with its default.  Keys that
-are also runtime parameters of the protocol (``robot_change.protocol.PARAMS``: ``watch_m``,
+are also runtime parameters of the protocol (``robot_change.link.protocol.PARAMS``: ``watch_m``,
 ``fuse_frames``, ``max_depth_mm`` ...) have the same names, ranges and defaults, and
 :meth:`Config.parameters` gives their values as the daemon's starting parameter table.
 
@@ -26,11 +26,11 @@ import types
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
-from robot_change.cloud import CloudParams
+from robot_change.cloud.chain import CloudParams
 from robot_change.errors import ConfigError, InputError
-from robot_change.mount import CameraMount
-from robot_change.protocol import PARAM_BY_NAME, PARAMS
-from robot_change.scene import SceneParams
+from robot_change.change.mount import CameraMount
+from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
+from robot_change.change.scene import SceneParams
 
 #: The library's own defaults: the config file's defaults are these, not copies of them.
 _CLOUD = CloudParams()
@@ -152,9 +152,9 @@ def _param(name: str) -> Check:
 
 
 def _cloud(name: str) -> Check:
-    """Checked by CloudParams itself, so the bounds live in one place (robot_change.cloud)."""
+    """Checked by CloudParams itself, so the bounds live in one place (robot_change.cloud.chain)."""
     def check(value: Any) -> Any:
-        from robot_change.cloud import CloudParams
+        from robot_change.cloud.chain import CloudParams
 
         if name == "plane_up":
             if (not isinstance(value, list) or len(value) != 3
@@ -178,9 +178,9 @@ def _cloud(name: str) -> Check:
 
 
 def _scene(name: str) -> Check:
-    """Checked by SceneParams itself (robot_change.scene holds the bounds)."""
+    """Checked by SceneParams itself (robot_change.change.scene holds the bounds)."""
     def check(value: Any) -> Any:
-        from robot_change.scene import SceneParams
+        from robot_change.change.scene import SceneParams
 
         default = getattr(SceneParams(), name)
         if isinstance(value, str):
@@ -262,7 +262,7 @@ class CameraConfig(_Section):
                                 "base_link, degrees (a camera tilted down 10 deg: [0, 10, 0])")
 
     def mount(self) -> CameraMount:
-        """The :class:`robot_change.mount.CameraMount` these keys describe."""
+        """The :class:`robot_change.change.mount.CameraMount` these keys describe."""
         return CameraMount(self.mount_xyz_m, self.mount_rpy_deg)
 
 
@@ -288,13 +288,13 @@ class StoreConfig(_Section):
 
     @property
     def references(self) -> Path:
-        """The folder a :class:`robot_change.store.ReferenceStore` uses."""
+        """The folder a :class:`robot_change.service.store.ReferenceStore` uses."""
         return Path(self.state_dir) / "references"
 
 
 @dataclasses.dataclass(frozen=True)
 class CloudConfig(_Section):
-    """Depth -> clean cloud (robot_change.cloud.CloudParams; depth range as on the wire)."""
+    """Depth -> clean cloud (robot_change.cloud.chain.CloudParams; depth range as on the wire)."""
 
     NAME: ClassVar[str] = "cloud"
     leaf_m: float = _key(_CLOUD.leaf_m, _cloud("leaf_m"), "voxel size in metres")
@@ -333,8 +333,8 @@ class CloudConfig(_Section):
                               f"cloud.{missing} (set both or neither)")
 
     def params(self):
-        """The :class:`robot_change.cloud.CloudParams` these keys describe."""
-        from robot_change.cloud import CloudParams
+        """The :class:`robot_change.cloud.chain.CloudParams` these keys describe."""
+        from robot_change.cloud.chain import CloudParams
 
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["min_depth_m"] = values.pop("min_depth_mm") / 1000.0
@@ -344,8 +344,8 @@ class CloudConfig(_Section):
 
 @dataclasses.dataclass(frozen=True)
 class MixtureConfig(_Section):
-    """The Gaussian mixture fitted to a cloud (robot_change.scene.SceneParams ->
-    robot_change.mixture.fit_mixture)."""
+    """The Gaussian mixture fitted to a cloud (robot_change.change.scene.SceneParams ->
+    robot_change.mixture.model.fit_mixture)."""
 
     NAME: ClassVar[str] = "mixture"
     criterion: str = _key(_SCENE.criterion, _scene("criterion"),
@@ -466,8 +466,8 @@ class Config:
         return cls()
 
     def scene_params(self):
-        """The :class:`robot_change.scene.SceneParams` a reference or check is built with."""
-        from robot_change.scene import SceneParams
+        """The :class:`robot_change.change.scene.SceneParams` a reference or check is built with."""
+        from robot_change.change.scene import SceneParams
 
         m = self.mixture
         return SceneParams(cloud=self.cloud.params(), criterion=m.criterion,

@@ -13,7 +13,7 @@ one int64 as ``(iz + 2**20) << 42 | (iy + 2**20) << 21 | (ix + 2**20)``, so sort
 by z, then y, then x: the voxels of one row along x (camera frame: a horizontal row across the
 image) are consecutive, the long runs on a room's floor, ceiling and facing walls that the
 outlier search walks (:func:`_knn_pairs`).  Points outside that range are dropped, never
-wrapped.  (Scene files before format version 2 packed x first; see robot_change.scene.)
+wrapped.  (Scene files before format version 2 packed x first; see robot_change.change.scene.)
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numba
 import numpy as np
 
 from robot_change.errors import InputError
-from robot_change.geometry import check_points
+from robot_change.cloud.geometry import check_points
 
 __all__ = [
     "KEY_BITS",
@@ -117,7 +117,7 @@ class VoxelGrid:
 
 #: Points per chunk in :func:`_voxel_kernel`: keys and hash slots of a chunk are computed in one
 #: branch-free loop the compiler vectorises, then probed in order.  A chunk plays the part an
-#: image row plays in :func:`robot_change.depth_voxels.depth_voxel_grid`.
+#: image row plays in :func:`robot_change.cloud.depth_voxels.depth_voxel_grid`.
 VOXEL_CHUNK = 512
 
 #: Smallest hash table of a voxel band, in slots (int32 record numbers: 64 KiB).

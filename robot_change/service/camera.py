@@ -101,7 +101,7 @@ class FrameQueue:
 
 
 class CameraThreadMixin:
-    """The camera thread of :class:`robot_change.service.Service`: open the source, read frames
+    """The camera thread of :class:`robot_change.service.core.Service`: open the source, read frames
     into ``self.frames``, reopen with backoff after a loss.
 
     Uses the service's ``_camera``, ``_camera_swap``, ``config``, ``frames``, ``_stop``,

@@ -9,14 +9,14 @@ import difflib
 import os
 from pathlib import Path
 
-from robot_change.config import Config, load_config
+from robot_change.service.config import Config, load_config
 from robot_change.errors import ConfigError, InputError
 
 __all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
 
 
 def load_checked_config(path: str | os.PathLike) -> Config:
-    """Read ``path`` (:func:`robot_change.config.load_config`) and :func:`check_config` it:
+    """Read ``path`` (:func:`robot_change.service.config.load_config`) and :func:`check_config` it:
     what ``check-config`` accepts, ``run`` starts with and a reload takes, and nothing else."""
     config = load_config(path)
     check_config(config)
@@ -55,10 +55,10 @@ def _check_state_dir(where: str, path: Path) -> None:
 
 
 def change_params(config: Config, params: dict[str, int]):
-    """The :class:`robot_change.change.ChangeParams` of a check: the configuration's free-form
+    """The :class:`robot_change.change.detect.ChangeParams` of a check: the configuration's free-form
     ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points`` and
     ``min_region_extent_mm`` (whose defaults are ChangeParams' own: one set of defaults)."""
-    from robot_change.change import ChangeParams
+    from robot_change.change.detect import ChangeParams
 
     fields = {f.name for f in dataclasses.fields(ChangeParams)}
     for name in dict(config.change.extra):

@@ -1,7 +1,7 @@
 """A simulated base controller: the other end of the serial link, for tests, demos and bring-up.
 
-It speaks the protocol through the same codec and session as the module (robot_change.protocol,
-robot_change.link), follows the base's pause rules (docs/protocol.md 7.6) and prints every message
+It speaks the protocol through the same codec and session as the module (robot_change.link.protocol,
+robot_change.link.session), follows the base's pause rules (docs/protocol.md 7.6) and prints every message
 it receives in a readable form.  Interactive: commands typed on stdin.  Scripted (``--script``):
 one command per line, plus ``wait``, ``expect`` and ``expect-none`` lines; a failed expectation
 ends the run with exit status 1.
@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from robot_change.errors import InputError, ProtocolError
-from robot_change.link import (
+from robot_change.link.session import (
     Delivered,
     Link,
     LinkConfig,
@@ -52,7 +52,7 @@ from robot_change.link import (
     SendFailed,
     StateChanged,
 )
-from robot_change.protocol import (
+from robot_change.link.protocol import (
     PARAM_BY_NAME,
     PARAMS,
     VERSION,

@@ -12,7 +12,7 @@ numbers in docs/evaluation.md).  For what appeared (current points):
    relative weights) as the background model of the current cloud; current points it explains
    poorly (log-density below a low quantile of the reference's own points) or that the
    reference saw through seed new free components, one per connected group on the voxel grid,
-   and EM fits them (:func:`robot_change.mixture.fit_mixture` with ``fixed=`` and
+   and EM fits them (:func:`robot_change.mixture.model.fit_mixture` with ``fixed=`` and
    ``fix_weights=True``).
 3. **Greedy EMD** (reference -> current) over the novelty components, with an explicit
    acceptance rule on its trajectory.  Computed and reported always; it decides only with
@@ -47,13 +47,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hw.depth import Intrinsics
-from robot_change.cloud import CloudParams, clean_cloud
+from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change import validate
-from robot_change.filters import KEY_BITS
-from robot_change.mixture import Mixture, fit_mixture
-from robot_change.mount import CameraMount
-from robot_change.registration import (
+from robot_change.cloud.filters import KEY_BITS
+from robot_change.mixture.model import Mixture, fit_mixture
+from robot_change.change.mount import CameraMount
+from robot_change.change.registration import (
     Registration,
     RegistrationParams,
     identity_registration,
@@ -418,7 +418,7 @@ class Epoch:
 def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
                      cloud_params: CloudParams = CloudParams(),
                      mixture: Mixture | None = None) -> Epoch:
-    """Clean the depth image (:func:`robot_change.cloud.clean_cloud`) into an :class:`Epoch`."""
+    """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an :class:`Epoch`."""
     cloud = clean_cloud(depth, intrinsics, cloud_params)
     return Epoch(np.ascontiguousarray(depth), intrinsics, cloud.points, cloud.keys,
                  cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params)
@@ -442,7 +442,7 @@ def _as_epoch(obj: Any, name: str) -> Epoch:
         leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
         mixture = getattr(obj, "mixture", None)
     except AttributeError as exc:
-        raise InputError(f"{name} must be a SceneModel (robot_change.scene) or an Epoch, got "
+        raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
                          f"{type(obj).__name__} ({exc})") from None
     return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
                  np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
@@ -456,7 +456,7 @@ def _check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
                         f"intrinsics; take both with the same camera mode, or rebuild the "
                         f"reference")
     if ref.cloud_params is not None and cur.cloud_params is not None:
-        from robot_change.scene import COMPARED_CLOUD_FIELDS
+        from robot_change.change.scene import COMPARED_CLOUD_FIELDS
         diff = [f"{n} {getattr(ref.cloud_params, n)!r} vs {getattr(cur.cloud_params, n)!r}"
                 for n in COMPARED_CLOUD_FIELDS
                 if getattr(ref.cloud_params, n) != getattr(cur.cloud_params, n)]
@@ -736,7 +736,7 @@ def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:
     Parameters
     ----------
     keys : (M,) int64
-        Packed voxel keys (:func:`robot_change.filters.pack_keys`), any order, no duplicates.
+        Packed voxel keys (:func:`robot_change.cloud.filters.pack_keys`), any order, no duplicates.
     radius : int
         Voxels whose indices differ by at most this on every axis are connected (1: the
         26-neighbourhood).
@@ -808,7 +808,7 @@ def _mask_of(epoch: Epoch, rows: np.ndarray) -> np.ndarray:
 
 
 def _ground(ma: Mixture, mb: Mixture, kind: str) -> np.ndarray:
-    from robot_change import transport as emd_mod
+    from robot_change.change import transport as emd_mod
     if kind == "euclidean":
         return emd_mod.ground_distance(ma.means, mb.means, kind="euclidean")
     return emd_mod.ground_distance(ma.means, mb.means, ma.covariances, mb.covariances,
@@ -837,7 +837,7 @@ def accept_trajectory(order: np.ndarray, emd_after: np.ndarray, weights: np.ndar
 
 def _greedy(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n_points: int,
             params: ChangeParams) -> GreedyTrace:
-    from robot_change import transport as emd_mod
+    from robot_change.change import transport as emd_mod
     cand_idx = np.flatnonzero(candidates)
     if cand_idx.size == 0:
         return GreedyTrace(cand_idx, np.zeros(0, np.int64),
@@ -1037,7 +1037,7 @@ def _current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None
             raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
                              f"{current.dtype} of shape {current.shape}")
         if reference_model is not None:
-            from robot_change.scene import check_compatible
+            from robot_change.change.scene import check_compatible
             check_compatible(reference_model, (intrinsics, reference_model.params))
         if current.shape != (intrinsics.height, intrinsics.width):
             raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
@@ -1058,13 +1058,13 @@ def _current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None
 
 
 def _scene_model(obj: Any) -> Any:
-    from robot_change.scene import SceneModel
+    from robot_change.change.scene import SceneModel
     return obj if isinstance(obj, SceneModel) else None
 
 
 def _check_scene_models(reference: Any, current: Any) -> None:
     """scene.check_compatible for two SceneModels, when scene.py provides it."""
-    from robot_change.scene import SceneModel, check_compatible
+    from robot_change.change.scene import SceneModel, check_compatible
     if isinstance(reference, SceneModel) and isinstance(current, SceneModel):
         check_compatible(reference, current)
 
@@ -1197,7 +1197,7 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
     """What appeared and what disappeared between the station's reference and now.
 
     The current view is first registered to the reference
-    (:func:`robot_change.registration.register_depth`, ``params.registration``); when the
+    (:func:`robot_change.change.registration.register_depth`, ``params.registration``); when the
     registration fails or the offset is beyond the station tolerance, the outcome is
     ``"not_at_station"`` and nothing is compared.  Otherwise both directions are compared in
     the current camera frame.
@@ -1221,7 +1221,7 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
 
     Raises
     ------
-    SceneMismatchError (robot_change.scene)
+    SceneMismatchError (robot_change.change.scene)
         Other image size, intrinsics or cloud parameters than the reference.
     EmptySceneError (robot_change.errors)
         Either clean cloud has fewer than ``params.min_cloud_points`` points: the camera sees

@@ -45,8 +45,8 @@ def _say(out: TextIO, text: str) -> None:
 def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
              start_timeout: float = 300.0) -> int:
     """Run the demo (module docstring); 0 when the base saw CAPTURED, PAUSE and the report."""
-    from robot_change.basesim import BaseSim
-    from robot_change.protocol import describe
+    from robot_change.tools.basesim import BaseSim
+    from robot_change.link.protocol import describe
 
     out = out or sys.stdout
     scene_dir = fixtures / "scenes" / SCENE
@@ -176,15 +176,15 @@ def _picture(state: Path, out_dir: Path, config: Path) -> Path:
     """report.png of the daemon's last check: its fused depth (saved by the daemon in
     state/reports/) compared again with the stored reference, with the same parameters (the
     detection is seeded, so the picture shows what the daemon found), drawn by
-    :func:`robot_change.report.draw_change`."""
+    :func:`robot_change.tools.report.draw_change`."""
     from robot_change import npzfile
-    from robot_change.change import detect_changes
-    from robot_change.config import load_config
+    from robot_change.change.detect import detect_changes
+    from robot_change.service.config import load_config
     from robot_change.errors import RobotChangeError
-    from robot_change.params import change_params
-    from robot_change.report import draw_change
-    from robot_change.service import CHECK_FORMAT
-    from robot_change.store import ReferenceStore
+    from robot_change.service.params import change_params
+    from robot_change.tools.report import draw_change
+    from robot_change.service.core import CHECK_FORMAT
+    from robot_change.service.store import ReferenceStore
 
     settings = load_config(config)
     _header, saved = npzfile.read(state / "reports" / f"{STATION}.last-check.npz",

@@ -7,7 +7,7 @@ only if the model-selection criterion (MDL, BIC or AIC) drops; otherwise try the
 candidate; stop when none helps or K reaches ``max_components``.
 
 Numeric module: arrays in, arrays out; the only I/O is :meth:`Mixture.save` /
-:meth:`Mixture.load`.  The EM kernels are in :mod:`robot_change.em`.
+:meth:`Mixture.load`.  The EM kernels are in :mod:`robot_change.mixture.em`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
-from robot_change import em, npzfile
+from robot_change import npzfile
+from robot_change.mixture import em
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
 
 __all__ = [
@@ -45,7 +46,7 @@ FILE_VERSION = 2  # 2: the checksum of robot_change.npzfile (1: of the arrays al
 #: Free parameters of one full-covariance 3-D Gaussian (3 for the mean, 6 for the covariance).
 N_PARAMS_COMPONENT = 9
 #: Default voxel leaf (m) the covariance floor is tied to when neither is given (the default
-#: leaf of robot_change.cloud.CloudParams).
+#: leaf of robot_change.cloud.chain.CloudParams).
 DEFAULT_LEAF = 0.03
 
 

@@ -1,9 +1,9 @@
 """A scene model: what the camera saw at one epoch, kept so that another epoch can be compared.
 
     frames (N x (H, W) uint16 mm)
-      -> fused depth   :func:`robot_change.filters.fuse_depth` (per-pixel median)
-      -> clean cloud   :func:`robot_change.cloud.clean_cloud` (voxels, outliers, plane)
-      -> mixture       :func:`robot_change.mixture.fit_mixture` (split-EM, MDL / BIC / AIC)
+      -> fused depth   :func:`robot_change.cloud.filters.fuse_depth` (per-pixel median)
+      -> clean cloud   :func:`robot_change.cloud.chain.clean_cloud` (voxels, outliers, plane)
+      -> mixture       :func:`robot_change.mixture.model.fit_mixture` (split-EM, MDL / BIC / AIC)
 
 A :class:`SceneModel` keeps all three, with the intrinsics (the free-space check of
 ALGORITHM.md section 3 needs the fused depth image, not only the cloud and the mixture) and how
@@ -29,16 +29,16 @@ import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import FrameError
 from robot_change import npzfile
-from robot_change.cloud import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
+from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
 from robot_change.errors import (
     EmptySceneError,
     InputError,
     SceneFileError,
     SceneMismatchError,
 )
-from robot_change.filters import Plane, fuse_depth
-from robot_change.mixture import CRITERIA, FitRecord, FitStep, Mixture, fit_mixture
-from robot_change.mount import CameraMount
+from robot_change.cloud.filters import Plane, fuse_depth
+from robot_change.mixture.model import CRITERIA, FitRecord, FitStep, Mixture, fit_mixture
+from robot_change.change.mount import CameraMount
 
 __all__ = [
     "FILE_FORMAT",
@@ -54,7 +54,7 @@ __all__ = [
 ]
 
 FILE_FORMAT = "robot_change.scene"
-#: 2: voxel keys pack z, y, x from the top (robot_change.filters); version 1 packed x, y, z.
+#: 2: voxel keys pack z, y, x from the top (robot_change.cloud.filters); version 1 packed x, y, z.
 #: A version-1 file still loads: its cloud is rebuilt from its own depth image and parameters
 #: (keys, point order and pixel maps as this version makes them); its mixture is kept.
 FILE_VERSION = 2
@@ -90,7 +90,7 @@ class SceneParams:
 
     ``cloud``: the clean-cloud chain (its ``leaf_m`` also sets the mixture's covariance floor).
     ``criterion``, ``max_components``, ``tol``, ``max_iter``, ``seed``, ``search_points``: passed
-    to :func:`robot_change.mixture.fit_mixture`.  ``min_valid_fraction``: in temporal fusion a
+    to :func:`robot_change.mixture.model.fit_mixture`.  ``min_valid_fraction``: in temporal fusion a
     pixel needs readings in at least ``ceil(fraction * N)`` of the N frames (0.5: flicker at
     object edges stays out).
     """
@@ -108,7 +108,7 @@ class SceneParams:
 
     def __post_init__(self) -> None:
         if not isinstance(self.cloud, CloudParams):
-            raise _bad("cloud", self.cloud, "a robot_change.cloud.CloudParams")
+            raise _bad("cloud", self.cloud, "a robot_change.cloud.chain.CloudParams")
         if self.criterion not in CRITERIA:
             raise _bad("criterion", self.criterion, f"one of {', '.join(CRITERIA)}")
         if not _is_int(self.max_components) or not 1 <= self.max_components <= 1000:
@@ -171,7 +171,7 @@ class SceneModel:
     """What the camera saw at one epoch, and how the model was made.
 
     ``depth``: (H, W) uint16 mm, the fused image (0 = no reading), read-only.
-    ``intrinsics``: of ``depth``.  ``cloud``: the :class:`robot_change.cloud.CleanCloud` --
+    ``intrinsics``: of ``depth``.  ``cloud``: the :class:`robot_change.cloud.chain.CleanCloud` --
     ``cloud.points`` (M, 3) float32 metres (camera optical frame), ``cloud.pixel_voxel``
     (H, W) int32 (row of ``points`` each pixel went into, -1 none), ``cloud.pixel_stage``,
     ``cloud.keys``, ``cloud.counts``, ``cloud.plane``, ``cloud.stage_counts``.
@@ -210,14 +210,14 @@ class SceneModel:
             raise InputError(f"SceneModel.depth is {d.shape[1]}x{d.shape[0]} but the intrinsics "
                              f"are for {self.intrinsics.width}x{self.intrinsics.height}")
         if not isinstance(self.cloud, CleanCloud):
-            raise InputError("SceneModel.cloud must be a robot_change.cloud.CleanCloud")
+            raise InputError("SceneModel.cloud must be a robot_change.cloud.chain.CleanCloud")
         if self.cloud.pixel_voxel.shape != d.shape:
             raise InputError(f"SceneModel.cloud.pixel_voxel has shape "
                              f"{self.cloud.pixel_voxel.shape}, the depth image {d.shape}")
         if not isinstance(self.mixture, Mixture) or not isinstance(self.params, SceneParams):
             raise InputError("SceneModel.mixture must be a Mixture and params a SceneParams")
         if self.mount is not None and not isinstance(self.mount, CameraMount):
-            raise InputError("SceneModel.mount must be a robot_change.mount.CameraMount or None")
+            raise InputError("SceneModel.mount must be a robot_change.change.mount.CameraMount or None")
         if d.flags.writeable:
             d = d.copy()
             d.setflags(write=False)
@@ -403,7 +403,7 @@ def build_scene(
         Required for arrays; for DepthFrames it overrides theirs (``--intrinsics``).
     source : str
         Where the frames came from (recorded, e.g. the depth URI).
-    mount : robot_change.mount.CameraMount, optional
+    mount : robot_change.change.mount.CameraMount, optional
         The camera's mounting on the base (recorded; ``detect`` uses it for base-frame
         results when not told otherwise).
 

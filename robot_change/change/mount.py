@@ -21,7 +21,7 @@ import numpy as np
 
 from robot_change import validate
 from robot_change.errors import InputError
-from robot_change.registration import (
+from robot_change.change.registration import (
     Registration,
     invert,
     rotation_to_rpy_deg,

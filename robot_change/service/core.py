@@ -5,7 +5,7 @@ an open serial port, a reference store and a configuration -- and never builds h
 (``robot_change.cli`` does, for ``robot-change run``); tests hand it a recording and one end of
 a pty pair exactly as the robot hands it a camera and ``/dev/robot-base``.
 
-States (``HEARTBEAT.state``, ``robot_change.protocol.ModuleState``)::
+States (``HEARTBEAT.state``, ``robot_change.link.protocol.ModuleState``)::
 
     BOOTING --start()--> IDLE
     IDLE --CAPTURE_REFERENCE s--> CAPTURING --CAPTURED s | FAULT--> IDLE
@@ -25,18 +25,18 @@ watch in progress; the quick ones (STATUS_QUERY, ARM, DISARM, RESUME, STOP, SET_
 GET_PARAM) are answered at once from the link thread.  CHECK fuses ``fuse_frames`` fresh
 frames (per-pixel median) and compares them with the station's reference; a check that sees
 nothing to compare (no depth: covered lens, something against the camera) is a FAULT
-CAMERA_LOST.  WATCH (``robot_change.watch``) checks the newest frame again and again and
+CAMERA_LOST.  WATCH (``robot_change.service.watch``) checks the newest frame again and again and
 raises PAUSE when a change persists.  SET_PARAM ``max_depth_mm`` applies to references
 captured after it (a check cleans its frames with its reference's parameters); the other
 parameters apply at once.
 
 Threads and queues (nothing grows without bound)::
 
-    camera    (robot_change.frames) source.read() -> FrameQueue (bounded, oldest dropped)
+    camera    (robot_change.service.camera) source.read() -> FrameQueue (bounded, oldest dropped)
     link      LinkRunner.run(): bytes <-> messages; quick commands answered here
     control   commands (bounded queue), frames, capture / check / watch, heartbeat contents
-    detector  (robot_change.watch) <= 2 threads running WATCH checks
-    monitor   progress of every part (robot_change.liveness): a stall is told to the base
+    detector  (robot_change.service.watch) <= 2 threads running WATCH checks
+    monitor   progress of every part (robot_change.service.liveness): a stall is told to the base
 
 Liveness: the link, camera and control threads stamp every turn, a CHECK or capture and every
 WATCH check is a unit of work that must end, and while a watch runs (the base parked, the
@@ -44,7 +44,7 @@ camera delivering) checks must keep finishing.  A part that makes no progress wi
 ``ServiceOptions.stall_after_s`` (half of WatchdogSec under systemd) is a stall: FAULT STALLED
 to the base, PAUSE (cause INTERNAL_ERROR) when armed and watching, the heartbeat's state FAULT,
 and :meth:`Service.healthy` false from then on, so the daemon stops feeding the watchdog and
-exits for systemd to restart it (``robot_change.daemon``).
+exits for systemd to restart it (``robot_change.service.daemon``).
 
 Every frame the camera delivers is accounted for: ``received == processed + dropped +
 queued`` (:meth:`Service.frame_counts`).  Bad input never stops the service: garbage on the line
@@ -52,7 +52,7 @@ is NAKed by the link, a corrupt reference is quarantined by the store and report
 REFERENCE_MISSING), and an exception inside a command is logged and answered with FAULT
 INTERNAL_ERROR while the service carries on.
 
-``robot_change.daemon.run_service`` is the daemon's main loop around a :class:`Service`.
+``robot_change.service.daemon.run_service`` is the daemon's main loop around a :class:`Service`.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ import numpy as np
 
 import robot_change
 from hw.depth import DepthFrame, DepthSource
-from robot_change.config import Config
+from robot_change.service.config import Config
 from robot_change.errors import (
     EmptySceneError,
     ReferenceMissing,
@@ -81,9 +81,9 @@ from robot_change.errors import (
 )
 from hw.atomic import write_atomically
 from robot_change import npzfile
-from robot_change.frames import CameraThreadMixin, FrameQueue
-from robot_change.liveness import Progress
-from robot_change.link import (
+from robot_change.service.camera import CameraThreadMixin, FrameQueue
+from robot_change.service.liveness import Progress
+from robot_change.link.session import (
     Delivered,
     Link,
     LinkConfig,
@@ -94,8 +94,8 @@ from robot_change.link import (
     SendFailed,
     StateChanged,
 )
-from robot_change.params import change_params, scene_params
-from robot_change.protocol import (
+from robot_change.service.params import change_params, scene_params
+from robot_change.link.protocol import (
     PARAM_BY_ID,
     REGIONS_PER_PART,
     V1_FAULT_CODE,
@@ -130,7 +130,7 @@ from robot_change.protocol import (
     Watch,
     split_change_report,
 )
-from robot_change.watch import WatchMixin, _Watch
+from robot_change.service.watch import WatchMixin, _Watch
 
 __all__ = ["Service", "ServiceOptions"]
 
@@ -237,7 +237,7 @@ class Service(CameraThreadMixin, WatchMixin):
     ``camera``: a :class:`hw.depth.DepthSource` (reopened with close()/open() after a loss) or
     a callable returning a new unopened one (called again after a loss).  ``port``: an open
     port (pyserial, :class:`hw.serial_port.ReopeningPort`, or anything with read, write,
-    in_waiting, fileno).  ``store``: a :class:`robot_change.store.ReferenceStore`.
+    in_waiting, fileno).  ``store``: a :class:`robot_change.service.store.ReferenceStore`.
     """
 
     def __init__(self, config: Config, camera: DepthSource | Callable[[], DepthSource], port: Any,
@@ -286,7 +286,7 @@ class Service(CameraThreadMixin, WatchMixin):
             "camera": max(self.options.stall_after_s, config.camera.read_timeout_s + 2.0)})
         self.stalled = ""  # what stalled (set once, by the monitor thread)
         self.stall_told = threading.Event()  # the base acknowledged the FAULT STALLED
-        self.stuck: list[str] = []  # threads that did not stop (robot_change.daemon)
+        self.stuck: list[str] = []  # threads that did not stop (robot_change.service.daemon)
         self.counters = collections.Counter()
         self.last_check: dict[str, Any] = {}
         #: the last WATCH results, newest last: t, seq, frame_index, changed, changed_in_window,
@@ -615,7 +615,7 @@ class Service(CameraThreadMixin, WatchMixin):
     def _kept_regions(self, changes: Any) -> list[Any]:
         """The regions of a ChangeSet to report, largest first, at most MAX_REPORT_REGIONS (the
         size limits of the wire's parameters were applied by the check itself:
-        robot_change.params.change_params)."""
+        robot_change.service.params.change_params)."""
         kept = sorted(changes.regions, key=lambda r: -r.n_points)
         return kept[:MAX_REPORT_REGIONS]
 
@@ -750,7 +750,7 @@ class Service(CameraThreadMixin, WatchMixin):
         return frames
 
     def _capture(self, station: str) -> None:
-        from robot_change.scene import build_scene
+        from robot_change.change.scene import build_scene
 
         self.store.path(station)  # a bad name fails before any frame is read
         self._set_activity(ModuleState.CAPTURING)
@@ -766,8 +766,8 @@ class Service(CameraThreadMixin, WatchMixin):
         self._send(Captured(station))
 
     def _check(self, station: str) -> None:
-        from robot_change.change import detect_changes
-        from robot_change.filters import fuse_depth
+        from robot_change.change.detect import detect_changes
+        from robot_change.cloud.filters import fuse_depth
 
         self._set_activity(ModuleState.CHECKING)
         reference = self.store.load(station)

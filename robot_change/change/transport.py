@@ -9,8 +9,8 @@ exactly, and the greedy loop removes the components of one mixture that lower th
   (default) or the closed-form 2-Wasserstein distance between the Gaussians.
 - :func:`greedy_emd` runs the whole greedy removal loop in one numba call and returns its
   trajectory; which prefix of it is a real change is the caller's decision
-  (:mod:`robot_change.change`).
-- :func:`mixture_emd` is EMD between two :class:`~robot_change.mixture.Mixture`.
+  (:mod:`robot_change.change.detect`).
+- :func:`mixture_emd` is EMD between two :class:`~robot_change.mixture.model.Mixture`.
 
 The solver (all in numba) is the transportation simplex on spanning-tree bases.  A basis is
 ``Ka + Kb - 1`` cells forming a spanning tree of the bipartite graph rows x columns; it always
@@ -49,7 +49,7 @@ import numpy as np
 from numba import njit
 
 from robot_change.errors import InputError
-from robot_change.mixture import Mixture
+from robot_change.mixture.model import Mixture
 
 __all__ = [
     "GROUND_DISTANCES",
@@ -740,7 +740,7 @@ def _check_cost(cost, ka: int, kb: int) -> np.ndarray:
 
 def _raise_solver_failure(status: int, shape) -> None:
     raise RuntimeError(f"transportation simplex failed (status {status}) on a {shape} problem; "
-                       "this is a bug in robot_change.transport: please report it with the inputs")
+                       "this is a bug in robot_change.change.transport: please report it with the inputs")
 
 
 def emd(weights_a, weights_b, cost) -> EmdResult:
@@ -944,7 +944,7 @@ def ground_distance(means_a, means_b, covariances_a=None, covariances_b=None,
 
 
 def mixture_emd(a, b, kind: str = "euclidean") -> float:
-    """EMD between two :class:`~robot_change.mixture.Mixture` (weights as masses).
+    """EMD between two :class:`~robot_change.mixture.model.Mixture` (weights as masses).
 
     Parameters
     ----------

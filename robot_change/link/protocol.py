@@ -2,7 +2,7 @@
 
 No ports, no threads, no clocks: :func:`encode` turns a message into the bytes of one frame and
 :class:`FrameDecoder` turns any stream of bytes into frames and counted decode errors.  The
-session (sequence numbers, acks, retries, heartbeats) lives in :mod:`robot_change.link`.
+session (sequence numbers, acks, retries, heartbeats) lives in :mod:`robot_change.link.session`.
 
 A frame on the wire is ``COBS(body) 0x00``; the body is::
 

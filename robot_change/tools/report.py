@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from hw.depth import Intrinsics
-from robot_change.cloud import PIXEL_KEPT, PIXEL_OUTLIER, PIXEL_PLANE, CleanCloud
-from robot_change.geometry import project_points
+from robot_change.cloud.chain import PIXEL_KEPT, PIXEL_OUTLIER, PIXEL_PLANE, CleanCloud
+from robot_change.cloud.geometry import project_points
 from robot_change.errors import InputError
 
 
@@ -181,7 +181,7 @@ def draw_change(
     per region.
 
     ``reference_depth`` / ``current_depth``: (H, W) uint16 mm; ``changes``: a
-    :class:`robot_change.change.ChangeSet`.  Returns the PNG's path.
+    :class:`robot_change.change.detect.ChangeSet`.  Returns the PNG's path.
     """
     plt = _pyplot()
     figure, axes = plt.subplots(1, 2, figsize=(14, 5.6), constrained_layout=True)

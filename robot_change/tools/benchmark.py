@@ -15,15 +15,15 @@ from typing import Any, Callable
 import numpy as np
 
 from hw.depth import Intrinsics
-from robot_change import em
-from robot_change.cloud import CloudParams, clean_cloud
-from robot_change.transport import emd, greedy_emd, ground_distance
-from robot_change.geometry import depth_to_points
-from robot_change.mixture import fit_mixture
+from robot_change.mixture import em
+from robot_change.cloud.chain import CloudParams, clean_cloud
+from robot_change.change.transport import emd, greedy_emd, ground_distance
+from robot_change.cloud.geometry import depth_to_points
+from robot_change.mixture.model import fit_mixture
 
-#: Per-stage timings of :func:`robot_change.cloud.clean_cloud` (milliseconds).  Back-projection
+#: Per-stage timings of :func:`robot_change.cloud.chain.clean_cloud` (milliseconds).  Back-projection
 #: runs inside the voxel pass there, so ``voxel_ms`` includes it; ``points_ms`` in the bench
-#: output is back-projection on its own (:func:`robot_change.geometry.depth_to_points`), timed
+#: output is back-projection on its own (:func:`robot_change.cloud.geometry.depth_to_points`), timed
 #: separately for comparison, and is not part of ``preprocess_ms``.
 PREPROCESS_STAGES = ("voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms")
 
@@ -43,13 +43,13 @@ def median_ms(function: Callable[[], Any], runs: int = 20, warmup: int = 3) -> f
 def bench_preprocess(
     depth: np.ndarray, intrinsics: Intrinsics, params: CloudParams, runs: int = 30, warmup: int = 3
 ) -> dict[str, Any]:
-    """Per-stage medians of :func:`robot_change.cloud.clean_cloud` on one (H, W) uint16 frame.
+    """Per-stage medians of :func:`robot_change.cloud.chain.clean_cloud` on one (H, W) uint16 frame.
 
     Returns the medians over ``runs`` after ``warmup`` runs, in milliseconds: ``voxel_ms``
     (depth to voxel grid, back-projection included), ``outlier_ms``, ``plane_ms``,
     ``preprocess_ms`` (the whole call, pixel maps included; its minimum too, as
     ``min_preprocess_ms``), and ``points_ms``: back-projection alone
-    (:func:`robot_change.geometry.depth_to_points`, which the chain does not call), timed
+    (:func:`robot_change.cloud.geometry.depth_to_points`, which the chain does not call), timed
     separately.  Also ``n_points_in`` (valid pixels), ``n_points_out`` (points of the clean
     cloud), ``stage_counts`` and ``voxel_includes_points`` (True).
     """
@@ -207,14 +207,14 @@ def bench_emd(runs: int = 200, warmup: int = 20, n_scenes: int = 5) -> dict[str,
 
 def bench_detect(reference, current_frame: np.ndarray, intrinsics: Intrinsics,
                  runs: int = 10, warmup: int = 2) -> dict[str, float | int]:
-    """``detect_ms``: a saved reference (a :class:`robot_change.scene.SceneModel`) and one
+    """``detect_ms``: a saved reference (a :class:`robot_change.change.scene.SceneModel`) and one
     current (H, W) uint16 frame to a ChangeSet, median over ``runs`` after ``warmup``.
 
     Also returns ``detect_regions`` (regions found) and ``registration_ms`` (the registration
     of the frame to the reference alone, part of ``detect_ms``).
     """
-    from robot_change.change import detect_changes
-    from robot_change.registration import register_depth
+    from robot_change.change.detect import detect_changes
+    from robot_change.change.registration import register_depth
 
     changes = detect_changes(reference, current_frame, intrinsics=intrinsics)
     detect_ms = median_ms(lambda: detect_changes(reference, current_frame, intrinsics=intrinsics),

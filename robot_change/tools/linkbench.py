@@ -24,8 +24,8 @@ from collections import deque
 from typing import Any, TextIO
 
 from robot_change.errors import InputError, LinkError
-from robot_change.link import Delivered, Link, LinkConfig, LinkState, Received, SendFailed, StateChanged
-from robot_change.protocol import BaseHeartbeat, Heartbeat, ModuleState, Motion, Pause, PauseCause, Role
+from robot_change.link.session import Delivered, Link, LinkConfig, LinkState, Received, SendFailed, StateChanged
+from robot_change.link.protocol import BaseHeartbeat, Heartbeat, ModuleState, Motion, Pause, PauseCause, Role
 
 
 class _Direction:

@@ -86,7 +86,7 @@ def _fsync_dir(folder: Path) -> None:
 
 
 def _default_scene_type() -> type:
-    from robot_change.scene import SceneModel
+    from robot_change.change.scene import SceneModel
 
     return SceneModel
 
@@ -95,7 +95,7 @@ class ReferenceStore:
     """The station references under ``root`` (created on the first save).
 
     ``scene_type`` is the class whose ``save(path)`` / ``load(path)`` (raising
-    :class:`SceneFileError`) read and write one reference: :class:`robot_change.scene.SceneModel`
+    :class:`SceneFileError`) read and write one reference: :class:`robot_change.change.scene.SceneModel`
     unless given.
     """
 

@@ -24,7 +24,7 @@ from enum import Enum
 from typing import Any, Callable
 
 from robot_change.errors import LinkError
-from robot_change.protocol import (
+from robot_change.link.protocol import (
     FLAG_RETRY,
     FLAG_URGENT,
     FROZEN_TYPES,

@@ -2,13 +2,13 @@
 
     depth (H, W) uint16 mm
       -> points and voxel grid, in one pass
-                      :func:`robot_change.depth_voxels.depth_voxel_grid` (min/max depth, one
+                      :func:`robot_change.cloud.depth_voxels.depth_voxel_grid` (min/max depth, one
                       centroid per voxel; the same as geometry.depth_to_points followed by
                       filters.voxel_grid)
-      -> outliers     :func:`robot_change.filters.statistical_outliers` (on the voxel cloud)
-      -> plane        :func:`robot_change.filters.fit_plane_ransac` (dominant plane removed)
+      -> outliers     :func:`robot_change.cloud.filters.statistical_outliers` (on the voxel cloud)
+      -> plane        :func:`robot_change.cloud.filters.fit_plane_ransac` (dominant plane removed)
 
-Temporal fusion (:func:`robot_change.filters.fuse_depth`) happens before this, on the frames.
+Temporal fusion (:func:`robot_change.cloud.filters.fuse_depth`) happens before this, on the frames.
 Numeric module: arrays in, arrays out; no I/O, no logging, no global state.
 """
 
@@ -24,9 +24,9 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change import validate
 from robot_change.errors import InputError
-from robot_change.depth_voxels import depth_voxel_grid
-from robot_change.filters import Plane, fit_plane_ransac, statistical_outliers
-from robot_change.geometry import MAX_DEPTH_M
+from robot_change.cloud.depth_voxels import depth_voxel_grid
+from robot_change.cloud.filters import Plane, fit_plane_ransac, statistical_outliers
+from robot_change.cloud.geometry import MAX_DEPTH_M
 
 __all__ = [
     "PIXEL_KEPT",
@@ -132,7 +132,7 @@ class CleanCloud:
 
     ``points``: (M, 3) float32 voxel centroids in metres (camera optical frame) that survived
     all four stages, sorted by voxel key.  ``keys``: (M,) int64 their packed voxel keys
-    (:func:`robot_change.filters.unpack_keys`).  ``counts``: (M,) int32 depth pixels per point.
+    (:func:`robot_change.cloud.filters.unpack_keys`).  ``counts``: (M,) int32 depth pixels per point.
     ``pixel_voxel``: (H, W) int32, for each depth pixel the row in ``points`` it was merged
     into, -1 for pixels that were invalid, out of range, or whose voxel was dropped as an
     outlier or as part of the plane.  ``pixel_stage``: (H, W) uint8, which of those happened
@@ -179,7 +179,7 @@ def _finish(points, keys, counts, kept_rows, on_plane, pixel_record, record_voxe
     ``points`` (V, 3), ``keys`` (V,), ``counts`` (V,): the voxel grid; ``kept_rows`` (K,)
     int64 ascending: the voxels outlier removal kept; ``on_plane`` (K,) bool: which of those
     the plane took; ``pixel_record`` (P,) int32 and ``record_voxel`` (Q,) int32: each pixel's
-    voxel in two steps (:class:`robot_change.depth_voxels.DepthVoxels`).  Returns
+    voxel in two steps (:class:`robot_change.cloud.depth_voxels.DepthVoxels`).  Returns
     (points (M, 3), keys (M,), counts (M,), pixel rows (P,) int32 with -1 for none, pixel
     stages (P,) uint8).
     """

@@ -30,8 +30,8 @@ import numpy as np
 
 from hw.depth import DepthFrame
 from robot_change.errors import EmptySceneError, SceneMismatchError
-from robot_change.params import change_params
-from robot_change.protocol import FaultCode, ModuleState, Motion, PauseCause
+from robot_change.service.params import change_params
+from robot_change.link.protocol import FaultCode, ModuleState, Motion, PauseCause
 
 __all__ = ["WatchMixin", "depth_gate"]
 
@@ -86,7 +86,7 @@ class _Watch:
 
 
 class WatchMixin:
-    """The WATCH of :class:`robot_change.service.Service`: started and ended by the controller,
+    """The WATCH of :class:`robot_change.service.core.Service`: started and ended by the controller,
     fed every frame (:meth:`_watch_frame`) and stepped every tick (:meth:`_watch_step`).
 
     Uses the service's state (``_watch``, ``_lock``, ``store``, ``config``, ``params``,
@@ -140,14 +140,14 @@ class WatchMixin:
             self._submit(watch, frame, seq)
 
     def _submit(self, watch: _Watch, frame: DepthFrame, seq: int) -> None:
-        from robot_change.change import detect_changes
+        from robot_change.change.detect import detect_changes
 
         assert self._pool is not None
         params = change_params(self.config, self.params)
         future = self._pool.submit(detect_changes, watch.reference, frame.depth, params,
                                    intrinsics=frame.intrinsics, initial_pose=watch.pose)
         # a unit of work until the check really ends (a cancelled or stale one too): a check
-        # that never ends is a stalled detector (robot_change.liveness)
+        # that never ends is a stalled detector (robot_change.service.liveness)
         work = self.progress.begin("detector", f"WATCH {watch.station}: the check of frame "
                                    f"{frame.index}")
 
