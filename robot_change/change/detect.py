@@ -876,7 +876,8 @@ def _current_mixture(cur: Epoch, ref_mix: Mixture, params: ChangeParams) -> Mixt
 def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: ChangeParams):
     """``base_mix`` plus one free component per connected group (on the voxel grid) of novel
     points with at least ``min_region_points`` points, largest first, at most
-    ``max_novelty_components``; returns (init Mixture, fixed mask)."""
+    ``max_novelty_components``; returns (init Mixture, fixed mask (K_init,) bool: True for
+    the components of ``base_mix``)."""
     k0 = base_mix.n_components
     idx = np.flatnonzero(novel)
     groups = []
@@ -888,7 +889,7 @@ def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: Ch
                 break
             groups.append(idx[labels == lab])
     if not groups:
-        return base_mix, "init"
+        return base_mix, np.ones(k0, dtype=bool)  # nothing to seed: every component fixed
     n = other.n_points
     reg = other.leaf_m ** 2 / 12.0
     w_new = np.array([len(g) / n for g in groups])
