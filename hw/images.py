@@ -21,12 +21,11 @@ import numpy as np
 from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, FrameTimeout, UriError
 from hw.imagefile import decode_image, read_file
+from hw.options import Pacer, flag, positive
 
 #: Frame period (µs) assumed when file names carry no time: 30 Hz, as OpenNI cameras.
 DEFAULT_PERIOD_US = 1_000_000 // 30
 _OPTIONS = ("scale", "rate", "loop", "intrinsics", "pattern")
-_TRUE = {"1", "true", "yes", "on", ""}
-_FALSE = {"0", "false", "no", "off"}
 # TUM RGB-D: "<seconds>.<fraction>", e.g. 1305031102.160407
 _SECONDS_STEM = re.compile(r"\d+\.\d+")
 # PCL's image grabber: "frame_20121214T142255.814212_depth" (local time, read as UTC)
@@ -134,12 +133,12 @@ class ImageFolderSource(DepthSource):
         self.files = list(files)
         self.scale = scale
         self.rate = rate
+        self._pacer = Pacer(rate)
         self.loop = loop
         self._given_intrinsics = intrinsics
         self._intrinsics: Intrinsics | None = None
         self._first: np.ndarray | None = None  # first image, decoded early for its size
         self._position = 0
-        self._due: float | None = None
         self._open = False
         stamps = [stem_timestamp_us(path.stem) for path in self.files]
         if all(stamp is not None for stamp in stamps):
@@ -180,7 +179,7 @@ class ImageFolderSource(DepthSource):
         if self._open:
             return
         self._position = 0
-        self._due = None
+        self._pacer.reset()
         self.intrinsics  # noqa: B018 - decode the first file: size and intrinsics errors now
         self._open = True
 
@@ -200,7 +199,7 @@ class ImageFolderSource(DepthSource):
         count = len(self.files)
         if self._position >= count and not self.loop:
             return None
-        self._wait_until_due(timeout)
+        self._pacer.wait(timeout, repr(self))
         index = self._position
         self._position += 1
         lap, slot = divmod(index, count)
@@ -235,24 +234,6 @@ class ImageFolderSource(DepthSource):
         period = span // (len(stamps) - 1) if len(stamps) > 1 else DEFAULT_PERIOD_US
         return stamps[slot] + lap * (span + max(period, 1))
 
-    def _wait_until_due(self, timeout: float | None) -> None:
-        if self.rate is None:
-            return
-        period = 1.0 / self.rate
-        now = time.monotonic()
-        due = now if self._due is None else self._due
-        wait = due - now
-        if wait > 0:
-            if timeout is not None and wait > timeout:
-                time.sleep(max(timeout, 0.0))
-                raise FrameTimeout(
-                    f"{self!r}: no frame within {timeout} s; the source is paced at "
-                    f"{self.rate} Hz (lower the rate option or raise the read timeout)")
-            time.sleep(wait)
-        # the next frame is one period after this one; a late reader does not get a burst
-        self._due = max(due, now) + period
-
-
 def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any = False,
                 intrinsics: Any = None, pattern: Any = None, **unknown: Any) -> ImageFolderSource:
     """The ``images:`` backend of :func:`hw.depth.open_depth`.
@@ -267,11 +248,11 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
     if unknown:
         raise UriError(f"images option(s) {', '.join(sorted(unknown))} unknown; the images "
                        f"backend takes {', '.join(_OPTIONS)}")
-    scale_value = _positive_number("scale", scale, "raw units per metre: 1000 for millimetres, "
-                                   "5000 for TUM RGB-D")
-    rate_value = None if rate is None or rate == "" else _positive_number(
-        "rate", rate, "frames per second; leave it out to read as fast as possible")
-    loop_value = _flag("loop", loop)
+    scale_value = positive("images", "scale", scale, "raw units per metre: 1000 for "
+                           "millimetres, 5000 for TUM RGB-D")
+    rate_value = None if rate is None or rate == "" else positive(
+        "images", "rate", rate, "frames per second; leave it out to read as fast as possible")
+    loop_value = flag("images", "loop", loop)
     if isinstance(intrinsics, str) and not intrinsics.strip():
         intrinsics = None
     if isinstance(intrinsics, str):
@@ -293,26 +274,6 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
                              "folder of them)")
     return ImageFolderSource(files, scale=scale_value, rate=rate_value, loop=loop_value,
                              intrinsics=intrinsics)
-
-
-def _positive_number(name: str, value: Any, meaning: str) -> float:
-    try:
-        number = float(value) if not isinstance(value, bool) else math.nan
-    except (TypeError, ValueError):
-        number = math.nan
-    if not (math.isfinite(number) and number > 0):
-        raise UriError(f"images option {name}={value!r}: expected a number > 0 ({meaning})")
-    return number
-
-
-def _flag(name: str, value: Any) -> bool:
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, int) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
-        return value.strip().lower() in _TRUE
-    raise UriError(f"images option {name}={value!r}: expected 1 or 0 (true/false, yes/no)")
 
 
 def _check_four_numbers(text: str) -> None:

@@ -56,6 +56,7 @@ import numpy as np
 import openni.openni2  # noqa: F401  -- the binding (pure Python; the native library loads in the reader)
 
 from hw.backoff import Backoff
+from hw.options import Pacer, flag, positive
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import (
     BackendUnavailable,
@@ -494,7 +495,6 @@ class OpenNI2Source(DepthSource):
         self._backoff = Backoff(0.5, 10.0)
         self._failed_restarts = 0
         self.loop = bool(loop)
-        self._due: float | None = None  # rate: when the next frame may be handed out
         if kind == "file":
             self._header = read_oni_header(target)
             self._intrinsics = self._header.intrinsics()
@@ -505,6 +505,7 @@ class OpenNI2Source(DepthSource):
             raise UriError(f"OpenNI2 option rate={rate!r}: frames per second > 0, or 'auto' for "
                            "the recording's own fps")
         self.rate = None if rate is None else float(rate)
+        self._pacer = Pacer(self.rate)
 
     # --- DepthSource ---------------------------------------------------------------------------
     @property
@@ -530,7 +531,7 @@ class OpenNI2Source(DepthSource):
         self._lib_dir = library_dir()
         self._ended = False
         self._last_index = None
-        self._due = None
+        self._pacer.reset()
         self._delivered = 0  # frames of this opening (a restarted reader skips them)
         self._start_reader(skip=0)
         self._open = True
@@ -562,8 +563,7 @@ class OpenNI2Source(DepthSource):
         if self._ended:
             return None
         deadline = math.inf if timeout is None else time.monotonic() + max(0.0, float(timeout))
-        if self.rate is not None:
-            self._wait_until_due(timeout)
+        self._pacer.wait(timeout, f"{self.uri} (option rate)")
         if self._proc is None:
             self._reconnect(deadline)
         while True:
@@ -601,22 +601,6 @@ class OpenNI2Source(DepthSource):
                 raise DeviceLost(f"{self.uri}: the OpenNI2 reader {why}; it was killed, reconnecting")
             if time.monotonic() >= deadline:
                 raise FrameTimeout(f"{self.uri}: no depth frame within {timeout:.2f} s")
-
-    def _wait_until_due(self, timeout: float | None) -> None:
-        """``rate``: wait until the next frame is due, as a camera would deliver it; more than
-        ``timeout`` s away: wait ``timeout`` and raise :class:`FrameTimeout` (as the images
-        backend does).  A late reader gets the next frame at once, not a burst."""
-        assert self.rate is not None
-        now = time.monotonic()
-        due = now if self._due is None else self._due
-        wait = due - now
-        if wait > 0:
-            if timeout is not None and wait > timeout:
-                time.sleep(max(float(timeout), 0.0))
-                raise FrameTimeout(f"{self.uri}: no frame within {timeout} s; the recording is "
-                                   f"paced at {self.rate:g} fps (option rate)")
-            time.sleep(wait)
-        self._due = max(due, now) + 1.0 / self.rate
 
     # --- test hooks ----------------------------------------------------------------------------
     def simulate_device_loss(self) -> None:
@@ -826,7 +810,7 @@ def _describe_exit(code: int | None) -> str:
 def _options(options: dict[str, Any]) -> dict[str, Any]:
     """URI query options arrive as strings; convert the known ones."""
     kinds = {"slots": int, "start_timeout": float, "stall_timeout": float, "lost_after": float,
-             "max_restarts": int, "loop": _flag, "rate": _rate}
+             "max_restarts": int, "loop": lambda v: flag("OpenNI2", "loop", v), "rate": _rate}
     out = {}
     for key, value in options.items():
         if key not in kinds:
@@ -841,30 +825,13 @@ def _options(options: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _flag(value: Any) -> bool:
-    if isinstance(value, bool) or (isinstance(value, int) and value in (0, 1)):
-        return bool(value)
-    text = str(value).strip().lower()
-    if text in ("1", "true", "yes", "on"):
-        return True
-    if text in ("0", "false", "no", "off", ""):
-        return False
-    raise UriError(f"OpenNI2 option loop={value!r}: expected 1 or 0 (true/false, yes/no)")
-
-
 def _rate(value: Any) -> float | str | None:
     if value is None or value == "":
         return None
     if isinstance(value, str) and value.strip().lower() in ("auto", "fps"):
         return "auto"
-    try:
-        number = float(value) if not isinstance(value, bool) else math.nan
-    except (TypeError, ValueError):
-        number = math.nan
-    if not (math.isfinite(number) and number > 0):
-        raise UriError(f"OpenNI2 option rate={value!r}: frames per second > 0, or 'auto' for "
-                       "the recording's own fps")
-    return number
+    return positive("OpenNI2", "rate", value, "frames per second, or 'auto' for the "
+                    "recording's own fps")
 
 
 def open_device(target: str = "", **options: Any) -> OpenNI2Source:

@@ -178,7 +178,7 @@ def test_a_frame_not_due_within_the_timeout_is_a_frame_timeout(tmp_path):
     make_folder(tmp_path / "seq", ["a.png", "b.png"])
     with open_images(str(tmp_path / "seq"), rate=2) as source:
         assert source.read().index == 0
-        with pytest.raises(errors.FrameTimeout, match="paced at 2.0 Hz"):
+        with pytest.raises(errors.FrameTimeout, match="paced at 2 fps"):
             source.read(timeout=0.01)
         assert source.read(timeout=2.0).index == 1
 
