@@ -25,7 +25,6 @@ import json
 import sys
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from robot_change.tools.benchmark import bench_emd  # noqa: E402

@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.tools.benchmark import benchmark_em, median_ms  # noqa: E402
 from robot_change.mixture.model import CRITERIA, fit_mixture  # noqa: E402
+from robot_change.tools.benchmark import benchmark_em, median_ms  # noqa: E402
 
 
 def _grid(origin, u, v, spacing):

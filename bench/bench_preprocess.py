@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT))
 
 from hw.depth import Intrinsics  # noqa: E402
 from hw.images import read_depth_image  # noqa: E402
-from robot_change.tools.benchmark import bench_preprocess, machine_info  # noqa: E402
 from robot_change.cloud.chain import CloudParams  # noqa: E402
 from robot_change.cloud.filters import fuse_depth  # noqa: E402
+from robot_change.tools.benchmark import bench_preprocess, machine_info  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 STAGES = ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms")

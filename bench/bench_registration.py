@@ -37,8 +37,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.cloud.geometry import depth_to_points  # noqa: E402
 from robot_change.change.registration import invert, register_depth, rotation_angle_deg  # noqa: E402
+from robot_change.cloud.geometry import depth_to_points  # noqa: E402
 
 LEAF = 0.02
 

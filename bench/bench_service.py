@@ -60,11 +60,11 @@ from hw.serial_port import (
     FdPort,  # noqa: E402
     open_port,  # noqa: E402
 )
-from robot_change.tools.basesim import BaseSim  # noqa: E402
 from robot_change.service.config import Config  # noqa: E402
 from robot_change.service.core import Service  # noqa: E402
 from robot_change.service.store import ReferenceStore  # noqa: E402
 from robot_change.service.warmup import warm_up  # noqa: E402
+from robot_change.tools.basesim import BaseSim  # noqa: E402
 
 SCENE = ROOT / "sim_fixtures" / "scenes" / "office_box_added"
 

@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from daemon_rig import WATCH_SETUP as SETUP  # noqa: E402
 from daemon_rig import Daemon  # noqa: E402
+
 from robot_change.link.protocol import FaultCode, PauseCause  # noqa: E402
 
 

@@ -73,12 +73,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from robot_change.tools.benchmark import machine_info  # noqa: E402
 from robot_change.change.detect import ChangeParams, detect_changes, detect_plain  # noqa: E402
+from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams, clean_cloud  # noqa: E402
 from robot_change.cloud.filters import fuse_depth  # noqa: E402
 from robot_change.mixture.model import N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
-from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
+from robot_change.tools.benchmark import machine_info  # noqa: E402
 from sim_fixtures import load_scene  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 

@@ -49,8 +49,8 @@ from robot_change.change.detect import (  # noqa: E402
     detect_nn_threshold,
     detect_plain,
 )
-from robot_change.cloud.chain import CloudParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
+from robot_change.cloud.chain import CloudParams  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")

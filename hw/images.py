@@ -12,14 +12,13 @@ import decimal
 import fnmatch
 import math
 import re
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
-from hw.errors import DepthFileError, DeviceError, FrameError, FrameTimeout, UriError
+from hw.errors import DepthFileError, DeviceError, FrameError, UriError
 from hw.imagefile import decode_image, read_file
 from hw.options import Pacer, flag, positive
 

@@ -45,8 +45,8 @@ from typing import BinaryIO, Iterable
 import numpy as np
 from numba import njit
 
-from hw.depth import DepthFrame, Intrinsics
 from hw.atomic import AtomicFile
+from hw.depth import DepthFrame, Intrinsics
 from hw.errors import DepthFileError, FrameError
 
 # --- container constants (OpenNI2 Source/Drivers/OniFile/DataRecords.h) ---------------------

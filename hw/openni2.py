@@ -52,11 +52,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-
 import openni.openni2  # noqa: F401  -- the binding (pure Python; the native library loads in the reader)
 
 from hw.backoff import Backoff
-from hw.options import Pacer, flag, positive
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import (
     BackendUnavailable,
@@ -69,6 +67,7 @@ from hw.errors import (
     UriError,
 )
 from hw.oni import intrinsics_from_fov, read_oni_header, write_oni
+from hw.options import Pacer, flag, positive
 
 log = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ import numpy as np
 
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
-from robot_change.errors import ConfigError, InputError, RobotChangeError
 from robot_change.change.mount import CameraMount
+from robot_change.errors import ConfigError, InputError, RobotChangeError
 
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
 #: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
@@ -52,8 +52,8 @@ def _read_depth(uri: str, frames: int, intrinsics: str | None) -> tuple[np.ndarr
 
     Returns ((H, W) uint16 mm, intrinsics, number of frames read).
     """
-    from robot_change.cloud.filters import fuse_depth
     from robot_change.change.scene import SceneParams
+    from robot_change.cloud.filters import fuse_depth
 
     read = _read_frames(uri, frames)
     camera = _camera(read, intrinsics)
@@ -173,9 +173,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from hw.serial_port import ReopeningPort
     from robot_change.service import systemd
+    from robot_change.service.core import Service, ServiceOptions
     from robot_change.service.daemon import run_service, stall_bound
     from robot_change.service.params import load_checked_config
-    from robot_change.service.core import Service, ServiceOptions
     from robot_change.service.store import ReferenceStore
 
     config = load_checked_config(args.config)
@@ -209,8 +209,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
-    from robot_change.tools.benchmark import (bench_detect, bench_emd, bench_preprocess, benchmark_em,
-                                        machine_info)
+    from robot_change.tools.benchmark import (
+        bench_detect,
+        bench_emd,
+        bench_preprocess,
+        benchmark_em,
+        machine_info,
+    )
 
     source = args.source or _bundled(DEMO_FRAME)
     depth, camera, _ = _read_depth(source, 1, None)
@@ -290,8 +295,8 @@ def _reference_scene(args: argparse.Namespace):
 def _current_input(args: argparse.Namespace, reference):
     """The current epoch: a saved SceneModel, or the fused depth of a URI's frames and the
     intrinsics to read it with."""
-    from robot_change.cloud.filters import fuse_depth
     from robot_change.change.scene import SceneModel
+    from robot_change.cloud.filters import fuse_depth
 
     if _is_scene_file(args.current):
         scene = SceneModel.load(args.current)

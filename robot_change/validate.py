@@ -15,7 +15,6 @@ import numpy as np
 
 from robot_change.errors import InputError
 
-
 #: Longest station name, characters.
 MAX_STATION = 32
 _STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,%d}\Z" % (MAX_STATION - 1))

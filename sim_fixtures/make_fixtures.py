@@ -46,13 +46,13 @@ from sim_fixtures.render import Render, render
 from sim_fixtures.scenes import (
     SCENES,
     SceneSpec,
+    _storage,
     change_geometry,
     object_ids,
-    render_pair,
     observed_masks,
+    render_pair,
     true_transform,
     truth_masks,
-    _storage,
 )
 
 ROOT = Path(__file__).resolve().parent

@@ -262,8 +262,8 @@ def load_tabletop_pair(name: str, data_dir: str | Path | None = None) -> Tableto
     """
     if name not in PAIRS:
         raise UnknownScene(f"no table-top pair {name!r}; known pairs: {', '.join(PAIRS)}")
-    from hw.images import read_depth_image
     from hw.imagefile import read_image
+    from hw.images import read_depth_image
 
     folder = Path(DEFAULT_DATA_DIR if data_dir is None else data_dir)
     derived = folder / "derived"

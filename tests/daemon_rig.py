@@ -27,7 +27,6 @@ sys.path.insert(0, str(TESTS))
 
 from test_daemon_e2e import Notes  # noqa: E402
 
-
 #: A base's script that captures station "office" and watches it (checks every 100 ms).
 WATCH_SETUP = """
     capture office

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from robot_change.link import protocol as p
-from robot_change.tools.basesim import parse_command, run_base_sim
-from robot_change.errors import InputError
-from robot_change.link.session import Link, LinkRunner, Received
 from hw.serial_port import FdPort
+from robot_change.errors import InputError
+from robot_change.link import protocol as p
+from robot_change.link.session import Link, LinkRunner, Received
+from robot_change.tools.basesim import parse_command, run_base_sim
 
 
 class FakeModule:
@@ -198,8 +198,8 @@ def test_commands_become_messages():
 def test_expect_takes_the_replies_to_one_command_in_any_order_and_never_twice():
     import io
 
-    from robot_change.tools.basesim import BaseSim, BaseState
     from hw.serial_port import open_port
+    from robot_change.tools.basesim import BaseSim, BaseState
 
     sim = BaseSim(open_port("loop://"), out=io.StringIO())
     sim._record("PAUSE", p.Pause(p.PauseCause.CHANGE_CHECK))

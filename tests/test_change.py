@@ -20,10 +20,10 @@ from robot_change.change.detect import (
     free_space_votes,
     label_voxel_components,
 )
-from robot_change.cloud.chain import CloudParams
-from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
-from robot_change.cloud.filters import pack_keys
 from robot_change.change.scene import SceneParams, build_scene
+from robot_change.cloud.chain import CloudParams
+from robot_change.cloud.filters import pack_keys
+from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from sim_fixtures import load_scene
 
 SCENES = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_crate_moved")

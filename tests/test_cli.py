@@ -8,10 +8,10 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import REPO
-from hw.oni import write_oni
+
 from hw.imagefile import read_image, write_png
+from hw.oni import write_oni
 
 
 def run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:

@@ -20,9 +20,9 @@ from robot_change.cloud.chain import (
     CloudParams,
     clean_cloud,
 )
-from robot_change.errors import InputError
 from robot_change.cloud.filters import pack_keys
 from robot_change.cloud.geometry import depth_to_points
+from robot_change.errors import InputError
 
 INTR = Intrinsics.openni_default()
 RNG = np.random.default_rng(21)

@@ -6,9 +6,12 @@ import dataclasses
 import re
 
 import pytest
-
 from conftest import REPO
+
+from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
+from robot_change.errors import ConfigError
+from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.service.config import (
     EXIT_CONFIG,
     Config,
@@ -17,9 +20,6 @@ from robot_change.service.config import (
     config_from_dict,
     load_config,
 )
-from robot_change.errors import ConfigError
-from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
-from robot_change.change.scene import SceneParams
 
 EXAMPLE = REPO / "systemd" / "robot-change.toml"
 

@@ -21,10 +21,10 @@ import tty
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, SIM_FIXTURES
-from robot_change.tools.basesim import run_base_sim
+
 from hw.serial_port import FdPort
+from robot_change.tools.basesim import run_base_sim
 
 SCENE = SIM_FIXTURES / "scenes" / "office_box_added"
 

@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from daemon_rig import REPO, WATCH_SETUP, Daemon
+
 from robot_change.service.daemon import EXIT_STALLED, STALL_GRACE_S
 
 BOUND = 2.0  # WATCHDOG_USEC=4 s: half of it, the floor of the stall bound

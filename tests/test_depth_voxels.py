@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import SHARED_DATA, SIM_FIXTURES
 from test_filters import twin_bands, twin_keys, twin_voxel_sums
 from test_geometry import twin_depth_to_points
 
 from hw.depth import Intrinsics
 from hw.images import read_depth_image
 from robot_change.cloud.depth_voxels import _depth_voxel_kernel, depth_voxel_grid
-from robot_change.errors import InputError
 from robot_change.cloud.filters import voxel_grid, voxel_table_size
 from robot_change.cloud.geometry import depth_kernel_args, depth_to_points
-
-from conftest import SHARED_DATA, SIM_FIXTURES
+from robot_change.errors import InputError
 
 RNG = np.random.default_rng(5)
 INTR = Intrinsics.openni_default()

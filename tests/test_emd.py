@@ -18,8 +18,15 @@ from scipy.optimize import linprog
 from scipy.spatial.distance import cdist
 
 from robot_change.change import transport as E
-from robot_change.change.transport import (STOP_REASONS, EmdResult, GreedyResult, emd, greedy_emd,
-                              ground_distance, mixture_emd)
+from robot_change.change.transport import (
+    STOP_REASONS,
+    EmdResult,
+    GreedyResult,
+    emd,
+    greedy_emd,
+    ground_distance,
+    mixture_emd,
+)
 from robot_change.errors import InputError
 from robot_change.mixture.model import Mixture
 

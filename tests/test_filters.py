@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.errors import InputError
 from robot_change.cloud.filters import (
     KEY_MAX_INDEX,
     KEY_MIN_INDEX,
@@ -33,6 +32,7 @@ from robot_change.cloud.filters import (
     voxel_table_size,
 )
 from robot_change.cloud.geometry import depth_to_points
+from robot_change.errors import InputError
 
 RNG = np.random.default_rng(7)
 

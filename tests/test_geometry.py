@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.errors import InputError
 from robot_change.cloud.geometry import depth_to_points, project_points
+from robot_change.errors import InputError
 
 RNG = np.random.default_rng(11)
 

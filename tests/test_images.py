@@ -11,6 +11,7 @@ from PIL import Image
 
 from hw import errors
 from hw.depth import Intrinsics, open_depth
+from hw.imagefile import write_png
 from hw.images import (
     ImageFolderSource,
     natural_key,
@@ -19,7 +20,6 @@ from hw.images import (
     stem_timestamp_us,
     to_millimetres,
 )
-from hw.imagefile import write_png
 
 RNG = np.random.default_rng(3)
 

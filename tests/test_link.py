@@ -10,8 +10,8 @@ import tty
 import pytest
 
 from hw.serial_port import FdPort
-from robot_change.link import protocol as p
 from robot_change.errors import LinkError
+from robot_change.link import protocol as p
 from robot_change.link.session import (
     Delivered,
     Link,

@@ -16,8 +16,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.special import logsumexp
 
-from robot_change.mixture import em
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
+from robot_change.mixture import em
 from robot_change.mixture.model import (
     Mixture,
     criterion_value,

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_change.errors import InputError, SceneFileError
 from robot_change.change.mount import CameraMount
 from robot_change.change.registration import Registration, invert, rpy_deg_to_rotation
-from robot_change.npzfile import checksum
 from robot_change.change.scene import SceneModel, build_scene
+from robot_change.errors import InputError, SceneFileError
+from robot_change.npzfile import checksum
 from sim_fixtures import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,13 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics, open_depth
-from hw.errors import DepthFileError, DeviceError, DeviceLost, DeviceNotFound, FrameTimeout
+from hw.errors import (
+    DepthFileError,
+    DeviceError,
+    DeviceLost,
+    DeviceNotFound,
+    FrameTimeout,
+)
 from hw.oni import read_oni_header, write_oni
 from hw.openni2 import OpenNI2Source, list_devices, open_device, open_recording, record
 

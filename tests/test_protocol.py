@@ -11,8 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from robot_change.link import protocol as p
 from robot_change.errors import MessageError, ProtocolError
+from robot_change.link import protocol as p
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 

@@ -12,7 +12,6 @@ import pytest
 from hw.depth import Intrinsics
 from robot_change.change import registration as reg_mod
 from robot_change.change.detect import ChangeParams, detect_changes
-from robot_change.errors import InputError
 from robot_change.change.registration import (
     RegistrationParams,
     depth_sigma,
@@ -23,6 +22,7 @@ from robot_change.change.registration import (
     rpy_deg_to_rotation,
 )
 from robot_change.change.scene import build_scene
+from robot_change.errors import InputError
 from sim_fixtures import load_scene, scene_names
 
 INTR = Intrinsics.openni_default()

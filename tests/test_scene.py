@@ -12,19 +12,10 @@ import zipfile
 
 import numpy as np
 import pytest
+from conftest import SIM_FIXTURES
 
 import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics, open_depth
-from robot_change.cloud.chain import PIXEL_KEPT, CloudParams
-from robot_change.errors import (
-    EmptySceneError,
-    InputError,
-    MixtureFileError,
-    SceneFileError,
-    SceneMismatchError,
-)
-from robot_change.mixture.model import Mixture
-from robot_change.npzfile import checksum as _checksum
 from robot_change.change.scene import (
     FILE_FORMAT,
     FILE_VERSION,
@@ -35,7 +26,16 @@ from robot_change.change.scene import (
     check_compatible,
     scene_differences,
 )
-from conftest import SIM_FIXTURES
+from robot_change.cloud.chain import PIXEL_KEPT, CloudParams
+from robot_change.errors import (
+    EmptySceneError,
+    InputError,
+    MixtureFileError,
+    SceneFileError,
+    SceneMismatchError,
+)
+from robot_change.mixture.model import Mixture
+from robot_change.npzfile import checksum as _checksum
 from sim_fixtures import load_scene
 
 ARRAYS = ("depth", "points", "keys", "counts", "pixel_voxel", "pixel_stage", "plane_normal",

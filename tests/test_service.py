@@ -23,18 +23,17 @@ import numpy as np
 import pytest
 
 from hw.depth import open_depth
-from hw.serial_port import open_port
-from robot_change.link import protocol as p
-from robot_change.tools.basesim import BaseSim
-from robot_change.service.config import Config, config_from_dict
-from robot_change.service.daemon import _reload
+from hw.serial_port import FdPort, open_port
 from robot_change.errors import ConfigError
+from robot_change.link import protocol as p
 from robot_change.service.camera import FrameQueue
+from robot_change.service.config import Config, config_from_dict
 from robot_change.service.core import Service, ServiceOptions
+from robot_change.service.daemon import _reload
 from robot_change.service.store import ReferenceStore
 from robot_change.service.warmup import warm_up
 from robot_change.service.watch import depth_gate
-from hw.serial_port import FdPort
+from robot_change.tools.basesim import BaseSim
 
 SCENE = "office_box_added"
 

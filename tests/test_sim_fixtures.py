@@ -13,11 +13,11 @@ import pytest
 
 from hw.depth import Intrinsics, open_depth
 from hw.imagefile import read_image
-from sim_fixtures import DEMO_FRAME, SCENES_DIR, UnknownScene, load_scene, scene_names
-from sim_fixtures import render as render_mod
 from hw.oni import read_oni_frames, read_oni_header
+from sim_fixtures import DEMO_FRAME, SCENES_DIR, UnknownScene, load_scene, scene_names
 from sim_fixtures import FORMAT_VERSION as LOADER_FORMAT_VERSION
 from sim_fixtures import ROOT as FIXTURES_ROOT
+from sim_fixtures import render as render_mod
 from sim_fixtures.make_fixtures import (
     FORMAT_VERSION,
     best_codec,

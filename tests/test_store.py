@@ -15,12 +15,17 @@ import time
 
 import numpy as np
 import pytest
-
 from conftest import REPO, SIM_FIXTURES
+
 from hw.depth import open_depth
-from robot_change.errors import MessageError, ReferenceMissing, StationNameError, StoreError
-from robot_change.link.protocol import Captured
 from robot_change.change.scene import SceneModel, build_scene
+from robot_change.errors import (
+    MessageError,
+    ReferenceMissing,
+    StationNameError,
+    StoreError,
+)
+from robot_change.link.protocol import Captured
 from robot_change.service.store import ReferenceStore, check_station
 
 

@@ -11,9 +11,9 @@ import subprocess
 import uuid
 
 import pytest
+from conftest import REPO
 
 from robot_change.service import systemd
-from conftest import REPO
 
 UNIT = REPO / "systemd" / "robot-change.service"
 RULES = REPO / "systemd" / "99-robot-change.rules"

@@ -47,11 +47,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hw.depth import Intrinsics
-from robot_change.cloud.chain import CloudParams, clean_cloud
-from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change import validate
-from robot_change.cloud.filters import KEY_BITS
-from robot_change.mixture.model import Mixture, fit_mixture
+from robot_change.change import transport as emd_mod
 from robot_change.change.mount import CameraMount
 from robot_change.change.registration import (
     Registration,
@@ -60,6 +57,15 @@ from robot_change.change.registration import (
     register_depth,
     transform_points,
 )
+from robot_change.change.scene import (
+    COMPARED_CLOUD_FIELDS,
+    SceneModel,
+    check_compatible,
+)
+from robot_change.cloud.chain import CloudParams, clean_cloud
+from robot_change.cloud.filters import KEY_BITS
+from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change.mixture.model import Mixture, fit_mixture
 
 __all__ = [
     "ChangeParams",
@@ -456,7 +462,6 @@ def _check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
                         f"intrinsics; take both with the same camera mode, or rebuild the "
                         f"reference")
     if ref.cloud_params is not None and cur.cloud_params is not None:
-        from robot_change.change.scene import COMPARED_CLOUD_FIELDS
         diff = [f"{n} {getattr(ref.cloud_params, n)!r} vs {getattr(cur.cloud_params, n)!r}"
                 for n in COMPARED_CLOUD_FIELDS
                 if getattr(ref.cloud_params, n) != getattr(cur.cloud_params, n)]
@@ -808,7 +813,6 @@ def _mask_of(epoch: Epoch, rows: np.ndarray) -> np.ndarray:
 
 
 def _ground(ma: Mixture, mb: Mixture, kind: str) -> np.ndarray:
-    from robot_change.change import transport as emd_mod
     if kind == "euclidean":
         return emd_mod.ground_distance(ma.means, mb.means, kind="euclidean")
     return emd_mod.ground_distance(ma.means, mb.means, ma.covariances, mb.covariances,
@@ -837,7 +841,6 @@ def accept_trajectory(order: np.ndarray, emd_after: np.ndarray, weights: np.ndar
 
 def _greedy(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n_points: int,
             params: ChangeParams) -> GreedyTrace:
-    from robot_change.change import transport as emd_mod
     cand_idx = np.flatnonzero(candidates)
     if cand_idx.size == 0:
         return GreedyTrace(cand_idx, np.zeros(0, np.int64),
@@ -1038,7 +1041,6 @@ def _current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None
             raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
                              f"{current.dtype} of shape {current.shape}")
         if reference_model is not None:
-            from robot_change.change.scene import check_compatible
             check_compatible(reference_model, (intrinsics, reference_model.params))
         if current.shape != (intrinsics.height, intrinsics.width):
             raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
@@ -1059,13 +1061,11 @@ def _current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None
 
 
 def _scene_model(obj: Any) -> Any:
-    from robot_change.change.scene import SceneModel
     return obj if isinstance(obj, SceneModel) else None
 
 
 def _check_scene_models(reference: Any, current: Any) -> None:
     """scene.check_compatible for two SceneModels, when scene.py provides it."""
-    from robot_change.change.scene import SceneModel, check_compatible
     if isinstance(reference, SceneModel) and isinstance(current, SceneModel):
         check_compatible(reference, current)
 

@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 
 from robot_change import validate
-from robot_change.errors import InputError
 from robot_change.change.registration import (
     Registration,
     invert,
     rotation_to_rpy_deg,
     rpy_deg_to_rotation,
 )
+from robot_change.errors import InputError
 
 __all__ = ["BODY_FROM_OPTICAL", "CameraMount", "BaseOffset"]
 

@@ -29,16 +29,22 @@ import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import FrameError
 from robot_change import npzfile
+from robot_change.change.mount import CameraMount
 from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
+from robot_change.cloud.filters import Plane, fuse_depth
 from robot_change.errors import (
     EmptySceneError,
     InputError,
     SceneFileError,
     SceneMismatchError,
 )
-from robot_change.cloud.filters import Plane, fuse_depth
-from robot_change.mixture.model import CRITERIA, FitRecord, FitStep, Mixture, fit_mixture
-from robot_change.change.mount import CameraMount
+from robot_change.mixture.model import (
+    CRITERIA,
+    FitRecord,
+    FitStep,
+    Mixture,
+    fit_mixture,
+)
 
 __all__ = [
     "FILE_FORMAT",

@@ -23,10 +23,10 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change import validate
-from robot_change.errors import InputError
 from robot_change.cloud.depth_voxels import depth_voxel_grid
 from robot_change.cloud.filters import Plane, fit_plane_ransac, statistical_outliers
 from robot_change.cloud.geometry import MAX_DEPTH_M
+from robot_change.errors import InputError
 
 __all__ = [
     "PIXEL_KEPT",

@@ -25,8 +25,8 @@ import math
 import numba
 import numpy as np
 
-from robot_change.errors import InputError
 from robot_change.cloud.geometry import check_points
+from robot_change.errors import InputError
 
 __all__ = [
     "KEY_BITS",

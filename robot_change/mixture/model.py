@@ -25,8 +25,8 @@ from scipy.spatial import cKDTree
 from scipy.special import digamma
 
 from robot_change import npzfile
-from robot_change.mixture import em
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
+from robot_change.mixture import em
 
 __all__ = [
     "CRITERIA",

@@ -26,11 +26,13 @@ import types
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
+from hw.depth import parse_uri
+from hw.errors import UriError
+from robot_change.change.mount import CameraMount
+from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import ConfigError, InputError
-from robot_change.change.mount import CameraMount
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
-from robot_change.change.scene import SceneParams
 
 #: The library's own defaults: the config file's defaults are these, not copies of them.
 _CLOUD = CloudParams()
@@ -120,9 +122,6 @@ def _text(value: Any) -> str:
 
 
 def _depth_uri(value: Any) -> str:
-    from hw.depth import parse_uri
-    from hw.errors import UriError
-
     text = _text(value)
     try:
         parse_uri(text)
@@ -154,8 +153,6 @@ def _param(name: str) -> Check:
 def _cloud(name: str) -> Check:
     """Checked by CloudParams itself, so the bounds live in one place (robot_change.cloud.chain)."""
     def check(value: Any) -> Any:
-        from robot_change.cloud.chain import CloudParams
-
         if name == "plane_up":
             if (not isinstance(value, list) or len(value) != 3
                     or not all(_is_int(v) or isinstance(v, float) for v in value)):
@@ -180,8 +177,6 @@ def _cloud(name: str) -> Check:
 def _scene(name: str) -> Check:
     """Checked by SceneParams itself (robot_change.change.scene holds the bounds)."""
     def check(value: Any) -> Any:
-        from robot_change.change.scene import SceneParams
-
         default = getattr(SceneParams(), name)
         if isinstance(value, str):
             value = value.lower()
@@ -334,8 +329,6 @@ class CloudConfig(_Section):
 
     def params(self):
         """The :class:`robot_change.cloud.chain.CloudParams` these keys describe."""
-        from robot_change.cloud.chain import CloudParams
-
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["min_depth_m"] = values.pop("min_depth_mm") / 1000.0
         values["max_depth_m"] = values.pop("max_depth_mm") / 1000.0
@@ -467,8 +460,6 @@ class Config:
 
     def scene_params(self):
         """The :class:`robot_change.change.scene.SceneParams` a reference or check is built with."""
-        from robot_change.change.scene import SceneParams
-
         m = self.mixture
         return SceneParams(cloud=self.cloud.params(), criterion=m.criterion,
                            max_components=m.max_components, tol=m.tol, max_iter=m.max_iter,

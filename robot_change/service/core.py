@@ -71,30 +71,17 @@ from typing import Any, Callable
 import numpy as np
 
 import robot_change
+from hw.atomic import write_atomically
 from hw.depth import DepthFrame, DepthSource
-from robot_change.service.config import Config
+from robot_change import npzfile
+from robot_change.change import detect, scene
+from robot_change.cloud.filters import fuse_depth
 from robot_change.errors import (
     EmptySceneError,
     ReferenceMissing,
     SceneMismatchError,
     StoreError,
 )
-from hw.atomic import write_atomically
-from robot_change import npzfile
-from robot_change.service.camera import CameraThreadMixin, FrameQueue
-from robot_change.service.liveness import Progress
-from robot_change.link.session import (
-    Delivered,
-    Link,
-    LinkConfig,
-    LinkRunner,
-    LinkState,
-    PortProblem,
-    Received,
-    SendFailed,
-    StateChanged,
-)
-from robot_change.service.params import change_params, scene_params
 from robot_change.link.protocol import (
     PARAM_BY_ID,
     REGIONS_PER_PART,
@@ -130,6 +117,21 @@ from robot_change.link.protocol import (
     Watch,
     split_change_report,
 )
+from robot_change.link.session import (
+    Delivered,
+    Link,
+    LinkConfig,
+    LinkRunner,
+    LinkState,
+    PortProblem,
+    Received,
+    SendFailed,
+    StateChanged,
+)
+from robot_change.service.camera import CameraThreadMixin, FrameQueue
+from robot_change.service.config import Config
+from robot_change.service.liveness import Progress
+from robot_change.service.params import change_params, scene_params
 from robot_change.service.watch import WatchMixin, _Watch
 
 __all__ = ["Service", "ServiceOptions"]
@@ -750,14 +752,12 @@ class Service(CameraThreadMixin, WatchMixin):
         return frames
 
     def _capture(self, station: str) -> None:
-        from robot_change.change.scene import build_scene
-
         self.store.path(station)  # a bad name fails before any frame is read
         self._set_activity(ModuleState.CAPTURING)
         n = self.params["fuse_frames"]
         frames = self._fresh_frames(n, f"CAPTURE_REFERENCE {station}")
         t0 = time.perf_counter()
-        model = build_scene(frames, scene_params(self.config, self.params),
+        model = scene.build_scene(frames, scene_params(self.config, self.params),
                             source=self.camera_uri, mount=self.config.camera.mount())
         path = self.store.save(station, model)
         log.info("station %s: reference of %d frames (%d points, K=%d) built in %.0f ms, saved "
@@ -766,9 +766,6 @@ class Service(CameraThreadMixin, WatchMixin):
         self._send(Captured(station))
 
     def _check(self, station: str) -> None:
-        from robot_change.change.detect import detect_changes
-        from robot_change.cloud.filters import fuse_depth
-
         self._set_activity(ModuleState.CHECKING)
         reference = self.store.load(station)
         mount = self.config.camera.mount()
@@ -782,7 +779,7 @@ class Service(CameraThreadMixin, WatchMixin):
         t0 = time.perf_counter()
         stack = np.stack([f.depth for f in frames])
         depth = stack[0] if n == 1 else fuse_depth(stack, reference.params.min_valid(n))
-        changes = detect_changes(reference, depth, change_params(self.config, self.params),
+        changes = detect.detect_changes(reference, depth, change_params(self.config, self.params),
                                  intrinsics=frames[0].intrinsics)
         regions = self._kept_regions(changes)
         ms = (time.perf_counter() - t0) * 1e3

@@ -21,9 +21,9 @@ import threading
 import time
 from typing import Any, Callable
 
+from robot_change.errors import ConfigError
 from robot_change.service import systemd
 from robot_change.service.config import Config
-from robot_change.errors import ConfigError
 from robot_change.service.core import Service
 from robot_change.service.warmup import warm_up
 

@@ -9,8 +9,9 @@ import difflib
 import os
 from pathlib import Path
 
-from robot_change.service.config import Config, load_config
+from robot_change.change.detect import ChangeParams
 from robot_change.errors import ConfigError, InputError
+from robot_change.service.config import Config, load_config
 
 __all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
 
@@ -58,8 +59,6 @@ def change_params(config: Config, params: dict[str, int]):
     """The :class:`robot_change.change.detect.ChangeParams` of a check: the configuration's free-form
     ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points`` and
     ``min_region_extent_mm`` (whose defaults are ChangeParams' own: one set of defaults)."""
-    from robot_change.change.detect import ChangeParams
-
     fields = {f.name for f in dataclasses.fields(ChangeParams)}
     for name in dict(config.change.extra):
         if name not in fields:

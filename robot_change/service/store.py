@@ -27,7 +27,13 @@ from typing import Any
 
 from hw.atomic import AtomicFile, write_atomically
 from robot_change import validate
-from robot_change.errors import ReferenceMissing, SceneFileError, StationNameError, StoreError
+from robot_change.change.scene import SceneModel
+from robot_change.errors import (
+    ReferenceMissing,
+    SceneFileError,
+    StationNameError,
+    StoreError,
+)
 
 __all__ = ["ReferenceStore", "StationInfo", "check_station", "CURRENT", "PREVIOUS"]
 
@@ -86,8 +92,6 @@ def _fsync_dir(folder: Path) -> None:
 
 
 def _default_scene_type() -> type:
-    from robot_change.change.scene import SceneModel
-
     return SceneModel
 
 

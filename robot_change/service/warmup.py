@@ -7,8 +7,10 @@ import time
 import numpy as np
 
 from hw.depth import Intrinsics
-from robot_change.service.config import Config
+from robot_change.change.detect import detect_changes
+from robot_change.change.scene import build_scene
 from robot_change.errors import EmptySceneError, InputError
+from robot_change.service.config import Config
 from robot_change.service.params import change_params
 
 __all__ = ["warm_up"]
@@ -36,9 +38,6 @@ def _synthetic_room(width: int = 160, height: int = 120, box: bool = False) -> n
 def warm_up(config: Config | None = None) -> float:
     """Compile (or load from the numba cache) every kernel a capture and a check use, on a tiny
     synthetic scene; returns the seconds it took."""
-    from robot_change.change.detect import detect_changes
-    from robot_change.change.scene import build_scene
-
     config = config or Config()
     t0 = time.perf_counter()
     width, height = 160, 120

@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 
 from hw.depth import DepthFrame
+from robot_change.change import detect
 from robot_change.errors import EmptySceneError, SceneMismatchError
-from robot_change.service.params import change_params
 from robot_change.link.protocol import FaultCode, ModuleState, Motion, PauseCause
+from robot_change.service.params import change_params
 
 __all__ = ["WatchMixin", "depth_gate"]
 
@@ -140,11 +141,9 @@ class WatchMixin:
             self._submit(watch, frame, seq)
 
     def _submit(self, watch: _Watch, frame: DepthFrame, seq: int) -> None:
-        from robot_change.change.detect import detect_changes
-
         assert self._pool is not None
         params = change_params(self.config, self.params)
-        future = self._pool.submit(detect_changes, watch.reference, frame.depth, params,
+        future = self._pool.submit(detect.detect_changes, watch.reference, frame.depth, params,
                                    intrinsics=frame.intrinsics, initial_pose=watch.pose)
         # a unit of work until the check really ends (a cancelled or stale one too): a check
         # that never ends is a stalled detector (robot_change.service.liveness)

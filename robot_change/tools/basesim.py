@@ -40,18 +40,8 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
+from hw.serial_port import open_port
 from robot_change.errors import InputError, ProtocolError
-from robot_change.link.session import (
-    Delivered,
-    Link,
-    LinkConfig,
-    LinkRunner,
-    LinkState,
-    PortProblem,
-    Received,
-    SendFailed,
-    StateChanged,
-)
 from robot_change.link.protocol import (
     PARAM_BY_NAME,
     PARAMS,
@@ -77,6 +67,17 @@ from robot_change.link.protocol import (
     Stop,
     Watch,
     describe,
+)
+from robot_change.link.session import (
+    Delivered,
+    Link,
+    LinkConfig,
+    LinkRunner,
+    LinkState,
+    PortProblem,
+    Received,
+    SendFailed,
+    StateChanged,
 )
 
 #: The base pauses after this long without a valid frame from the module (docs/protocol.md 7.6).
@@ -526,8 +527,6 @@ def run_base_sim(port_url: Any, script_path: str | Path | None = None, *, baudra
     lines = check_script(script_path) if script_path is not None else None
     port, owned = port_url, False
     if isinstance(port_url, str):
-        from hw.serial_port import open_port  # the tool, like the CLI, may open its own port
-
         port, owned = open_port(port_url, baudrate=baudrate, timeout=0.01), True
     try:
         sim = BaseSim(port, out=out, verbose=verbose, baudrate=baudrate, proto_max=proto_max)

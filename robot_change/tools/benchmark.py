@@ -15,10 +15,12 @@ from typing import Any, Callable
 import numpy as np
 
 from hw.depth import Intrinsics
-from robot_change.mixture import em
-from robot_change.cloud.chain import CloudParams, clean_cloud
+from robot_change.change.detect import detect_changes
+from robot_change.change.registration import register_depth
 from robot_change.change.transport import emd, greedy_emd, ground_distance
+from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.cloud.geometry import depth_to_points
+from robot_change.mixture import em
 from robot_change.mixture.model import fit_mixture
 
 #: Per-stage timings of :func:`robot_change.cloud.chain.clean_cloud` (milliseconds).  Back-projection
@@ -213,9 +215,6 @@ def bench_detect(reference, current_frame: np.ndarray, intrinsics: Intrinsics,
     Also returns ``detect_regions`` (regions found) and ``registration_ms`` (the registration
     of the frame to the reference alone, part of ``detect_ms``).
     """
-    from robot_change.change.detect import detect_changes
-    from robot_change.change.registration import register_depth
-
     changes = detect_changes(reference, current_frame, intrinsics=intrinsics)
     detect_ms = median_ms(lambda: detect_changes(reference, current_frame, intrinsics=intrinsics),
                           runs, warmup)

@@ -25,7 +25,15 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from hw.serial_port import FdPort
-from robot_change.errors import InputError
+from robot_change import npzfile
+from robot_change.change.detect import detect_changes
+from robot_change.errors import InputError, RobotChangeError
+from robot_change.link.protocol import describe
+from robot_change.service.config import load_config
+from robot_change.service.core import CHECK_FORMAT
+from robot_change.service.params import change_params
+from robot_change.service.store import ReferenceStore
+from robot_change.tools.basesim import BaseSim
 
 SCENE = "office_box_added"
 STATION = "office"
@@ -45,9 +53,6 @@ def _say(out: TextIO, text: str) -> None:
 def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
              start_timeout: float = 300.0) -> int:
     """Run the demo (module docstring); 0 when the base saw CAPTURED, PAUSE and the report."""
-    from robot_change.tools.basesim import BaseSim
-    from robot_change.link.protocol import describe
-
     out = out or sys.stdout
     scene_dir = fixtures / "scenes" / SCENE
     reference, current = scene_dir / "reference.oni", scene_dir / "current.oni"
@@ -177,14 +182,9 @@ def _picture(state: Path, out_dir: Path, config: Path) -> Path:
     state/reports/) compared again with the stored reference, with the same parameters (the
     detection is seeded, so the picture shows what the daemon found), drawn by
     :func:`robot_change.tools.report.draw_change`."""
-    from robot_change import npzfile
-    from robot_change.change.detect import detect_changes
-    from robot_change.service.config import load_config
-    from robot_change.errors import RobotChangeError
-    from robot_change.service.params import change_params
-    from robot_change.tools.report import draw_change
-    from robot_change.service.core import CHECK_FORMAT
-    from robot_change.service.store import ReferenceStore
+    from robot_change.tools.report import (
+        draw_change,  # matplotlib: the optional viz extra
+    )
 
     settings = load_config(config)
     _header, saved = npzfile.read(state / "reports" / f"{STATION}.last-check.npz",

@@ -23,9 +23,26 @@ import tty
 from collections import deque
 from typing import Any, TextIO
 
+from hw.serial_port import open_port
 from robot_change.errors import InputError, LinkError
-from robot_change.link.session import Delivered, Link, LinkConfig, LinkState, Received, SendFailed, StateChanged
-from robot_change.link.protocol import BaseHeartbeat, Heartbeat, ModuleState, Motion, Pause, PauseCause, Role
+from robot_change.link.protocol import (
+    BaseHeartbeat,
+    Heartbeat,
+    ModuleState,
+    Motion,
+    Pause,
+    PauseCause,
+    Role,
+)
+from robot_change.link.session import (
+    Delivered,
+    Link,
+    LinkConfig,
+    LinkState,
+    Received,
+    SendFailed,
+    StateChanged,
+)
 
 
 class _Direction:
@@ -83,8 +100,6 @@ def run_link_bench(corrupt: float = 0.1, count: int = 200, baud: int = 115200, j
     one_way_p50_ms, one_way_p99_ms, retransmissions, bad_frames, bytes, corrupted_bytes,
     link_faults, corrupt, baud, seconds.
     """
-    from hw.serial_port import open_port  # a bench harness, like the CLI, may open its own ports
-
     if not 0 <= corrupt < 1:
         raise InputError(f"--corrupt {corrupt}: give a probability per byte, 0 <= p < 1")
     if not 1 <= count <= 1_000_000:
