@@ -8,6 +8,7 @@ service for it), 1 an internal error.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import sys
@@ -26,8 +27,17 @@ from robot_change.errors import ConfigError, InputError, RobotChangeError
 #: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
 EXIT_CONFIG = 78
 
-#: The source checkout's bundled fixtures (absent from a wheel install: pass --source there).
-SIM_FIXTURES = Path(__file__).resolve().parents[1] / "sim_fixtures"
+def _fixtures_folder() -> Path:
+    """The bundled fixtures: the ``sim_fixtures`` package (installed with the demo's and the
+    bench's recordings as package data, or the checkout's), found without importing it."""
+    spec = importlib.util.find_spec("sim_fixtures")
+    if spec is not None and spec.origin:
+        return Path(spec.origin).resolve().parent
+    return Path(__file__).resolve().parents[1] / "sim_fixtures"
+
+
+#: The bundled fixtures (the recordings ``demo`` and ``bench`` use).
+SIM_FIXTURES = _fixtures_folder()
 #: The VGA frame of a furnished room (Kinect noise model) used by ``demo`` and ``bench``.
 DEMO_FRAME = SIM_FIXTURES / "frames" / "room_vga.png"
 #: The bundled scene ``bench`` times change detection on (a box appears in an office).
@@ -41,8 +51,8 @@ DETECT_SCENE = "office_box_added"
 def _bundled(path: Path) -> str:
     if not path.exists():
         raise InputError(
-            f"the bundled fixture {path} is missing: it ships with the source checkout; "
-            "pass --source URI to use your own depth"
+            f"the bundled fixture {path} is missing (it ships with robot-change: reinstall "
+            "it), or pass --source URI to use your own depth"
         )
     return str(path)
 

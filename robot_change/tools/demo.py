@@ -58,7 +58,7 @@ def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
     reference, current = scene_dir / "reference.oni", scene_dir / "current.oni"
     if not reference.is_file() or not current.is_file():
         raise InputError(f"the bundled recordings {reference} and {current} are missing: they "
-                         "ship with the source checkout")
+                         "ship with robot-change (sim_fixtures); reinstall it")
     truth = json.loads((scene_dir / "scene.json").read_text()).get("description", "")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
