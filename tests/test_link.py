@@ -493,3 +493,21 @@ def test_config_for_slow_lines_keeps_retries_behind_the_bursts():
     assert slow.retry_interval == pytest.approx(2.5 * air) and slow.retry_interval > 0.39
     assert slow.ack_holdoff == pytest.approx(1.5 * 10 / 9600 * p.URGENT_COPIES * 10)
     assert LinkConfig.for_baud(9600, max_tries=3).max_tries == 3
+
+
+def test_every_port_the_module_is_handed_is_a_byte_port(tmp_path):
+    """The typing of LinkRunner / Service: pyserial ports, ReopeningPort and FdPort fit."""
+    import os
+
+    from hw.serial_port import FdPort, ReopeningPort, open_port
+    from robot_change.link.port import BytePort
+
+    master, slave = os.openpty()
+    try:
+        assert isinstance(FdPort(master), BytePort)
+        assert isinstance(open_port(os.ttyname(slave)), BytePort)
+        assert isinstance(ReopeningPort(os.ttyname(slave)), BytePort)
+        assert not isinstance(object(), BytePort)
+    finally:
+        os.close(master)
+        os.close(slave)

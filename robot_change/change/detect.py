@@ -40,7 +40,7 @@ import dataclasses
 import functools
 import math
 import time
-from typing import Any
+from typing import Any, TypeAlias
 
 import numba
 import numpy as np
@@ -66,6 +66,10 @@ from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.cloud.filters import KEY_BITS
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change.mixture.model import Mixture, fit_mixture
+
+#: What a comparison takes as the reference, and as now (a depth array: (H, W) uint16 mm).
+Reference: TypeAlias = "SceneModel | Epoch"
+Current: TypeAlias = "SceneModel | Epoch | np.ndarray"
 
 __all__ = [
     "ChangeParams",
@@ -1103,7 +1107,7 @@ class _Aligned:
         return not self.reason
 
 
-def _align(reference: Any, current: Any, params: ChangeParams, intrinsics: Intrinsics | None,
+def _align(reference: Reference, current: Current, params: ChangeParams, intrinsics: Intrinsics | None,
            timings: dict, initial_pose: np.ndarray | None = None) -> _Aligned:
     """Checks, the current's clean cloud, registration and whether this is the station at all,
     the reference moved into the current camera frame, the free-space checks both ways."""
@@ -1192,7 +1196,7 @@ def _not_at_station(method: str, params: ChangeParams, aligned: _Aligned, timing
         not_at_station_reason=aligned.reason)
 
 
-def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangeParams(), *,
+def detect_changes(reference: Reference, current: Current, params: ChangeParams = ChangeParams(), *,
                    intrinsics: Intrinsics | None = None,
                    initial_pose: np.ndarray | None = None) -> ChangeSet:
     """What appeared and what disappeared between the station's reference and now.
@@ -1270,7 +1274,7 @@ def detect_changes(reference: Any, current: Any, params: ChangeParams = ChangePa
                    t_start)
 
 
-def detect_plain(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+def detect_plain(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
         novelty=False, free_space=False), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
     """The plain method (the paper's): independent fits of both clouds, greedy EMD over all
     components both ways deciding what changed (``params.greedy`` is forced on: without it
@@ -1324,7 +1328,7 @@ def _nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
     return ~np.isfinite(dist)
 
 
-def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+def detect_nn_threshold(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
         free_space=False, nn_check_m=0.05), *, intrinsics: Intrinsics | None = None,
         initial_pose: np.ndarray | None = None) -> ChangeSet:
     """Baseline: a current point is appeared when no reference point is within
@@ -1366,7 +1370,7 @@ def detect_nn_threshold(reference: Any, current: Any, params: ChangeParams = Cha
                    timings, t_start)
 
 
-def detect_geometric(reference: Any, current: Any, params: ChangeParams = ChangeParams(
+def detect_geometric(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
         nn_check_m=0.05), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
     """Baseline without a mixture: the 5 cm nearest-reference-point check plus the free-space
     check on every point (ALGORITHM.md section 3's bar for the mixture method)."""

@@ -24,6 +24,7 @@ from enum import Enum
 from typing import Any, Callable
 
 from robot_change.errors import LinkError
+from robot_change.link.port import BytePort
 from robot_change.link.protocol import (
     FLAG_RETRY,
     FLAG_URGENT,
@@ -521,7 +522,7 @@ class LinkRunner:
     or anything with ``read(n)``, ``write(b)`` and ``in_waiting``.
     """
 
-    def __init__(self, link: Link, port: Any, *, max_wait: float = 0.01) -> None:
+    def __init__(self, link: Link, port: BytePort, *, max_wait: float = 0.01) -> None:
         self.link = link
         self.port = port
         self.max_wait = max_wait

@@ -82,6 +82,7 @@ from robot_change.errors import (
     SceneMismatchError,
     StoreError,
 )
+from robot_change.link.port import BytePort
 from robot_change.link.protocol import (
     PARAM_BY_ID,
     REGIONS_PER_PART,
@@ -132,6 +133,7 @@ from robot_change.service.camera import CameraThreadMixin, FrameQueue
 from robot_change.service.config import Config
 from robot_change.service.liveness import Progress
 from robot_change.service.params import change_params, scene_params
+from robot_change.service.store import ReferenceStore
 from robot_change.service.watch import WatchMixin, _Watch
 
 __all__ = ["Service", "ServiceOptions"]
@@ -242,8 +244,8 @@ class Service(CameraThreadMixin, WatchMixin):
     in_waiting, fileno).  ``store``: a :class:`robot_change.service.store.ReferenceStore`.
     """
 
-    def __init__(self, config: Config, camera: DepthSource | Callable[[], DepthSource], port: Any,
-                 store: Any, options: ServiceOptions | None = None, *,
+    def __init__(self, config: Config, camera: DepthSource | Callable[[], DepthSource],
+                 port: BytePort, store: ReferenceStore, options: ServiceOptions | None = None, *,
                  link_config: LinkConfig | None = None) -> None:
         self.config = config
         self.options = options or ServiceOptions()
