@@ -380,7 +380,7 @@ def test_dummy_device_loss_and_recovery(tmp_path: Path, scene_frames) -> None:
 def test_a_busy_controller_drops_frames_and_counts_them(tmp_path: Path, scene_frames) -> None:
     rig = Rig(tmp_path, scene_frames, options=ServiceOptions(queue_frames=2))
     # unpaced: the camera delivers as fast as PNGs decode, faster than captures consume
-    rig.service._camera = lambda: open_depth(f"images:{rig.camera_dir}?loop=1")
+    rig.service.camera.replace_factory(lambda: open_depth(f"images:{rig.camera_dir}?loop=1"))
     with rig:
         rig.run("""
             capture office
@@ -444,7 +444,8 @@ def test_reload_takes_a_new_camera_and_keeps_the_old_config_when_the_new_one_fai
 
 def test_stop_during_a_capture_refuses_it(tmp_path: Path, scene_frames) -> None:
     rig = Rig(tmp_path, scene_frames)
-    rig.service._camera = lambda: open_depth(f"images:{rig.camera_dir}?rate=5&loop=1")
+    rig.service.camera.replace_factory(
+        lambda: open_depth(f"images:{rig.camera_dir}?rate=5&loop=1"))
     with rig:
         rig.run("""
             set fuse_frames 30

@@ -22,13 +22,13 @@ import collections
 import logging
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource
 from hw.errors import DeviceLost, FrameTimeout, HwError
 
-__all__ = ["CAMERA_BACKOFF", "CAMERA_HEALTHY_FRAMES", "CAMERA_STABLE_S", "CameraThreadMixin",
+__all__ = ["CAMERA_BACKOFF", "CAMERA_HEALTHY_FRAMES", "CAMERA_STABLE_S", "CameraThread",
            "FrameQueue"]
 
 log = logging.getLogger(__name__)
@@ -100,26 +100,58 @@ class FrameQueue:
                     "dropped": self.dropped, "queued": len(self._frames)}
 
 
-class CameraThreadMixin:
-    """The camera thread of :class:`robot_change.service.core.Service`: open the source, read frames
-    into ``self.frames``, reopen with backoff after a loss.
+class CameraThread:
+    """The camera thread of :class:`robot_change.service.core.Service`: open the source, read
+    frames into ``frames``, reopen with back-off after a loss (module docstring).
 
-    Uses the service's ``_camera``, ``_camera_swap``, ``config``, ``frames``, ``_stop``,
-    ``_wake``, ``progress`` and ``_arrivals``; writes ``camera_ok``, ``camera_error``,
-    ``camera_losses`` and ``camera_uri`` (the controller tells the base).
+    ``camera``: a DepthSource, or a function that makes one; ``read_timeout()``: seconds a read
+    may take (the service's configuration, which a reload may change); ``progress``: stamped
+    every turn (liveness); ``stop``: ends :meth:`run`; ``wake``: set when something the
+    controller must tell the base happened.  The controller reads ``ok``, ``error``,
+    ``losses``, ``uri`` and :meth:`fps`.
     """
 
+    def __init__(self, camera: DepthSource | Callable[[], DepthSource], frames: FrameQueue,
+                 progress: Any, stop: threading.Event, wake: threading.Event,
+                 read_timeout: Callable[[], float]) -> None:
+        self._camera = camera
+        self._swap: DepthSource | Callable[[], DepthSource] | None = None
+        self.frames, self.progress, self._stop, self._wake = frames, progress, stop, wake
+        self._read_timeout = read_timeout
+        self.ok = False
+        self.error = ""
+        self.losses = 0
+        self.uri = ""
+        self._arrivals: collections.deque[float] = collections.deque(maxlen=31)
+
+    def swap(self, camera: DepthSource | Callable[[], DepthSource]) -> None:
+        """Use ``camera`` from now on: the current source is closed and this one opened."""
+        self._swap = camera
+
+    def replace_factory(self, camera: DepthSource | Callable[[], DepthSource]) -> None:
+        """The source to make at the next (re)open, without closing the current one."""
+        self._camera = camera
+
+    def fps(self) -> float:
+        """Frames per second over the last second or so (0 when frames stopped)."""
+        times = list(self._arrivals)
+        if len(times) < 2 or time.monotonic() - times[-1] > 1.0:
+            return 0.0
+        span = times[-1] - times[0]
+        return (len(times) - 1) / span if span > 0 else 0.0
+
     def _make_source(self) -> DepthSource:
-        if self._camera_swap is not None:
-            self._camera, self._camera_swap = self._camera_swap, None
+        if self._swap is not None:
+            self._camera, self._swap = self._swap, None
         cam = self._camera
         source = cam if isinstance(cam, DepthSource) else cam()
         source.open()
-        self.camera_uri = getattr(source, "uri", "") or type(source).__name__
-        log.info("camera %s open", self.camera_uri)
+        self.uri = getattr(source, "uri", "") or type(source).__name__
+        log.info("camera %s open", self.uri)
         return source
 
-    def _camera_main(self) -> None:
+    def run(self) -> None:
+        """The thread's loop, until ``stop``."""
         backoff = Backoff(*CAMERA_BACKOFF)
         source: DepthSource | None = None
         good = 0  # good frames in a row since the source was (re)opened
@@ -127,7 +159,7 @@ class CameraThreadMixin:
         try:
             while not self._stop.is_set():
                 self.progress.beat("camera")
-                if self._camera_swap is not None and source is not None:
+                if self._swap is not None and source is not None:
                     self._close_source(source)
                     source = None
                     backoff.reset()
@@ -136,18 +168,18 @@ class CameraThreadMixin:
                     try:
                         source = self._make_source()
                     except Exception as exc:  # noqa: BLE001 -- any failure to open is a lost camera
-                        self._camera_down(f"cannot open the camera: {exc}")
+                        self._down(f"cannot open the camera: {exc}")
                         self._sleep(backoff.next())
                         continue
                 try:
-                    frame = source.read(timeout=self.config.camera.read_timeout_s)
+                    frame = source.read(timeout=self._read_timeout())
                 except (FrameTimeout, DeviceLost, HwError, OSError) as exc:
                     why = str(exc)
                     frame = None
                 else:
                     why = f"{getattr(source, 'uri', 'the recording')}: the recording ended"
                 if frame is None:
-                    self._camera_down(why)
+                    self._down(why)
                     self._close_source(source)
                     source = None
                     self._sleep(backoff.next())
@@ -155,25 +187,24 @@ class CameraThreadMixin:
                 now = time.monotonic()
                 self._arrivals.append(now)
                 good += 1
-                if not self.camera_ok and (good >= CAMERA_HEALTHY_FRAMES
-                                           or not self.camera_error):
+                if not self.ok and (good >= CAMERA_HEALTHY_FRAMES or not self.error):
                     # healthy again (or, at start, the first frame: nothing had failed)
-                    self.camera_ok, self.camera_error = True, ""
+                    self.ok, self.error = True, ""
                     healthy_since = now
                     log.info("camera delivering frames (frame %d)", frame.index)
                     self._wake.set()
-                if self.camera_ok and now - healthy_since >= CAMERA_STABLE_S:
+                if self.ok and now - healthy_since >= CAMERA_STABLE_S:
                     backoff.reset()  # stable: the next loss waits little again
                 self.frames.put(frame)
         finally:
             if source is not None:
                 self._close_source(source)
 
-    def _camera_down(self, why: str) -> None:
-        if self.camera_ok or not self.camera_error:
-            self.camera_losses += 1
+    def _down(self, why: str) -> None:
+        if self.ok or not self.error:
+            self.losses += 1
             log.error("camera lost: %s", why)
-        self.camera_ok, self.camera_error = False, why
+        self.ok, self.error = False, why
         self._wake.set()
 
     def _close_source(self, source: DepthSource) -> None:
@@ -183,9 +214,9 @@ class CameraThreadMixin:
             log.debug("closing the camera failed", exc_info=True)
 
     def _sleep(self, seconds: float) -> None:
-        """Sleep in short steps, marking the thread alive (the watchdog keeps being fed)."""
+        """Sleep in short steps, stamping progress (a back-off is not a stall)."""
         end = time.monotonic() + seconds
-        while not self._stop.is_set() and self._camera_swap is None:
+        while not self._stop.is_set() and self._swap is None:
             left = end - time.monotonic()
             if left <= 0:
                 return

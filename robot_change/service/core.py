@@ -129,7 +129,7 @@ from robot_change.link.session import (
     SendFailed,
     StateChanged,
 )
-from robot_change.service.camera import CameraThreadMixin, FrameQueue
+from robot_change.service.camera import CameraThread, FrameQueue
 from robot_change.service.config import Config
 from robot_change.service.liveness import Progress
 from robot_change.service.params import change_params, scene_params
@@ -234,7 +234,7 @@ def _short(text: str) -> str:
 # the service
 
 
-class Service(CameraThreadMixin, WatchMixin):
+class Service(WatchMixin):
     """The daemon's state machine (module docstring).  Make it, :meth:`start` it, and
     :meth:`close` it; everything else arrives over the link.
 
@@ -260,8 +260,6 @@ class Service(CameraThreadMixin, WatchMixin):
         self._stop = threading.Event()
         self.frames = FrameQueue(self.options.queue_frames, on_put=self._wake.set)
         self._commands: queue.Queue = queue.Queue(maxsize=self.options.command_queue)
-        self._camera = camera
-        self._camera_swap: Any = None
         self._threads: list[threading.Thread] = []
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self.started_at = time.monotonic()
@@ -277,17 +275,13 @@ class Service(CameraThreadMixin, WatchMixin):
         self._cancel = threading.Event()
         self._watch: _Watch | None = None
         self._report_id = 0
-        # camera (written by the camera thread)
-        self.camera_ok = False
-        self.camera_error = ""
-        self.camera_losses = 0
-        self.camera_uri = ""
         self._camera_reported = None  # what the controller last told the base: True ok / False lost
-        self._arrivals: collections.deque[float] = collections.deque(maxlen=31)
         self.last_frame_index = 0
         # liveness: the camera's reads may take their timeout, and then some
         self.progress = Progress(self.options.stall_after_s, {
             "camera": max(self.options.stall_after_s, config.camera.read_timeout_s + 2.0)})
+        self.camera = CameraThread(camera, self.frames, self.progress, self._stop, self._wake,
+                                   lambda: self.config.camera.read_timeout_s)
         self.stalled = ""  # what stalled (set once, by the monitor thread)
         self.stall_told = threading.Event()  # the base acknowledged the FAULT STALLED
         self.stuck: list[str] = []  # threads that did not stop (robot_change.service.daemon)
@@ -310,7 +304,7 @@ class Service(CameraThreadMixin, WatchMixin):
         with self._lock:
             self.state = ModuleState.IDLE
         self._refresh_heartbeat(force=True)
-        for name, target in (("link", self._link_main), ("camera", self._camera_main),
+        for name, target in (("link", self._link_main), ("camera", self.camera.run),
                              ("control", self._control_main), ("monitor", self._monitor_main)):
             thread = threading.Thread(target=self._guard(name, target), name=f"rc-{name}",
                                       daemon=True)
@@ -425,7 +419,7 @@ class Service(CameraThreadMixin, WatchMixin):
         if config.store != old.store:
             log.warning("[store] changed in the configuration: restart the service to use it")
         if camera is not None:
-            self._camera_swap = camera
+            self.camera.swap(camera)
             log.info("configuration reloaded; reopening the camera")
         else:
             log.info("configuration reloaded")
@@ -438,11 +432,27 @@ class Service(CameraThreadMixin, WatchMixin):
 
     def fps(self) -> float:
         """Camera frames per second over the last second or so (0 when frames stopped)."""
-        times = list(self._arrivals)
-        if len(times) < 2 or time.monotonic() - times[-1] > 1.0:
-            return 0.0
-        span = times[-1] - times[0]
-        return (len(times) - 1) / span if span > 0 else 0.0
+        return self.camera.fps()
+
+    @property
+    def camera_ok(self) -> bool:
+        """The camera is delivering frames (robot_change.service.camera)."""
+        return self.camera.ok
+
+    @property
+    def camera_error(self) -> str:
+        """Why the camera is not delivering ("" while it is)."""
+        return self.camera.error
+
+    @property
+    def camera_losses(self) -> int:
+        """Times the camera was lost since start."""
+        return self.camera.losses
+
+    @property
+    def camera_uri(self) -> str:
+        """The URI of the source the camera thread has open."""
+        return self.camera.uri
 
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
