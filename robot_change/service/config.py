@@ -358,9 +358,11 @@ _FREE_KEY = re.compile(r"[a-z][a-z0-9_]{0,63}\Z")
 
 @dataclasses.dataclass(frozen=True)
 class ChangeConfig(_Section):
-    """Thresholds of change detection.  The protocol's three are checked here; the change step
-    is still being written, so further numeric keys are kept in ``extra`` (validated: snake_case
-    names, finite numbers or booleans, and no near-miss of a known key)."""
+    """Thresholds of change detection.  The protocol's three are checked here; further keys are
+    fields of :class:`robot_change.change.detect.ChangeParams`, kept in ``extra`` (snake_case
+    names, finite numbers or booleans, no near-miss of a known key) and checked against
+    ChangeParams by :func:`robot_change.service.params.check_config` (an unknown one is
+    refused with a hint)."""
 
     NAME: ClassVar[str] = "change"
     min_region_points: int = _key(PARAM_BY_NAME["min_region_points"].default,
