@@ -65,7 +65,7 @@ from robot_change.change.scene import (
 from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.cloud.filters import KEY_BITS
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
-from robot_change.mixture.model import Mixture, fit_mixture
+from robot_change.mixture.model import Mixture, component_of, fit_mixture
 
 #: What a comparison takes as the reference, and as now (a depth array: (H, W) uint16 mm).
 Reference: TypeAlias = "SceneModel | Epoch"
@@ -900,9 +900,7 @@ def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: Ch
     n = other.n_points
     reg = other.leaf_m ** 2 / 12.0
     w_new = np.array([len(g) / n for g in groups])
-    means = [other.points[g].astype(np.float64).mean(axis=0) for g in groups]
-    covs = [np.cov(other.points[g].astype(np.float64), rowvar=False, bias=True)
-            + reg * np.eye(3) for g in groups]
+    means, covs = zip(*(component_of(other.points[g], reg) for g in groups))
     weights = np.concatenate([base_mix.weights * (1.0 - w_new.sum()), w_new])
     init = Mixture(weights / weights.sum(), np.vstack([base_mix.means, np.array(means)]),
                    np.concatenate([base_mix.covariances, np.array(covs)]))

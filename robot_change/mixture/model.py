@@ -743,11 +743,19 @@ def _fixed_mask(fixed, k: int) -> np.ndarray:
     return mask
 
 
+def component_of(points: np.ndarray, reg_covar: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian of a group of points (M, 3), float64: (mean (3,), covariance (3, 3), the
+    maximum-likelihood one plus ``reg_covar`` on the diagonal): how a new component is seeded,
+    here and in robot_change.change.detect."""
+    xs = np.asarray(points, dtype=np.float64)
+    return xs.mean(axis=0), np.cov(xs, rowvar=False, bias=True) + reg_covar * np.eye(3)
+
+
 def _seed_component(cur: _State, xs: np.ndarray, frac: float, reg_covar: float) -> _State:
     """``cur`` plus one free component on the points ``xs`` (weight ``frac``)."""
-    cov = np.cov(xs, rowvar=False, bias=True) + reg_covar * np.eye(3)
+    mean, cov = component_of(xs, reg_covar)
     w = np.concatenate([cur.weights * (1.0 - frac), [frac]])
-    return _State(w / w.sum(), np.vstack([cur.means, xs.mean(axis=0)]),
+    return _State(w / w.sum(), np.vstack([cur.means, mean]),
                   np.concatenate([cur.covs, cov[None]]), np.append(cur.fixed, False),
                   np.append(cur.j, np.nan))
 
