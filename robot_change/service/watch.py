@@ -66,7 +66,8 @@ class _WatchJob:
 class _Watch:
     """What a WATCH keeps: the station's reference, the persistence window, jobs in flight."""
 
-    def __init__(self, station: str, reference: Any, n: int) -> None:
+    def __init__(self, station: str, reference: Any, n: int,
+                 gate_margin: tuple[float, float]) -> None:
         self.station = station
         self.reference = reference
         self.window: collections.deque[bool] = collections.deque(maxlen=n)
@@ -84,6 +85,7 @@ class _Watch:
         self.latest_gate = 0
         self.pose: np.ndarray | None = None  # the last registration (T_ref_from_cur)
         self.off_station_reported = False
+        self.gate_margin = gate_margin  # the check's free-space margin (m, per m^2)
 
 
 class WatchMixin:
@@ -100,7 +102,10 @@ class WatchMixin:
     def _start_watch(self, station: str) -> None:
         reference = self.store.load(station)
         with self._lock:
-            self._watch = _Watch(station, reference, self.params["watch_n"])
+            # the gate's noise margin is the check's own, taken once (not per frame)
+            params = change_params(self.config, self.params)
+            self._watch = _Watch(station, reference, self.params["watch_n"],
+                                 (params.free_space_margin_m, params.free_space_margin_per_m2))
             self.activity = ModuleState.WATCHING
         log.info("WATCH %s: a change in %d of %d checks, every %d ms", station,
                  self.params["watch_m"], self.params["watch_n"], self.params["check_interval_ms"])
@@ -117,10 +122,9 @@ class WatchMixin:
                 job.future.cancel()
             log.info("watch of %s ended after %d checks", watch.station, watch.checks)
 
-    def _gate(self, reference: np.ndarray, depth: np.ndarray) -> int:
-        params = change_params(self.config, self.params)
-        return depth_gate(reference, depth, params.free_space_margin_m,
-                          params.free_space_margin_per_m2, self.options.gate_step)
+    def _gate(self, watch: _Watch, depth: np.ndarray) -> int:
+        return depth_gate(watch.reference.depth, depth, *watch.gate_margin,
+                          self.options.gate_step)
 
     def _parked(self) -> bool:
         return self.motion in (Motion.PARKED, Motion.PAUSED)
@@ -132,7 +136,7 @@ class WatchMixin:
         watch.latest, watch.latest_seq = frame, seq
         if frame.depth.shape != ref.shape:
             return  # the check itself reports the mismatch
-        watch.latest_gate = self._gate(ref, frame.depth)
+        watch.latest_gate = self._gate(watch, frame.depth)
         base = watch.gate_baseline
         if (base is not None and self._parked() and self.camera_ok
                 and abs(watch.latest_gate - base) > self.options.gate_pixels + self.options.gate_fraction * base
@@ -157,7 +161,7 @@ class WatchMixin:
         future.add_done_callback(done)
         watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
         watch.last_submitted = seq
-        watch.gate_baseline = self._gate(watch.reference.depth, frame.depth) \
+        watch.gate_baseline = self._gate(watch, frame.depth) \
             if frame.depth.shape == watch.reference.depth.shape else None
         watch.next_check = time.monotonic() + self.params["check_interval_ms"] / 1000.0
 
