@@ -32,7 +32,7 @@ from robot_change.service.core import Service, ServiceOptions
 from robot_change.service.daemon import _reload
 from robot_change.service.store import ReferenceStore
 from robot_change.service.warmup import warm_up
-from robot_change.service.watch import depth_gate
+from robot_change.service.watch import StationWatch, depth_gate
 from robot_change.tools.basesim import BaseSim
 
 SCENE = "office_box_added"
@@ -616,7 +616,7 @@ def test_a_watch_that_stops_checking_is_a_stall_even_with_frames_arriving(
     with Rig(tmp_path, scene_frames, options=options) as rig:
         rig.run(WATCH_SCRIPT + "wait 0.3")
         assert rig.service.healthy()[0]
-        monkeypatch.setattr(type(rig.service), "_submit", lambda *args: None)
+        monkeypatch.setattr(StationWatch, "_submit", lambda *args: None)
         rig.run("expect FAULT code=STALLED 4\nexpect PAUSE cause=INTERNAL_ERROR 2")
         assert "watch: no progress" in rig.service.healthy()[1]
         assert rig.service.frame_counts()["received"] > 0

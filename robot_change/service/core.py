@@ -75,6 +75,10 @@ from hw.atomic import write_atomically
 from hw.depth import DepthFrame, DepthSource
 from robot_change import npzfile
 from robot_change.change import detect, scene
+from robot_change.change.detect import ChangeSet
+from robot_change.change.detect import Region as ChangeRegion
+from robot_change.change.mount import CameraMount
+from robot_change.change.scene import SceneModel
 from robot_change.cloud.filters import fuse_depth
 from robot_change.errors import (
     EmptySceneError,
@@ -134,7 +138,7 @@ from robot_change.service.config import Config
 from robot_change.service.liveness import Progress
 from robot_change.service.params import change_params, scene_params
 from robot_change.service.store import ReferenceStore
-from robot_change.service.watch import WatchMixin, _Watch
+from robot_change.service.watch import GateOptions, StationWatch
 
 __all__ = ["Service", "ServiceOptions"]
 
@@ -187,7 +191,8 @@ def _clip(value: float, lo: int, hi: int) -> int:
     return int(min(hi, max(lo, round(value))))
 
 
-def _wire_regions(regions: list[Any], mount: Any = None) -> list[Region]:
+def _wire_regions(regions: list[ChangeRegion], mount: CameraMount | None = None
+                  ) -> list[Region]:
     """change.Region (metres) -> protocol.Region (mm, clipped to the field widths): in the
     camera optical frame (protocol version 1), or with ``mount`` in base_link (version 2)."""
     out = []
@@ -204,7 +209,8 @@ def _wire_regions(regions: list[Any], mount: Any = None) -> list[Region]:
     return out
 
 
-def check_result(station: str, changes: Any, mount: Any, report_id: int = 0) -> CheckResult:
+def check_result(station: str, changes: ChangeSet, mount: CameraMount, report_id: int = 0
+                 ) -> CheckResult:
     """The CHECK_RESULT (protocol version 2) of a ChangeSet: outcome and the robot's offset
     from its station pose in base_link (mm, centi-degrees), fitness, unobserved share, weak
     directions."""
@@ -234,7 +240,7 @@ def _short(text: str) -> str:
 # the service
 
 
-class Service(WatchMixin):
+class Service:
     """The daemon's state machine (module docstring).  Make it, :meth:`start` it, and
     :meth:`close` it; everything else arrives over the link.
 
@@ -273,7 +279,7 @@ class Service(WatchMixin):
         self._pause_undelivered = False
         self._last_pause_cause = PauseCause.CHANGE_CHECK
         self._cancel = threading.Event()
-        self._watch: _Watch | None = None
+        self._watch: StationWatch | None = None
         self._report_id = 0
         self._camera_reported = None  # what the controller last told the base: True ok / False lost
         self.last_frame_index = 0
@@ -393,7 +399,7 @@ class Service(WatchMixin):
             if pause:
                 self.latched = True
                 self._last_pause_cause = PauseCause.INTERNAL_ERROR
-            self._fault(FaultCode.STALLED, f"{why}; the module restarts")
+            self.send_fault(FaultCode.STALLED, f"{why}; the module restarts")
             if pause:
                 self._send(Pause(PauseCause.INTERNAL_ERROR))
                 self.counters["pauses"] += 1
@@ -412,8 +418,7 @@ class Service(WatchMixin):
             self.config = config
             self.params = dict(config.parameters())
             if self._watch is not None:
-                self._watch.window = collections.deque(self._watch.window,
-                                                       maxlen=self.params["watch_n"])
+                self._watch.configure(self.params, change_params(config, self.params))
         if config.serial != old.serial:
             log.warning("[serial] changed in the configuration: restart the service to use it")
         if config.store != old.store:
@@ -454,6 +459,16 @@ class Service(WatchMixin):
         """The URI of the source the camera thread has open."""
         return self.camera.uri
 
+    @property
+    def parked(self) -> bool:
+        """The base's last heartbeat said PARKED or PAUSED (a watch checks only then)."""
+        return self.motion in (Motion.PARKED, Motion.PAUSED)
+
+    def may_pause(self) -> bool:
+        """A change may raise PAUSE now: armed, ``pause_on_change`` set, the latch not set."""
+        with self._lock:
+            return self.armed and bool(self.params["pause_on_change"]) and not self.latched
+
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
         with self._lock:
@@ -482,7 +497,7 @@ class Service(WatchMixin):
                     self._on_event(event)
                 except Exception:  # noqa: BLE001 -- a bad command must not stop the link
                     log.exception("handling %r failed", event)
-                    self._fault(FaultCode.INTERNAL_ERROR, "internal error handling a command; "
+                    self.send_fault(FaultCode.INTERNAL_ERROR, "internal error handling a command; "
                                 "see the module's log")
 
     def _on_event(self, event: Any) -> None:
@@ -517,7 +532,7 @@ class Service(WatchMixin):
             try:
                 self._commands.put_nowait(m)
             except queue.Full:
-                self._fault(FaultCode.COMMAND_REFUSED, f"{m.TYPE.name} {m.station} refused: "
+                self.send_fault(FaultCode.COMMAND_REFUSED, f"{m.TYPE.name} {m.station} refused: "
                             f"{self.options.command_queue} commands already waiting")
                 return
             if self._watch is not None:  # a new command ends the watch at once
@@ -556,18 +571,19 @@ class Service(WatchMixin):
         with self._lock:
             trial = dict(self.params, **{name: value})
             if trial["watch_m"] > trial["watch_n"]:
-                self._fault(FaultCode.COMMAND_REFUSED,
+                self.send_fault(FaultCode.COMMAND_REFUSED,
                             f"SET_PARAM {name}={value} refused: watch_m ({trial['watch_m']}) "
                             f"must be <= watch_n ({trial['watch_n']})")
                 self._send(ParamValue(pid, self.params[name]))
                 return
             self.params = trial
-            if name == "watch_n" and self._watch is not None:
-                self._watch.window = collections.deque(self._watch.window, maxlen=value)
+            if self._watch is not None:
+                self._watch.configure(self.params, change_params(self.config, self.params))
         log.info("parameter %s = %d", name, value)
         self._send(ParamValue(pid, value))
 
-    # -- sending --------------------------------------------------------------------------------
+    # -- sending (send_fault, send_pause, send_report and send_no_change are also what a
+    # -- watch calls: robot_change.service.watch.WatchHost) -------------------------------------
 
     def _send(self, message: Any) -> None:
         try:
@@ -575,14 +591,14 @@ class Service(WatchMixin):
         except Exception:  # noqa: BLE001 -- e.g. a message field out of range: log, go on
             log.exception("cannot send %s", type(message).__name__)
 
-    def _fault(self, code: FaultCode, text: str) -> None:
+    def send_fault(self, code: FaultCode, text: str) -> None:
         (log.info if code == FaultCode.CLEARED else log.error)("FAULT %s: %s", code.name, text)
         self.counters[f"fault_{code.name.lower()}"] += 1
         if self.link.version < 2:
             code = V1_FAULT_CODE.get(code, code)
         self._send(Fault(code, _short(text)))
 
-    def _pause(self, cause: PauseCause) -> None:
+    def send_pause(self, cause: PauseCause) -> None:
         with self._lock:
             self.latched = True
             self._last_pause_cause = cause
@@ -591,7 +607,7 @@ class Service(WatchMixin):
         log.warning("PAUSE %s", cause.name)
         self._refresh_heartbeat(force=True)
 
-    def _report(self, station: str, changes: Any) -> int:
+    def send_report(self, station: str, changes: ChangeSet) -> int:
         """CHECK_RESULT (version 2) then the CHANGE_REPORT parts; regions in base_link in
         version 2, in the camera optical frame in version 1."""
         regions = self._kept_regions(changes)
@@ -607,13 +623,13 @@ class Service(WatchMixin):
             self._send(part)
         return report_id
 
-    def _answer_no_change(self, station: str, changes: Any) -> None:
+    def send_no_change(self, station: str, changes: ChangeSet) -> None:
         """CHECK_RESULT (version 2) then CLEAR."""
         if self.link.version >= 2:
             self._send(check_result(station, changes, self.config.camera.mount()))
         self._send(Clear(station))
 
-    def _answer_not_at_station(self, station: str, changes: Any, what: str) -> None:
+    def _answer_not_at_station(self, station: str, changes: ChangeSet, what: str) -> None:
         """CHECK_RESULT NOT_AT_STATION (version 2), or FAULT COMMAND_REFUSED (version 1)."""
         offset = self.config.camera.mount().offset(changes.registration)
         text = (f"{what} {station}: not at the station ({changes.not_at_station_reason}); "
@@ -626,7 +642,7 @@ class Service(WatchMixin):
         else:
             self._send(Fault(FaultCode.COMMAND_REFUSED, _short(text)))
 
-    def _kept_regions(self, changes: Any) -> list[Any]:
+    def _kept_regions(self, changes: ChangeSet) -> list[ChangeRegion]:
         """The regions of a ChangeSet to report, largest first, at most MAX_REPORT_REGIONS (the
         size limits of the wire's parameters were applied by the check itself:
         robot_change.service.params.change_params)."""
@@ -665,10 +681,40 @@ class Service(WatchMixin):
         for frame, _arrived, seq in self.frames.drain():
             self.last_frame_index = frame.index
             if self._watch is not None:
-                self._watch_frame(frame, seq)
+                self._watch.frame(frame, seq)
         if self._watch is not None:
-            self._watch_step()
+            if self._cancel.is_set():  # STOP, or a new command (which ends the watch itself)
+                self._cancel.clear()
+                if self._commands.empty():
+                    self._end_watch()
+                    self._refresh_heartbeat(force=True)
+            elif not self._watch.step():
+                self._end_watch()
         self._refresh_heartbeat()
+
+    def _start_watch(self, station: str) -> None:
+        reference = self.store.load(station)
+        o = self.options
+        with self._lock:
+            self._watch = StationWatch(station, reference, self, self.params,
+                                       change_params(self.config, self.params),
+                                       GateOptions(o.gate_step, o.gate_pixels, o.gate_fraction,
+                                                   o.detector_threads),
+                                       self._pool, self.progress, self.counters,
+                                       self.watch_log, self._wake.set)
+            self.activity = ModuleState.WATCHING
+        log.info("WATCH %s: a change in %d of %d checks, every %d ms", station,
+                 self.params["watch_m"], self.params["watch_n"], self.params["check_interval_ms"])
+        self._refresh_heartbeat(force=True)
+
+    def _end_watch(self) -> None:
+        with self._lock:
+            watch, self._watch = self._watch, None
+            if watch is not None:
+                self.activity = ModuleState.IDLE
+        if watch is not None:
+            watch.close()
+        self.progress.forget("watch")
 
     def _camera_transitions(self) -> None:
         """Tell the base when the camera is lost (FAULT CAMERA_LOST; PAUSE while watching and
@@ -678,17 +724,16 @@ class Service(WatchMixin):
             return
         if ok:
             if self._camera_reported is False:
-                self._fault(FaultCode.CLEARED, "camera delivering frames again")
+                self.send_fault(FaultCode.CLEARED, "camera delivering frames again")
         else:
             if not self.camera_error:
                 return  # still opening at start: nothing has failed yet
-            self._fault(FaultCode.CAMERA_LOST, f"{self.camera_error}; retrying")
+            self.send_fault(FaultCode.CAMERA_LOST, f"{self.camera_error}; retrying")
             watch = self._watch
             if watch is not None:
-                watch.window.clear()
-                watch.gate_baseline = None
+                watch.camera_lost()
                 if self.armed and not self.latched:
-                    self._pause(PauseCause.CAMERA_LOST)
+                    self.send_pause(PauseCause.CAMERA_LOST)
         self._camera_reported = ok
         self._refresh_heartbeat(force=True)
 
@@ -709,22 +754,22 @@ class Service(WatchMixin):
             if exc.quarantined is not None:
                 log.error("station %s: corrupt reference quarantined at %s", m.station,
                           exc.quarantined)
-            self._fault(FaultCode.REFERENCE_MISSING, str(exc))
+            self.send_fault(FaultCode.REFERENCE_MISSING, str(exc))
         except SceneMismatchError as exc:
-            self._fault(FaultCode.REFERENCE_MISSING, f"station {m.station}: the reference does "
+            self.send_fault(FaultCode.REFERENCE_MISSING, f"station {m.station}: the reference does "
                         f"not fit this camera ({exc}); capture it again")
         except StoreError as exc:
-            self._fault(FaultCode.STORAGE_ERROR, str(exc))
+            self.send_fault(FaultCode.STORAGE_ERROR, str(exc))
         except _CameraLost as exc:
-            self._fault(FaultCode.CAMERA_LOST, f"{m.TYPE.name} {m.station}: {exc}")
+            self.send_fault(FaultCode.CAMERA_LOST, f"{m.TYPE.name} {m.station}: {exc}")
         except _Cancelled as exc:
-            self._fault(FaultCode.COMMAND_REFUSED, str(exc))
+            self.send_fault(FaultCode.COMMAND_REFUSED, str(exc))
         except EmptySceneError as exc:
-            self._fault(FaultCode.CAMERA_LOST, f"{m.TYPE.name} {m.station}: the camera sees "
+            self.send_fault(FaultCode.CAMERA_LOST, f"{m.TYPE.name} {m.station}: the camera sees "
                         f"nothing to compare ({exc})")
         except Exception as exc:  # noqa: BLE001 -- never let a command take the service down
             log.exception("%s %s failed", m.TYPE.name, m.station)
-            self._fault(FaultCode.INTERNAL_ERROR, f"{m.TYPE.name} {m.station}: internal error "
+            self.send_fault(FaultCode.INTERNAL_ERROR, f"{m.TYPE.name} {m.station}: internal error "
                         f"{type(exc).__name__}: {exc}")
         finally:
             self.progress.end(work)
@@ -770,7 +815,7 @@ class Service(WatchMixin):
         frames = self._fresh_frames(n, f"CAPTURE_REFERENCE {station}")
         t0 = time.perf_counter()
         model = scene.build_scene(frames, scene_params(self.config, self.params),
-                            source=self.camera_uri, mount=self.config.camera.mount())
+                                  source=self.camera_uri, mount=self.config.camera.mount())
         path = self.store.save(station, model)
         log.info("station %s: reference of %d frames (%d points, K=%d) built in %.0f ms, saved "
                  "to %s", station, n, len(model), model.mixture.n_components,
@@ -792,7 +837,7 @@ class Service(WatchMixin):
         stack = np.stack([f.depth for f in frames])
         depth = stack[0] if n == 1 else fuse_depth(stack, reference.params.min_valid(n))
         changes = detect.detect_changes(reference, depth, change_params(self.config, self.params),
-                                 intrinsics=frames[0].intrinsics)
+                                        intrinsics=frames[0].intrinsics)
         regions = self._kept_regions(changes)
         ms = (time.perf_counter() - t0) * 1e3
         self.counters["checks"] += 1
@@ -807,14 +852,14 @@ class Service(WatchMixin):
         if changes.outcome == "not_at_station":
             self._answer_not_at_station(station, changes, "CHECK")
         elif regions:
-            if self.armed and self.params["pause_on_change"] and not self.latched:
-                self._pause(PauseCause.CHANGE_CHECK)
-            self._report(station, changes)
+            if self.may_pause():
+                self.send_pause(PauseCause.CHANGE_CHECK)
+            self.send_report(station, changes)
         else:
-            self._answer_no_change(station, changes)
+            self.send_no_change(station, changes)
 
-    def _write_check(self, station: str, reference: Any, depth: np.ndarray, changes: Any,
-                     regions: list[Any]) -> None:
+    def _write_check(self, station: str, reference: SceneModel, depth: np.ndarray,
+                     changes: ChangeSet, regions: list[ChangeRegion]) -> None:
         folder = self.options.report_dir
         if folder is None:
             return

@@ -11,6 +11,12 @@ station (pushed, or crept: FAULT and PAUSE NOT_AT_STATION), since it cannot watc
 Every check registers the view again, starting from the last check's estimate, so a robot
 that creeps a few centimetres is followed.
 
+A :class:`StationWatch` is an object the service (robot_change.service.core) makes for each
+WATCH and calls through a few methods -- :meth:`~StationWatch.frame` for every frame,
+:meth:`~StationWatch.step` every tick, :meth:`~StationWatch.configure` when parameters change,
+:meth:`~StationWatch.close` at the end -- and it talks back only through the small
+:class:`WatchHost` interface (what the base is doing, and FAULT / PAUSE / report / CLEAR).
+
 ::
 
     detector  <= 2 threads running WATCH checks (numba kernels release the GIL), so a change
@@ -24,17 +30,19 @@ import concurrent.futures
 import dataclasses
 import logging
 import time
-from typing import Any
+from typing import Callable, Mapping, Protocol
 
 import numpy as np
 
 from hw.depth import DepthFrame
 from robot_change.change import detect
+from robot_change.change.detect import ChangeParams, ChangeSet
+from robot_change.change.scene import SceneModel
 from robot_change.errors import EmptySceneError, SceneMismatchError
-from robot_change.link.protocol import FaultCode, ModuleState, Motion, PauseCause
-from robot_change.service.params import change_params
+from robot_change.link.protocol import FaultCode, PauseCause
+from robot_change.service.liveness import Progress
 
-__all__ = ["WatchMixin", "depth_gate"]
+__all__ = ["GateOptions", "StationWatch", "WatchHost", "depth_gate"]
 
 log = logging.getLogger(__name__)
 
@@ -55,217 +63,258 @@ def depth_gate(reference: np.ndarray, depth: np.ndarray, margin_m: float, margin
     return int(np.count_nonzero(both & (np.abs(c - r) > margin)))
 
 
+
+class WatchHost(Protocol):
+    """What a :class:`StationWatch` needs of the service that owns it."""
+
+    @property
+    def parked(self) -> bool:
+        """The base's heartbeat says PARKED or PAUSED (a watch checks only then)."""
+
+    @property
+    def camera_ok(self) -> bool:
+        """The camera is delivering frames."""
+
+    def may_pause(self) -> bool:
+        """A change may raise PAUSE now (armed, ``pause_on_change``, the latch not set)."""
+
+    def send_fault(self, code: FaultCode, text: str) -> None:
+        """FAULT ``code`` to the base."""
+
+    def send_pause(self, cause: PauseCause) -> None:
+        """PAUSE ``cause`` to the base (sets the latch)."""
+
+    def send_report(self, station: str, changes: ChangeSet) -> int:
+        """CHECK_RESULT and CHANGE_REPORT of a change; returns the report id."""
+
+    def send_no_change(self, station: str, changes: ChangeSet) -> None:
+        """CHECK_RESULT and CLEAR."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GateOptions:
+    """The per-frame depth gate: every ``step``-th pixel of every ``step``-th row; a check runs
+    when the count of pixels that differ from the reference moved by more than ``pixels +
+    fraction x`` the count at the last check.  ``max_jobs``: checks that may run at once."""
+
+    step: int = 4
+    pixels: int = 50
+    fraction: float = 0.2
+    max_jobs: int = 2
+
+
 @dataclasses.dataclass
-class _WatchJob:
+class _Job:
     seq: int  # the frame's sequence number in the FrameQueue
     frame_index: int
     future: concurrent.futures.Future
     submitted: float
 
 
-class _Watch:
-    """What a WATCH keeps: the station's reference, the persistence window, jobs in flight."""
+class StationWatch:
+    """One WATCH of one station (module docstring).
 
-    def __init__(self, station: str, reference: Any, n: int,
-                 gate_margin: tuple[float, float]) -> None:
-        self.station = station
-        self.reference = reference
-        self.window: collections.deque[bool] = collections.deque(maxlen=n)
-        self.jobs: list[_WatchJob] = []
-        self.last_submitted = -1
-        self.last_recorded = -1
-        self.next_check = 0.0
-        self.gate_baseline: int | None = None
-        self.episode = False  # a change is being reported (PAUSE sent or report made)
-        self.blind_reported = False
-        self.error_reported = False
-        self.checks = 0
-        self.latest: DepthFrame | None = None
-        self.latest_seq = -1
-        self.latest_gate = 0
-        self.pose: np.ndarray | None = None  # the last registration (T_ref_from_cur)
-        self.off_station_reported = False
-        self.gate_margin = gate_margin  # the check's free-space margin (m, per m^2)
-
-
-class WatchMixin:
-    """The WATCH of :class:`robot_change.service.core.Service`: started and ended by the controller,
-    fed every frame (:meth:`_watch_frame`) and stepped every tick (:meth:`_watch_step`).
-
-    Uses the service's state (``_watch``, ``_lock``, ``store``, ``config``, ``params``,
-    ``options``, ``activity``, ``motion``, ``camera_ok``, ``armed``, ``latched``, ``_pool``,
-    ``_wake``, ``_cancel``, ``_commands``, ``counters``, ``watch_log``, ``progress``) and its methods
-    (``_fault``, ``_pause``, ``_report``, ``_answer_no_change``, ``_send``, ``_kept_regions``,
-    ``_refresh_heartbeat``).
+    ``reference``: the station's scene.  ``params``: the wire's parameter table (``watch_m``,
+    ``watch_n``, ``check_interval_ms``) and ``change``: the check's ChangeParams, both replaced
+    by :meth:`configure` when SET_PARAM or a reload changes them.  ``pool`` runs the checks;
+    ``progress`` tracks each check as a unit of work (part "detector") and that checks keep
+    finishing (part "watch"); ``counters`` gets ``watch_checks`` and ``gate_triggers``;
+    ``history`` gets one entry per check (t, seq, frame_index, changed, changed_in_window,
+    action "pause" / "report" / "clear" / "", check_ms); ``on_done`` is called when a check
+    ends (it wakes the controller).
     """
 
-    def _start_watch(self, station: str) -> None:
-        reference = self.store.load(station)
-        with self._lock:
-            # the gate's noise margin is the check's own, taken once (not per frame)
-            params = change_params(self.config, self.params)
-            self._watch = _Watch(station, reference, self.params["watch_n"],
-                                 (params.free_space_margin_m, params.free_space_margin_per_m2))
-            self.activity = ModuleState.WATCHING
-        log.info("WATCH %s: a change in %d of %d checks, every %d ms", station,
-                 self.params["watch_m"], self.params["watch_n"], self.params["check_interval_ms"])
-        self._refresh_heartbeat(force=True)
+    def __init__(self, station: str, reference: SceneModel, host: WatchHost,
+                 params: Mapping[str, int], change: ChangeParams, gate: GateOptions,
+                 pool: concurrent.futures.Executor, progress: Progress,
+                 counters: collections.Counter, history: collections.deque,
+                 on_done: Callable[[], None]) -> None:
+        self.station = station
+        self.reference = reference
+        self._host = host
+        self._gate_options = gate
+        self._pool = pool
+        self._progress = progress
+        self._counters = counters
+        self._history = history
+        self._on_done = on_done
+        self.window: collections.deque[bool] = collections.deque(maxlen=params["watch_n"])
+        self.configure(params, change)
+        self.checks = 0
+        self._jobs: list[_Job] = []
+        self._last_submitted = -1
+        self._last_recorded = -1
+        self._next_check = 0.0
+        self._gate_baseline: int | None = None
+        self._episode = False  # a change is being reported (PAUSE sent or report made)
+        self._blind_reported = False
+        self._error_reported = False
+        self._latest: DepthFrame | None = None
+        self._latest_seq = -1
+        self._pose: np.ndarray | None = None  # the last registration (T_ref_from_cur)
+        self._off_station_reported = False
+        self._ended = False
 
-    def _end_watch(self) -> None:
-        with self._lock:
-            watch, self._watch = self._watch, None
-            if watch is not None:
-                self.activity = ModuleState.IDLE
-        self.progress.forget("watch")
-        if watch is not None:
-            for job in watch.jobs:
-                job.future.cancel()
-            log.info("watch of %s ended after %d checks", watch.station, watch.checks)
+    def configure(self, params: Mapping[str, int], change: ChangeParams) -> None:
+        """Take a new parameter table and ChangeParams (the window keeps its newest entries)."""
+        self._params = dict(params)
+        self._change = change
+        if self.window.maxlen != params["watch_n"]:
+            self.window = collections.deque(self.window, maxlen=params["watch_n"])
 
-    def _gate(self, watch: _Watch, depth: np.ndarray) -> int:
-        return depth_gate(watch.reference.depth, depth, *watch.gate_margin,
-                          self.options.gate_step)
+    def camera_lost(self) -> None:
+        """The camera was lost: what the window saw and the gate's baseline no longer hold."""
+        self.window.clear()
+        self._gate_baseline = None
 
-    def _parked(self) -> bool:
-        return self.motion in (Motion.PARKED, Motion.PAUSED)
+    def close(self) -> None:
+        """End the watch: cancel the checks not started (a running one ends on its own)."""
+        self._progress.forget("watch")
+        for job in self._jobs:
+            job.future.cancel()
+        log.info("watch of %s ended after %d checks", self.station, self.checks)
 
-    def _watch_frame(self, frame: DepthFrame, seq: int) -> None:
-        watch = self._watch
-        assert watch is not None
-        ref = watch.reference.depth
-        watch.latest, watch.latest_seq = frame, seq
-        if frame.depth.shape != ref.shape:
-            return  # the check itself reports the mismatch
-        watch.latest_gate = self._gate(watch, frame.depth)
-        base = watch.gate_baseline
-        if (base is not None and self._parked() and self.camera_ok
-                and abs(watch.latest_gate - base) > self.options.gate_pixels + self.options.gate_fraction * base
-                and len(watch.jobs) < self.options.detector_threads):
-            self.counters["gate_triggers"] += 1
-            self._submit(watch, frame, seq)
+    # -- frames ---------------------------------------------------------------------------------
 
-    def _submit(self, watch: _Watch, frame: DepthFrame, seq: int) -> None:
-        assert self._pool is not None
-        params = change_params(self.config, self.params)
-        future = self._pool.submit(detect.detect_changes, watch.reference, frame.depth, params,
-                                   intrinsics=frame.intrinsics, initial_pose=watch.pose)
+    def _gate(self, depth: np.ndarray) -> int | None:
+        if depth.shape != self.reference.depth.shape:
+            return None  # the check itself reports the mismatch
+        return depth_gate(self.reference.depth, depth, self._change.free_space_margin_m,
+                          self._change.free_space_margin_per_m2, self._gate_options.step)
+
+    def frame(self, frame: DepthFrame, seq: int) -> None:
+        """Every frame the camera delivers: kept as the newest, and checked at once when the
+        depth gate sees the scene move away from what the last check saw."""
+        self._latest, self._latest_seq = frame, seq
+        count = self._gate(frame.depth)
+        base, gate = self._gate_baseline, self._gate_options
+        if (count is not None and base is not None and self._host.parked
+                and self._host.camera_ok and abs(count - base) > gate.pixels + gate.fraction * base
+                and len(self._jobs) < gate.max_jobs):
+            self._counters["gate_triggers"] += 1
+            self._submit(frame, seq)
+
+    def _submit(self, frame: DepthFrame, seq: int) -> None:
+        future = self._pool.submit(detect.detect_changes, self.reference, frame.depth,
+                                   self._change, intrinsics=frame.intrinsics,
+                                   initial_pose=self._pose)
         # a unit of work until the check really ends (a cancelled or stale one too): a check
         # that never ends is a stalled detector (robot_change.service.liveness)
-        work = self.progress.begin("detector", f"WATCH {watch.station}: the check of frame "
-                                   f"{frame.index}")
+        work = self._progress.begin("detector", f"WATCH {self.station}: the check of frame "
+                                    f"{frame.index}")
 
         def done(_future: concurrent.futures.Future) -> None:
-            self.progress.end(work)
-            self._wake.set()
+            self._progress.end(work)
+            self._on_done()
 
         future.add_done_callback(done)
-        watch.jobs.append(_WatchJob(seq, frame.index, future, time.monotonic()))
-        watch.last_submitted = seq
-        watch.gate_baseline = self._gate(watch, frame.depth) \
-            if frame.depth.shape == watch.reference.depth.shape else None
-        watch.next_check = time.monotonic() + self.params["check_interval_ms"] / 1000.0
+        self._jobs.append(_Job(seq, frame.index, future, time.monotonic()))
+        self._last_submitted = seq
+        self._gate_baseline = self._gate(frame.depth)
+        self._next_check = time.monotonic() + self._params["check_interval_ms"] / 1000.0
 
-    def _watch_step(self) -> None:
-        watch = self._watch
-        assert watch is not None
-        if self._cancel.is_set():
-            self._cancel.clear()
-            if self._commands.empty():
-                self._end_watch()
-                self._refresh_heartbeat(force=True)
-            return
-        done = sorted((j for j in watch.jobs if j.future.done()), key=lambda j: j.seq)
+    # -- ticks ----------------------------------------------------------------------------------
+
+    def step(self) -> bool:
+        """Every tick of the controller: take the checks that ended (oldest frame first) and
+        start the next one when it is due.  False when the watch ended itself (the reference
+        does not fit the camera): the owner then closes it."""
+        done = sorted((j for j in self._jobs if j.future.done()), key=lambda j: j.seq)
         for job in done:
-            watch.jobs.remove(job)
-            if job.future.cancelled() or job.seq <= watch.last_recorded:
+            self._jobs.remove(job)
+            if job.future.cancelled() or job.seq <= self._last_recorded:
                 continue  # an older frame's check finished after a newer one's: stale
-            watch.last_recorded = job.seq
-            self._watch_result(watch, job)
-            if self._watch is not watch:
-                return
-        if not self._parked() or not self.camera_ok:
+            self._last_recorded = job.seq
+            self._result(job)
+            if self._ended:
+                return False
+        host = self._host
+        if not host.parked or not host.camera_ok:
             # nothing to check: not a stall (a lost camera is a FAULT of its own)
-            self.progress.forget("watch")
-            if watch.window and not self._parked():
-                watch.window.clear()
-                log.info("watch of %s suspended: the base is %s", watch.station, self.motion.name)
-            return
+            self._progress.forget("watch")
+            if self.window and not host.parked:
+                self.window.clear()
+                log.info("watch of %s suspended: the base is not parked", self.station)
+            return True
         # frames must be checked, not only received: a check must finish every interval
-        self.progress.set_bound("watch", self.params["check_interval_ms"] / 1000.0
-                                + self.progress.bound_s)
-        if not self.progress.watches("watch"):
-            self.progress.beat("watch")  # from now on
-        if (self.camera_ok and not watch.jobs and watch.latest is not None
-                and watch.latest_seq != watch.last_submitted
-                and time.monotonic() >= watch.next_check):
-            self._submit(watch, watch.latest, watch.latest_seq)
+        self._progress.set_bound("watch", self._params["check_interval_ms"] / 1000.0
+                                 + self._progress.bound_s)
+        if not self._progress.watches("watch"):
+            self._progress.beat("watch")  # from now on
+        if (not self._jobs and self._latest is not None
+                and self._latest_seq != self._last_submitted
+                and time.monotonic() >= self._next_check):
+            self._submit(self._latest, self._latest_seq)
+        return True
 
-    def _watch_result(self, watch: _Watch, job: _WatchJob) -> None:
+    def _result(self, job: _Job) -> None:
         exc = job.future.exception()
-        self.progress.beat("watch")
-        watch.checks += 1
-        self.counters["watch_checks"] += 1
+        host = self._host
+        self._progress.beat("watch")
+        self.checks += 1
+        self._counters["watch_checks"] += 1
         blind = False
-        regions: list[Any] = []
-        changes = None
+        changes: ChangeSet | None = None
         if exc is None:
             changes = job.future.result()
-            regions = self._kept_regions(changes)
-            watch.error_reported = watch.blind_reported = False
+            self._error_reported = self._blind_reported = False
             if changes.outcome == "not_at_station":
                 blind = True  # cannot watch from here: as unsafe as a change
-                if not watch.off_station_reported:
-                    watch.off_station_reported = True
-                    self._fault(FaultCode.NOT_AT_STATION, f"WATCH {watch.station}: the robot "
-                                f"is no longer at the station ({changes.not_at_station_reason})")
+                if not self._off_station_reported:
+                    self._off_station_reported = True
+                    host.send_fault(FaultCode.NOT_AT_STATION, f"WATCH {self.station}: the robot "
+                                    f"is no longer at the station "
+                                    f"({changes.not_at_station_reason})")
             else:
-                watch.pose = changes.registration.T_ref_from_cur
-                if watch.off_station_reported:
-                    watch.off_station_reported = False
-                    self._fault(FaultCode.CLEARED, f"WATCH {watch.station}: back at the "
-                                f"station")
+                self._pose = changes.registration.T_ref_from_cur
+                if self._off_station_reported:
+                    self._off_station_reported = False
+                    host.send_fault(FaultCode.CLEARED, f"WATCH {self.station}: back at the "
+                                    f"station")
         elif isinstance(exc, EmptySceneError):
             blind = True  # nothing to compare: as unsafe as a change
-            if not watch.blind_reported:
-                watch.blind_reported = True
-                self._fault(FaultCode.CAMERA_LOST, f"WATCH {watch.station}: the camera sees "
-                            f"nothing to compare ({exc})")
+            if not self._blind_reported:
+                self._blind_reported = True
+                host.send_fault(FaultCode.CAMERA_LOST, f"WATCH {self.station}: the camera sees "
+                                f"nothing to compare ({exc})")
         elif isinstance(exc, SceneMismatchError):
-            self._fault(FaultCode.REFERENCE_MISSING, f"WATCH {watch.station}: the reference "
-                        f"does not fit this camera ({exc}); capture it again")
-            self._end_watch()
+            host.send_fault(FaultCode.REFERENCE_MISSING, f"WATCH {self.station}: the reference "
+                            f"does not fit this camera ({exc}); capture it again")
+            self._ended = True
             return
         else:
-            if not watch.error_reported:
-                watch.error_reported = True
-                log.error("WATCH %s: check failed", watch.station, exc_info=exc)
-                self._fault(FaultCode.INTERNAL_ERROR, f"WATCH {watch.station}: check failed "
-                            f"({type(exc).__name__}: {exc})")
+            if not self._error_reported:
+                self._error_reported = True
+                log.error("WATCH %s: check failed", self.station, exc_info=exc)
+                host.send_fault(FaultCode.INTERNAL_ERROR, f"WATCH {self.station}: check failed "
+                                f"({type(exc).__name__}: {exc})")
             return
-        changed = bool(regions) or blind
-        watch.window.append(changed)
-        m, n = self.params["watch_m"], self.params["watch_n"]
-        seen = sum(watch.window)
-        log.debug("watch %s frame %d: %s (%d of the last %d)", watch.station, job.frame_index,
-                  "change" if changed else "no change", seen, len(watch.window))
+        has_regions = changes is not None and bool(changes.regions)
+        changed = has_regions or blind
+        self.window.append(changed)
+        m, n = self._params["watch_m"], self._params["watch_n"]
+        seen = sum(self.window)
+        log.debug("watch %s frame %d: %s (%d of the last %d)", self.station, job.frame_index,
+                  "change" if changed else "no change", seen, len(self.window))
         entry = {"t": time.monotonic(), "seq": job.seq, "frame_index": job.frame_index,
                  "changed": changed, "changed_in_window": seen, "action": "",
                  "check_ms": (time.monotonic() - job.submitted) * 1e3}
-        self.watch_log.append(entry)
-        if not watch.episode and seen >= m:
+        self._history.append(entry)
+        if not self._episode and seen >= m:
             entry["action"] = "report"
-            watch.episode = True
-            log.warning("WATCH %s: change in %d of the last %d checks (frame %d)", watch.station,
-                        seen, len(watch.window), job.frame_index)
-            if self.armed and self.params["pause_on_change"] and not self.latched:
+            self._episode = True
+            log.warning("WATCH %s: change in %d of the last %d checks (frame %d)", self.station,
+                        seen, len(self.window), job.frame_index)
+            if host.may_pause():
                 entry["action"] = "pause"
                 off = changes is not None and changes.outcome == "not_at_station"
-                self._pause(PauseCause.NOT_AT_STATION if off else PauseCause.CAMERA_LOST
-                            if blind and not regions else PauseCause.CHANGE_WATCH)
-            if changes is not None and regions:
-                self._report(watch.station, changes)
-        elif watch.episode and len(watch.window) - seen >= min(m, n) and not changed:
-            watch.episode = False
+                host.send_pause(PauseCause.NOT_AT_STATION if off else PauseCause.CAMERA_LOST
+                                if blind and not has_regions else PauseCause.CHANGE_WATCH)
+            if changes is not None and has_regions:
+                host.send_report(self.station, changes)
+        elif (self._episode and len(self.window) - seen >= min(m, n) and not changed
+              and changes is not None):  # (not changed: the check gave a ChangeSet)
+            self._episode = False
             entry["action"] = "clear"
-            log.info("WATCH %s: the change is gone", watch.station)
-            self._answer_no_change(watch.station, changes)
+            log.info("WATCH %s: the change is gone", self.station)
+            host.send_no_change(self.station, changes)
