@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from hw.errors import ArgumentError
+
 __all__ = ["Backoff"]
 
 
@@ -16,7 +18,7 @@ class Backoff:
 
     def __init__(self, first: float, cap: float) -> None:
         if not 0 < first <= cap:
-            raise ValueError(f"Backoff({first!r}, {cap!r}): needs 0 < first <= cap (seconds)")
+            raise ArgumentError(f"Backoff({first!r}, {cap!r}): needs 0 < first <= cap (seconds)")
         self.first, self.cap = float(first), float(cap)
         self.current = self.first
 

@@ -15,6 +15,8 @@ HwError
  |    +-- DeviceLost      the camera was streaming and disappeared (unplugged, USB reset)
  |    +-- FrameTimeout    no frame arrived within the read timeout
  +-- PortError            a serial port cannot be opened or vanished
+ +-- ArgumentError        a value handed to a hw function it cannot use (a count < 1, a
+                          timeout <= 0, an unknown kind)
 """
 
 from __future__ import annotations
@@ -72,3 +74,10 @@ class FrameTimeout(DeviceError, TimeoutError):
 
 class PortError(HwError, OSError):
     """A serial port cannot be opened, or vanished while in use (USB adapter unplugged)."""
+
+
+class ArgumentError(HwError, ValueError):
+    """A value handed to a hw function that it cannot use.
+
+    Examples: ``Backoff(0, 1)``; ``record_oni(source, path, frames=0)``.
+    """

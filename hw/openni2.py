@@ -57,6 +57,7 @@ import openni.openni2  # noqa: F401  -- the binding (pure Python; the native lib
 from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import (
+    ArgumentError,
     BackendUnavailable,
     DepthFileError,
     DeviceError,
@@ -464,7 +465,7 @@ class OpenNI2Source(DepthSource):
                  loop: bool = False, rate: float | str | None = None) -> None:
         super().__init__()
         if kind not in ("file", "device"):
-            raise ValueError(f"kind must be 'file' or 'device', not {kind!r}")
+            raise ArgumentError(f"kind must be 'file' or 'device', not {kind!r}")
         if kind != "file" and (loop or rate is not None):
             raise UriError("the loop and rate options are for recordings (oni:FILE.oni); a live "
                            "camera runs at its own rate")
@@ -477,7 +478,7 @@ class OpenNI2Source(DepthSource):
         self.lost_after = float(lost_after)
         self.max_restarts = int(max_restarts)
         if self.slots < 1 or min(self.start_timeout, self.stall_timeout, self.lost_after) <= 0:
-            raise ValueError("slots must be >= 1 and the timeouts > 0")
+            raise ArgumentError("slots must be >= 1 and the timeouts > 0")
         #: What the reader reported when it opened the source (uri, vendor, name, serial, mode).
         self.info: dict[str, Any] = {}
         self._intrinsics: Intrinsics | None = None
@@ -885,7 +886,7 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     it.  The file appears only when complete (written atomically); on an error nothing is left.
     """
     if frames is not None and frames < 1:
-        raise ValueError(f"frames={frames}: record at least one frame")
+        raise ArgumentError(f"frames={frames}: record at least one frame")
     source.open()
     stream = _frames_until_done(source, frames, timeout)
     first = next(stream, None)

@@ -397,7 +397,7 @@ def _print_change_summary(summary: dict[str, Any]) -> None:
     print(f"{verdict}: {summary['reference']} -> {summary['current']} "
           f"(K {summary['k_reference']} / {summary['k_current']}, {summary['seconds']:.2f} s)")
     offset, reg = summary["offset_base"], summary["registration"]
-    print(f"  offset from the station pose (base_link): "
+    print("  offset from the station pose (base_link): "
           + " ".join(f"{a} {v * 100:+.1f} cm" for a, v in zip("xyz", offset["translation_m"]))
           + ", " + " ".join(f"{a} {v:+.2f} deg" for a, v in
                             zip(("roll", "pitch", "yaw"), offset["rpy_deg"]))

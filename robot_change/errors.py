@@ -3,6 +3,8 @@
 RobotChangeError
  +-- InputError         arrays or parameters a function cannot work with (wrong dtype or shape,
  |    |                 non-finite values where they are not allowed, a leaf size <= 0)
+ |    +-- BadValue            one value refused by robot_change.validate (owner, name, value,
+ |    |                       what is allowed): config and protocol re-word it as theirs
  |    +-- EmptySceneError     nothing left of a scene after filtering (camera covered? ...)
  |    +-- SceneMismatchError  reference and current made with other intrinsics or parameters
  +-- ConfigError        a configuration file or value is wrong; names the key, value and what
@@ -10,6 +12,8 @@ RobotChangeError
  +-- MixtureFileError   a saved mixture that is truncated, foreign, newer or tampered with
  +-- SceneFileError     a saved scene (station reference) that is truncated, foreign, newer or
  |                      tampered with
+ +-- SolverError        a numeric solver failed where it must not (a bug to report, with the
+ |                      inputs)
  +-- StoreError         the per-station reference store
  |    +-- StationNameError  a station name that is not allowed (it comes from the serial line)
  |    +-- ReferenceMissing  no usable reference for a station (none, or quarantined)
@@ -34,6 +38,20 @@ class InputError(RobotChangeError, ValueError):
 
     Examples: ``voxel_grid(points, leaf=0)``; points of shape (N, 2); depth given as float64.
     """
+
+
+class BadValue(InputError):
+    """One value refused by :mod:`robot_change.validate`: ``owner.name=value: must be
+    <allowed>``.  ``wrong_type``: the value is not even of the right kind (a string for a
+    number), as opposed to out of range.  The configuration re-words it as a ConfigError and the
+    protocol as a MessageError (with its NAK reason), from these attributes.
+    """
+
+    def __init__(self, owner: str, name: str, value: object, allowed: str, *,
+                 wrong_type: bool = False) -> None:
+        super().__init__(f"{owner}.{name}={value!r}: must be {allowed}")
+        self.owner, self.name, self.value, self.allowed = owner, name, value, allowed
+        self.wrong_type = wrong_type
 
 
 class ConfigError(RobotChangeError, ValueError):
@@ -112,6 +130,13 @@ class SceneMismatchError(InputError):
 
     The message lists every difference and the fix (recapture the reference with the current
     settings, or pass the reference's intrinsics / parameters).
+    """
+
+
+class SolverError(RobotChangeError, RuntimeError):
+    """A numeric solver failed where it must not: the transportation simplex ended in a state
+    it cannot (a bug in robot_change; the message names the problem's size and asks for a
+    report with the inputs).  The service answers it as FAULT INTERNAL_ERROR and carries on.
     """
 
 

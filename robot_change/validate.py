@@ -1,19 +1,23 @@
-"""Checks for the frozen parameter dataclasses (CloudParams, ChangeParams, ...), and the rule
-of a station name (the protocol and the store both hold names to it).
+"""Every check of one value: the fields of the parameter dataclasses (CloudParams,
+ChangeParams, ...), the configuration's keys, the protocol's message fields, and the rule of a
+station name (the protocol and the store both hold names to it).
 
-One wording for every error: ``Owner.name=value: must be ...``, an :class:`InputError` that
-names the field, the value given and what is allowed.
+One wording for every error: ``Owner.name=value: must be ...``, a
+:class:`robot_change.errors.BadValue` (an InputError) that names the owner, the field, the value
+given and what is allowed; the configuration (ConfigError) and the protocol (MessageError,
+with its NAK reason) re-word it from those attributes, so every value anywhere is checked here.
 """
 
 from __future__ import annotations
 
 import math
 import re
+from enum import IntEnum
 from typing import Any, Iterable
 
 import numpy as np
 
-from robot_change.errors import InputError
+from robot_change.errors import BadValue
 
 #: Longest station name, characters.
 MAX_STATION = 32
@@ -28,41 +32,98 @@ def is_station(value: Any) -> bool:
     return isinstance(value, str) and _STATION.match(value) is not None
 
 
+def _is_whole(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value: Any) -> bool:
+    return (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_)))
+
+
 def number(owner: str, name: str, value: Any, low: float, high: float, *,
            low_open: bool = False, unit: str = "") -> float:
     """A finite real number with ``low <= value <= high`` (``low < value`` when
     ``low_open``); booleans are refused.  Returns it as a float."""
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    if ok:
-        as_float = float(value)
-        ok = math.isfinite(as_float) and (as_float > low if low_open else as_float >= low)
-        ok = ok and as_float <= high
-    if not ok:
-        relation = "<" if low_open else "<="
-        raise InputError(f"{owner}.{name}={value!r}: must be a number with {low} {relation} "
-                         f"{name} <= {high}{unit}")
-    return float(value)
+    if math.isinf(high):
+        allowed = f"a number with {name} {'>' if low_open else '>='} {low}{unit}"
+    else:
+        allowed = f"a number with {low} {'<' if low_open else '<='} {name} <= {high}{unit}"
+    if not _is_real(value) or not math.isfinite(float(value)):
+        raise BadValue(owner, name, value, allowed, wrong_type=True)
+    as_float = float(value)
+    if not ((as_float > low if low_open else as_float >= low) and as_float <= high):
+        raise BadValue(owner, name, value, allowed)
+    return as_float
 
 
-def whole(owner: str, name: str, value: Any, low: int, high: int) -> int:
+def positive(owner: str, name: str, value: Any, high: float = math.inf, *, unit: str = ""
+             ) -> float:
+    """A finite number with ``0 < value <= high``."""
+    return number(owner, name, value, 0.0, high, low_open=True, unit=unit)
+
+
+def whole(owner: str, name: str, value: Any, low: int, high: int, *, unit: str = "") -> int:
     """A whole number (not a bool, not a float) in ``low..high``."""
-    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
-            or not low <= value <= high):
-        raise InputError(f"{owner}.{name}={value!r}: must be a whole number in {low}..{high}")
+    allowed = f"a whole number in {low}..{high}{unit}"
+    if not _is_whole(value):
+        raise BadValue(owner, name, value, allowed, wrong_type=True)
+    if not low <= value <= high:
+        raise BadValue(owner, name, value, allowed)
     return int(value)
 
 
-def flag(owner: str, name: str, value: Any) -> bool:
-    """True or False, nothing else (not 0/1, not a string)."""
-    if not isinstance(value, bool):
-        raise InputError(f"{owner}.{name}={value!r}: must be True or False")
+def flag(owner: str, name: str, value: Any, *, zero_one: bool = False) -> bool:
+    """True or False, nothing else (not a string; 0 and 1 only when ``zero_one``, as the wire
+    carries them)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if zero_one and _is_whole(value) and value in (0, 1):
+        return bool(value)
+    raise BadValue(owner, name, value, "true or false", wrong_type=True)
+
+
+def choice(owner: str, name: str, value: Any, choices: Iterable[Any]) -> Any:
+    """One of ``choices`` (strings are shown quoted, numbers bare)."""
+    options = tuple(choices)
+    a_bool_for_a_number = isinstance(value, bool) and not any(isinstance(o, bool) for o in options)
+    if a_bool_for_a_number or value not in options:  # (True == 1)
+        raise BadValue(owner, name, value, "one of " + ", ".join(
+            repr(option) if isinstance(option, str) else str(option) for option in options))
     return value
 
 
-def choice(owner: str, name: str, value: Any, choices: Iterable[str]) -> str:
-    """One of ``choices``."""
-    options = tuple(choices)
-    if value not in options:
-        raise InputError(f"{owner}.{name}={value!r}: must be one of "
-                         + ", ".join(repr(option) for option in options))
+def member(owner: str, name: str, value: Any, enum: type[IntEnum]) -> IntEnum:
+    """A member of the integer enumeration ``enum``, or its value."""
+    try:
+        return enum(value)
+    except (ValueError, TypeError):
+        allowed = ", ".join(f"{m.value} {m.name}" for m in enum)
+        raise BadValue(owner, name, value, f"a {enum.__name__} ({allowed})",
+                       wrong_type=True) from None
+
+
+def text(owner: str, name: str, value: Any, *, max_bytes: int | None = None,
+         non_empty: bool = False, no_nul: bool = False) -> str:
+    """A string encodable as UTF-8; at most ``max_bytes`` bytes of UTF-8 when given; not blank
+    when ``non_empty``; without NUL characters when ``no_nul`` (a path, a device name)."""
+    allowed = "a non-empty string" if non_empty else "a string"
+    if not isinstance(value, str) or (no_nul and "\0" in value):
+        raise BadValue(owner, name, value, allowed, wrong_type=True)
+    if non_empty and not value.strip():
+        raise BadValue(owner, name, value, allowed)
+    try:
+        size = len(value.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise BadValue(owner, name, value, "a string of valid UTF-8", wrong_type=True) from None
+    if max_bytes is not None and size > max_bytes:
+        raise BadValue(owner, name, value, f"at most {max_bytes} bytes of UTF-8 (it has {size})")
+    return value
+
+
+def station(owner: str, name: str, value: Any) -> str:
+    """A station name (:data:`STATION_RULE`)."""
+    if not is_station(value):
+        raise BadValue(owner, name, value, STATION_RULE.removeprefix("a station name is "),
+                       wrong_type=not isinstance(value, str))
     return value

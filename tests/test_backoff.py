@@ -3,6 +3,7 @@
 import pytest
 
 from hw.backoff import Backoff
+from hw.errors import ArgumentError
 
 
 def test_delays_double_to_the_cap_and_reset_starts_again():
@@ -14,5 +15,5 @@ def test_delays_double_to_the_cap_and_reset_starts_again():
 
 @pytest.mark.parametrize("first, cap", [(0, 1), (-1, 1), (2, 1)])
 def test_bad_delays_are_refused(first, cap):
-    with pytest.raises(ValueError):
+    with pytest.raises(ArgumentError, match="first <= cap"):
         Backoff(first, cap)

@@ -165,14 +165,14 @@ def test_interactive_reads_stdin_and_survives_typos(pty_line):
     assert code == 0
     assert "-> STATUS_QUERY" in text and "-> CAPTURE_REFERENCE station=dock" in text
     assert "error: unknown command 'bogus'" in text
-    assert "error: CHECK.station = '../x'" in text
+    assert "error: CHECK.station='../x'" in text
     assert "ok CAPTURE_REFERENCE" in text
 
 
 @pytest.mark.parametrize("line,needle", [
     ("check", "one station name"),
     ("check a b", "one station name"),
-    ("set watch_m 11", "allowed 1..10"),
+    ("set watch_m 11", "whole number in 1..10"),
     ("set watch_m x", "not an integer"),
     ("get nope", "unknown parameter"),
     ("wait soon", "not a number"),

@@ -132,22 +132,22 @@ def test_free_form_change_thresholds_are_kept_and_validated(tmp_path):
     ("[cloud]\noutlier_k = 4.5\n", "cloud.outlier_k = 4.5: must be a whole number in 1..26"),
     ("[cloud]\nmin_depth_mm = 6000\n", "cloud.min_depth_mm = 6000: must be below "
                                        "cloud.max_depth_mm = 5000"),
-    ("[cloud]\nplane_up = [0, 1]\n", "cloud.plane_up = [0, 1]: must be an array of 3 numbers"),
+    ("[cloud]\nplane_up = [0, 1]\n", "cloud.plane_up = [0, 1]: must be a non-zero finite 3-vector"),
     ("[cloud]\nplane_up = [0, -1, 0]\n", "cloud.plane_up = [0.0, -1.0, 0.0]: must come with "
                                          "cloud.plane_max_tilt_deg"),
     ("[camera]\nsource = \"rtsp://x\"\n", "camera.source = \"rtsp://x\": must be a depth URI"),
     ("[camera]\nfuse_frames = 0\n", "camera.fuse_frames = 0: must be a whole number in 1..30 "
                                     "frames"),
     ("[camera]\nread_timeout_s = 0\n", "camera.read_timeout_s = 0: must be a number with "
-                                       "0.0 < x <= 30.0 seconds"),
+                                       "0.0 < read_timeout_s <= 30.0 seconds"),
     ("[serial]\nbaud = 115201\n", "serial.baud = 115201: must be one of 9600, 19200"),
     ("[serial]\nport = \"\"\n", "serial.port = \"\": must be a non-empty string"),
-    ("[mixture]\ncriterion = \"aicc\"\n", "mixture.criterion = \"aicc\": must be one of mdl, "
-                                          "bic, aic"),
+    ("[mixture]\ncriterion = \"aicc\"\n", "mixture.criterion = \"aicc\": must be one of 'mdl', "
+                                          "'bic', 'aic'"),
     ("[mixture]\nmax_components = 0\n", "mixture.max_components = 0: must be a whole number in "
                                         "1..1000"),
     ("[mixture]\nsearch_points = 10\n", "mixture.search_points = 10: must be a whole number "
-                                        ">= 100"),
+                                        "in 100.."),
     ("[watch]\nwatch_m = 4\nwatch_n = 3\n", "watch.watch_m = 4: must be <= watch.watch_n = 3"),
     ("[change]\npause_on_change = 1\n", "change.pause_on_change = 1: must be true or false"),
     ("[service]\nlog_level = \"verbose\"\n", "service.log_level = \"verbose\": must be one of "

@@ -140,7 +140,7 @@ def test_depth_to_points_rejects_bad_depth(depth, message):
 @pytest.mark.parametrize(
     "limits, message",
     [((-0.1, 5.0), "min_depth_m"), ((2.0, 1.0), "max_depth_m"), ((0.3, float("nan")),
-     "max_depth_m"), (("a", 5.0), "numbers")],
+     "max_depth_m"), (("a", 5.0), "must be a number")],
 )
 def test_depth_to_points_rejects_bad_limits(limits, message):
     depth = np.zeros((480, 640), np.uint16)

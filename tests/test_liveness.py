@@ -6,6 +6,7 @@ import threading
 
 import pytest
 
+from robot_change.errors import InputError
 from robot_change.service.daemon import DEFAULT_STALL_S, MIN_STALL_S, stall_bound
 from robot_change.service.liveness import Progress
 
@@ -117,7 +118,7 @@ def test_progress_is_thread_safe():
 
 @pytest.mark.parametrize("bound", [0, -1.0, float("nan")])
 def test_a_bound_must_be_positive(bound):
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="bound_s"):
         Progress(bound)
 
 

@@ -13,6 +13,7 @@ import uuid
 import pytest
 from conftest import REPO
 
+from robot_change.errors import InputError
 from robot_change.service import systemd
 
 UNIT = REPO / "systemd" / "robot-change.service"
@@ -95,13 +96,13 @@ def test_a_vanished_socket_is_logged_not_raised(tmp_path, monkeypatch, caplog):
 
 
 def test_fields_that_would_break_the_datagram_are_refused(notify_socket):
-    with pytest.raises(ValueError, match="newline"):
+    with pytest.raises(InputError, match="newline"):
         systemd.notify(STATUS="two\nlines")
-    with pytest.raises(ValueError, match="keys"):
+    with pytest.raises(InputError, match="keys"):
         systemd.notify(**{"BAD KEY": 1})
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="at least one field"):
         systemd.notify()
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="seconds > 0"):
         systemd.extend_timeout(0)
 
 
@@ -247,8 +248,6 @@ def test_udev_rules_name_the_base_and_open_the_cameras_to_plugdev():
 def test_notify_never_blocks_on_a_socket_nobody_reads(tmp_path, monkeypatch):
     import socket as socket_module
     import time
-
-    from robot_change.service import systemd
 
     path = tmp_path / "full.sock"
     server = socket_module.socket(socket_module.AF_UNIX, socket_module.SOCK_DGRAM)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import math
 import time
 from pathlib import Path
@@ -28,11 +29,12 @@ import numpy as np
 import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import FrameError
-from robot_change import npzfile
+from robot_change import npzfile, validate
 from robot_change.change.mount import CameraMount
 from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
 from robot_change.cloud.filters import Plane, fuse_depth
 from robot_change.errors import (
+    BadValue,
     EmptySceneError,
     InputError,
     SceneFileError,
@@ -81,12 +83,8 @@ COMPARED_CLOUD_FIELDS = (
 # --------------------------------------------------------------------------- parameters
 
 
-def _bad(name: str, value: Any, allowed: str) -> InputError:
-    return InputError(f"SceneParams.{name}={value!r}: must be {allowed}")
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+_number = functools.partial(validate.number, "SceneParams")
+_whole = functools.partial(validate.whole, "SceneParams")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,28 +112,17 @@ class SceneParams:
 
     def __post_init__(self) -> None:
         if not isinstance(self.cloud, CloudParams):
-            raise _bad("cloud", self.cloud, "a robot_change.cloud.chain.CloudParams")
-        if self.criterion not in CRITERIA:
-            raise _bad("criterion", self.criterion, f"one of {', '.join(CRITERIA)}")
-        if not _is_int(self.max_components) or not 1 <= self.max_components <= 1000:
-            raise _bad("max_components", self.max_components, "a whole number in 1..1000")
-        if (not isinstance(self.tol, (int, float)) or isinstance(self.tol, bool)
-                or not math.isfinite(self.tol) or self.tol < 0):
-            raise _bad("tol", self.tol, "a finite number >= 0 (change of mean log-likelihood "
-                       "per point)")
-        if not _is_int(self.max_iter) or not 1 <= self.max_iter <= 100_000:
-            raise _bad("max_iter", self.max_iter, "a whole number in 1..100000")
-        if not _is_int(self.seed) or not 0 <= self.seed <= 2**63 - 1:
-            raise _bad("seed", self.seed, "a whole number in 0..2**63-1")
-        if self.search_points is not None and (not _is_int(self.search_points)
-                                               or self.search_points < 100):
-            raise _bad("search_points", self.search_points,
-                       "None (search on every point) or a whole number >= 100")
-        f = self.min_valid_fraction
-        if (not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f)
-                or not 0 < f <= 1):
-            raise _bad("min_valid_fraction", f, "a number with 0 < fraction <= 1 (0.5: a pixel "
-                       "needs a reading in half of the frames)")
+            raise BadValue("SceneParams", "cloud", self.cloud,
+                           "a robot_change.cloud.chain.CloudParams", wrong_type=True)
+        validate.choice("SceneParams", "criterion", self.criterion, CRITERIA)
+        _whole("max_components", self.max_components, 1, 1000)
+        _number("tol", self.tol, 0.0, math.inf, unit=" (change of mean log-likelihood per point)")
+        _whole("max_iter", self.max_iter, 1, 100_000)
+        _whole("seed", self.seed, 0, 2**63 - 1)
+        if self.search_points is not None:  # None: search on every point
+            _whole("search_points", self.search_points, 100, 10**9)
+        _number("min_valid_fraction", self.min_valid_fraction, 0.0, 1.0, low_open=True,
+                unit=" (0.5: a pixel needs a reading in half of the frames)")
 
     def min_valid(self, n_frames: int) -> int:
         """Readings a pixel needs among ``n_frames`` frames: ``ceil(fraction * N)``, >= 1."""
@@ -481,8 +468,7 @@ def build_scene_from_source(
     Raises :class:`InputError` when ``n_frames`` < 1 or the source delivers no frame, and
     whatever :func:`build_scene` raises.
     """
-    if not _is_int(n_frames) or n_frames < 1:
-        raise InputError(f"n_frames={n_frames!r}: read at least one frame")
+    validate.whole("build_scene_from_source", "n_frames", n_frames, 1, 10**6)
     if not isinstance(source, DepthSource):
         raise InputError(f"source must be an hw.depth.DepthSource (from hw.depth.open_depth), "
                          f"got {type(source).__name__}")

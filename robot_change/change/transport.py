@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from robot_change.errors import InputError
+from robot_change import validate
+from robot_change.errors import InputError, SolverError
 from robot_change.mixture.model import Mixture
 
 __all__ = [
@@ -739,7 +740,7 @@ def _check_cost(cost, ka: int, kb: int) -> np.ndarray:
 
 
 def _raise_solver_failure(status: int, shape) -> None:
-    raise RuntimeError(f"transportation simplex failed (status {status}) on a {shape} problem; "
+    raise SolverError(f"transportation simplex failed (status {status}) on a {shape} problem; "
                        "this is a bug in robot_change.change.transport: please report it with the inputs")
 
 
@@ -826,9 +827,7 @@ def greedy_emd(weights_fixed, weights_var, cost, candidates=None,
         cand = np.ascontiguousarray(cand)
     if max_removals is None:
         max_removals = kb
-    if isinstance(max_removals, bool) or not isinstance(max_removals, (int, np.integer)) \
-            or max_removals < 0:
-        raise InputError(f"max_removals must be an integer >= 0, got {max_removals!r}")
+    validate.whole("greedy_emd", "max_removals", max_removals, 0, 2**31 - 1)
     order, emd_after, single, n_solves, n_pivots, stop, status = _greedy_kernel(
         a, b, c, cand, int(max_removals), bool(compute_single), _REL_TOL_COST, -1)
     if status != _OK:

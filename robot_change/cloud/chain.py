@@ -26,7 +26,7 @@ from robot_change import validate
 from robot_change.cloud.depth_voxels import depth_voxel_grid
 from robot_change.cloud.filters import Plane, fit_plane_ransac, statistical_outliers
 from robot_change.cloud.geometry import MAX_DEPTH_M
-from robot_change.errors import InputError
+from robot_change.errors import BadValue, InputError
 
 __all__ = [
     "PIXEL_KEPT",
@@ -120,8 +120,8 @@ class CloudParams:
             except (TypeError, ValueError):
                 up = np.zeros(0)
             if up.shape != (3,) or not np.all(np.isfinite(up)) or not np.any(up):
-                raise InputError(f"CloudParams.plane_up={self.plane_up!r}: must be a non-zero "
-                                 "finite 3-vector (x right, y down, z forward)")
+                raise BadValue("CloudParams", "plane_up", self.plane_up, "a non-zero finite "
+                               "3-vector (x right, y down, z forward)", wrong_type=True)
             object.__setattr__(self, "plane_up", tuple(float(v) for v in up))
             _number("plane_max_tilt_deg", self.plane_max_tilt_deg, 0.0, 90.0, unit=" degrees")
 

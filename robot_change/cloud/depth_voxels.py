@@ -19,12 +19,12 @@ import numba
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change import validate
 from robot_change.cloud.filters import (
     _KEY_OFFSET,
     VoxelGrid,
     _accumulate_row,
     _band_workspace,
-    _check_positive,
     _merge_records,
     _pack_key,
     _voxel_slot,
@@ -158,7 +158,7 @@ def depth_voxel_grid(
         (not points) to voxels.
     """
     args = depth_kernel_args(depth, intrinsics, min_depth_m, max_depth_m)
-    leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
+    leaf = validate.positive("depth_voxel_grid", "leaf_m", leaf_m, 1e6, unit=" metres")
     bits, limit = voxel_table_size(args[0].shape[1])
     centroids, counts, keys, pixel_record, record_voxel, kept = _depth_voxel_kernel(
         *args, 1.0 / leaf, bits, limit)

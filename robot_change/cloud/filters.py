@@ -25,6 +25,7 @@ import math
 import numba
 import numpy as np
 
+from robot_change import validate
 from robot_change.cloud.geometry import check_points
 from robot_change.errors import InputError
 
@@ -420,17 +421,6 @@ def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
     return centroids, counts, voxel_keys, inverse
 
 
-def _check_positive(name: str, value: object, *, upper: float = math.inf, unit: str = "") -> float:
-    try:
-        number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InputError(f"{name}={value!r}: must be a number{unit}") from None
-    if not (math.isfinite(number) and 0.0 < number <= upper):
-        limit = f"0 < {name} <= {upper}" if math.isfinite(upper) else f"{name} > 0"
-        raise InputError(f"{name}={value!r}: must be finite and {limit}{unit}")
-    return number
-
-
 def voxel_grid(points: np.ndarray, leaf_m: float) -> VoxelGrid:
     """Replace the points in each occupied cubic voxel of edge ``leaf_m`` by their centroid.
 
@@ -448,7 +438,7 @@ def voxel_grid(points: np.ndarray, leaf_m: float) -> VoxelGrid:
         Voxels sorted by packed key; centroids as float32.
     """
     points = check_points(points)
-    leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
+    leaf = validate.positive("voxel_grid", "leaf_m", leaf_m, 1e6, unit=" metres")
     if points.shape[0] >= 2**31:
         raise InputError(f"points: {points.shape[0]} rows is too many for int32 indices")
     bits, limit = voxel_table_size(VOXEL_CHUNK)
@@ -632,9 +622,8 @@ def knn_mean_distance(
         voxels (Chebyshev voxel distance 1), in metres.
     """
     points, keys = _check_cloud_keys(points, keys)
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= 26:
-        raise InputError(f"k={k!r}: must be a whole number in 1..26 (the 26 adjacent voxels)")
-    cap = _check_positive("cap_m", cap_m, unit=" (metres)")
+    validate.whole("knn_mean_distance", "k", k, 1, 26, unit=" (the 26 adjacent voxels)")
+    cap = validate.positive("knn_mean_distance", "cap_m", cap_m, unit=" metres")
     return _knn_mean_kernel(points, keys, int(k), cap)
 
 
@@ -684,14 +673,9 @@ def statistical_outliers(
     cap_leaves : float
         Distance cap in leaf sizes, > 0.
     """
-    leaf = _check_positive("leaf_m", leaf_m, upper=1e6, unit=" (metres)")
-    try:
-        a = float(alpha)
-    except (TypeError, ValueError):
-        raise InputError(f"alpha={alpha!r}: must be a number of standard deviations >= 0") from None
-    if not (math.isfinite(a) and a >= 0.0):
-        raise InputError(f"alpha={alpha!r}: must be a finite number of standard deviations >= 0")
-    cap = _check_positive("cap_leaves", cap_leaves, unit=" (leaf sizes)") * leaf
+    leaf = validate.positive("statistical_outliers", "leaf_m", leaf_m, 1e6, unit=" metres")
+    a = validate.number("statistical_outliers", "alpha", alpha, 0.0, math.inf, unit=" standard deviations")
+    cap = validate.positive("statistical_outliers", "cap_leaves", cap_leaves, unit=" leaf sizes") * leaf
     stat = knn_mean_distance(points, keys, k, cap)
     if stat.shape[0] == 0:
         return np.zeros(0, dtype=bool)
@@ -958,12 +942,7 @@ def _check_up(up: object, max_tilt_deg: object) -> tuple[np.ndarray, float]:
             f"up={up!r}: must be a non-zero finite 3-vector in the camera frame, e.g. (0, -1, 0) "
             "for a level camera (y points down)"
         )
-    try:
-        tilt = float(max_tilt_deg)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InputError(f"max_tilt_deg={max_tilt_deg!r}: must be a number of degrees") from None
-    if not (math.isfinite(tilt) and 0.0 <= tilt <= 90.0):
-        raise InputError(f"max_tilt_deg={max_tilt_deg!r}: must be in 0..90 degrees")
+    tilt = validate.number("fit_plane_ransac", "max_tilt_deg", max_tilt_deg, 0.0, 90.0, unit=" degrees")
     return vec / norm, math.cos(math.radians(tilt))
 
 
@@ -1071,12 +1050,10 @@ def fit_plane_ransac(
     points = check_points(points)
     if not np.all(np.isfinite(points)):
         raise InputError("points contain NaN or inf; filter them first (voxel_grid drops them)")
-    dist = _check_positive("distance_m", distance_m, unit=" (metres)")
-    for name, value, low in (("iterations", iterations, 1), ("min_inliers", min_inliers, 1)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-            raise InputError(f"{name}={value!r}: must be a whole number >= {low}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed={seed!r}: must be a whole number >= 0")
+    dist = validate.positive("fit_plane_ransac", "distance_m", distance_m, unit=" metres")
+    validate.whole("fit_plane_ransac", "iterations", iterations, 1, 2**63 - 1)
+    validate.whole("fit_plane_ransac", "min_inliers", min_inliers, 1, 2**63 - 1)
+    validate.whole("fit_plane_ransac", "seed", seed, 0, 2**63 - 1)
     up_vec, cos_min = _check_up(up, max_tilt_deg)
     try:
         conf = float(confidence)
@@ -1222,8 +1199,6 @@ def fuse_depth(stack: np.ndarray, min_valid: int) -> np.ndarray:
     n = stack.shape[0]
     if n == 0:
         raise InputError("stack holds no frames; fuse at least one depth frame")
-    if (isinstance(min_valid, bool) or not isinstance(min_valid, (int, np.integer))
-            or not 1 <= min_valid <= n):
-        raise InputError(f"min_valid={min_valid!r}: must be a whole number in 1..{n} (the "
-                         "number of frames in the stack)")
+    validate.whole("fuse_depth", "min_valid", min_valid, 1, n,
+                   unit=" (the number of frames in the stack)")
     return _fuse_kernel(np.ascontiguousarray(stack), int(min_valid))

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change import validate
 from robot_change.errors import InputError
 
 __all__ = ["check_points", "depth_kernel_args", "depth_to_points", "project_points"]
@@ -106,20 +107,10 @@ def _check_intrinsics(intrinsics: object) -> Intrinsics:
 
 
 def _check_depth_range(min_depth_m: float, max_depth_m: float) -> tuple[float, float]:
-    try:
-        lo, hi = float(min_depth_m), float(max_depth_m)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"min_depth_m={min_depth_m!r}, max_depth_m={max_depth_m!r}: depth limits must be "
-            "numbers of metres"
-        ) from None
-    if not (math.isfinite(lo) and 0.0 <= lo <= MAX_DEPTH_M):
-        raise InputError(f"min_depth_m={min_depth_m!r}: must be in 0..{MAX_DEPTH_M} m")
-    if not (math.isfinite(hi) and lo < hi):
-        raise InputError(
-            f"max_depth_m={max_depth_m!r}: must be finite and greater than "
-            f"min_depth_m={min_depth_m!r}"
-        )
+    owner = "depth_to_points"
+    lo = validate.number(owner, "min_depth_m", min_depth_m, 0.0, MAX_DEPTH_M, unit=" metres")
+    hi = validate.number(owner, "max_depth_m", max_depth_m, lo, math.inf, low_open=True,
+                         unit=" metres (beyond min_depth_m)")
     return lo, hi
 
 

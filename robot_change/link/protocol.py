@@ -19,10 +19,10 @@ import binascii
 import struct
 from dataclasses import dataclass, fields
 from enum import Enum, IntEnum
-from typing import ClassVar, Iterable
+from typing import Any, Callable, ClassVar, Iterable
 
 from robot_change import validate
-from robot_change.errors import MessageError
+from robot_change.errors import BadValue, MessageError
 
 #: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
 VERSION = 2
@@ -209,52 +209,37 @@ PARAM_BY_NAME = {p.name: p for p in PARAMS}
 # field validation (every error is a MessageError naming the field, the value and what is allowed)
 
 
-def _enum(owner: str, name: str, value: object, enum: type[IntEnum]) -> IntEnum:
+def _checked(reason: NakReason, check: Callable[..., Any], owner: str, name: str, value: object,
+             *args: Any, **kwargs: Any) -> Any:
+    """``check`` (robot_change.validate) as a MessageError: a value of the wrong kind is a bad
+    payload, one out of its range is ``reason``."""
     try:
-        return enum(value)
-    except (ValueError, TypeError):
-        allowed = ", ".join(f"{m.value} {m.name}" for m in enum)
-        raise MessageError(f"{owner}.{name} = {value!r}: not a {enum.__name__} (allowed: {allowed})",
-                           NakReason.BAD_PAYLOAD) from None
+        return check(owner, name, value, *args, **kwargs)
+    except BadValue as exc:
+        raise MessageError(str(exc), NakReason.BAD_PAYLOAD if exc.wrong_type else reason) from None
+
+
+def _enum(owner: str, name: str, value: object, enum: type[IntEnum]) -> IntEnum:
+    return _checked(NakReason.BAD_PAYLOAD, validate.member, owner, name, value, enum)
 
 
 def _int(owner: str, name: str, value: object, lo: int, hi: int,
          reason: NakReason = NakReason.OUT_OF_RANGE) -> int:
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise MessageError(f"{owner}.{name} = {value!r}: must be an integer in {lo}..{hi}",
-                           NakReason.BAD_PAYLOAD)
-    if not lo <= value <= hi:
-        raise MessageError(f"{owner}.{name} = {value}: out of range, allowed {lo}..{hi}", reason)
-    return value
+    return _checked(reason, validate.whole, owner, name, value, lo, hi)
 
 
 def _bool(owner: str, name: str, value: object) -> bool:
-    if value in (0, 1) and (isinstance(value, (bool, int))):
-        return bool(value)
-    raise MessageError(f"{owner}.{name} = {value!r}: must be true or false", NakReason.BAD_PAYLOAD)
+    return _checked(NakReason.BAD_PAYLOAD, validate.flag, owner, name, value, zero_one=True)
 
 
 def _station(owner: str, value: object, empty_ok: bool = False) -> str:
     if empty_ok and value == "":
         return ""
-    if not validate.is_station(value):
-        raise MessageError(f"{owner}.station = {value!r}: {validate.STATION_RULE}",
-                           NakReason.BAD_PAYLOAD)
-    return value  # type: ignore[return-value]
+    return _checked(NakReason.BAD_PAYLOAD, validate.station, owner, "station", value)
 
 
 def _text(owner: str, name: str, value: object, limit: int) -> str:
-    if not isinstance(value, str):
-        raise MessageError(f"{owner}.{name} = {value!r}: must be a string", NakReason.BAD_PAYLOAD)
-    if len(value.encode("utf-8", "surrogatepass")) > limit:
-        raise MessageError(f"{owner}.{name}: {len(value.encode('utf-8', 'surrogatepass'))} bytes "
-                           f"of UTF-8, at most {limit} allowed", NakReason.BAD_PAYLOAD)
-    try:
-        value.encode("utf-8")
-    except UnicodeEncodeError:
-        raise MessageError(f"{owner}.{name} = {value!r}: not encodable as UTF-8",
-                           NakReason.BAD_PAYLOAD) from None
-    return value
+    return _checked(NakReason.BAD_PAYLOAD, validate.text, owner, name, value, max_bytes=limit)
 
 
 def _set(obj: object, name: str, value: object) -> None:
@@ -924,7 +909,7 @@ def cobs_encode(data: bytes) -> bytes:
 
 
 def cobs_decode(data: bytes) -> bytes:
-    """Inverse of :func:`cobs_encode`; raises ValueError on a zero byte or a truncated block."""
+    """Inverse of :func:`cobs_encode`; raises MessageError (a ValueError) on a zero byte or a truncated block."""
     if 0 in data:
         return _cobs_decode_long(data)  # raises, naming the offset
     n = len(data)
@@ -949,10 +934,10 @@ def _cobs_decode_long(data: bytes) -> bytes:
     while i < n:
         code = data[i]
         if code == 0:
-            raise ValueError(f"zero byte inside a COBS frame at offset {i}")
+            raise MessageError(f"zero byte inside a COBS frame at offset {i}")
         end = i + code
         if end > n:
-            raise ValueError(f"COBS block at offset {i} wants {code - 1} bytes, {n - i - 1} left")
+            raise MessageError(f"COBS block at offset {i} wants {code - 1} bytes, {n - i - 1} left")
         out += data[i + 1:end]
         i = end
         if code != 0xFF and i < n:

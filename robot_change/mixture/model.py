@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
-from robot_change import npzfile
+from robot_change import npzfile, validate
 from robot_change.errors import ConvergenceWarning, InputError, MixtureFileError
 from robot_change.mixture import em
 
@@ -58,9 +58,7 @@ def reg_covar_for_leaf(leaf: float) -> float:
     the data, so no component needs to be thinner, and a plane (zero thickness in the ideal
     case) stays well-conditioned.
     """
-    if not (isinstance(leaf, (int, float)) and math.isfinite(leaf) and leaf > 0):
-        raise InputError(f"leaf must be a positive number of metres, got {leaf!r}")
-    return float(leaf) ** 2 / 12.0
+    return validate.positive("reg_covar_for_leaf", "leaf", leaf, unit=" metres") ** 2 / 12.0
 
 
 # --------------------------------------------------------------------------- the Mixture
@@ -587,21 +585,17 @@ def fit_mixture(
     t_start = time.perf_counter()
     x = _check_points(points)
     n = x.shape[0]
-    if criterion not in CRITERIA:
-        raise InputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    validate.choice("fit_mixture", "criterion", criterion, CRITERIA)
     if reg_covar is None:
         reg_covar = reg_covar_for_leaf(leaf)
-    if not (isinstance(reg_covar, (int, float)) and math.isfinite(reg_covar) and reg_covar > 0):
-        raise InputError(f"reg_covar must be > 0 (m^2), got {reg_covar!r}; "
-                         f"leaf**2/12 of the voxel size is the usual choice")
+    validate.positive("fit_mixture", "reg_covar", reg_covar,
+                      unit=" m^2 (leaf**2/12 of the voxel size is the usual choice)")
     for name, v, lo in (("max_components", max_components, 1), ("max_iter", max_iter, 1),
                         ("min_points", min_points, 1), ("max_tries", max_tries, 1),
                         ("entropy_k", entropy_k, 1), ("entropy_subsample", entropy_subsample, 8),
                         ("search_points", 100 if search_points is None else search_points, 100)):
-        if int(v) != v or v < lo:
-            raise InputError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if not (tol >= 0):
-        raise InputError(f"tol must be >= 0, got {tol!r}")
+        validate.whole("fit_mixture", name, v, lo, 2**63 - 1)
+    validate.number("fit_mixture", "tol", tol, 0.0, math.inf)
     rng = np.random.default_rng(seed)
     opts = dict(fix_weights=bool(fix_weights), reg_covar=float(reg_covar), tol=float(tol),
                 max_iter=int(max_iter))

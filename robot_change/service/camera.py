@@ -27,6 +27,7 @@ from typing import Any, Callable
 from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource
 from hw.errors import DeviceLost, FrameTimeout, HwError
+from robot_change import validate
 
 __all__ = ["CAMERA_BACKOFF", "CAMERA_HEALTHY_FRAMES", "CAMERA_STABLE_S", "CameraThread",
            "FrameQueue"]
@@ -49,8 +50,7 @@ class FrameQueue:
     """
 
     def __init__(self, size: int = 4, on_put: Callable[[], None] | None = None) -> None:
-        if size < 1:
-            raise ValueError(f"FrameQueue size {size}: at least 1")
+        validate.whole("FrameQueue", "size", size, 1, 10_000)
         self._frames: collections.deque[tuple[DepthFrame, float, int]] = collections.deque()
         self._size = size
         self._cond = threading.Condition()

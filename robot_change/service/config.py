@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import os
 import re
@@ -28,10 +29,11 @@ from typing import Any, Callable, ClassVar, Mapping
 
 from hw.depth import parse_uri
 from hw.errors import UriError
+from robot_change import validate
 from robot_change.change.mount import CameraMount
 from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
-from robot_change.errors import ConfigError, InputError
+from robot_change.errors import BadValue, ConfigError
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
 
 #: The library's own defaults: the config file's defaults are these, not copies of them.
@@ -62,83 +64,52 @@ BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600,
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
-class _Bad(Exception):
-    """A value a checker refuses; ``allowed`` says what would be accepted."""
-
-    def __init__(self, allowed: str) -> None:
-        super().__init__(allowed)
-        self.allowed = allowed
-
-
 # ---------------------------------------------------------------------------------------------
-# checkers: value from TOML -> value kept (converted), or _Bad(what is allowed)
+# checkers: (section, key, value from TOML) -> value kept (converted), or BadValue (every check
+# is robot_change.validate's; _Section re-words a BadValue as a ConfigError)
 
-Check = Callable[[Any], Any]
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+Check = Callable[[str, str, Any], Any]
 
 
 def _int(lo: int, hi: int, unit: str = "") -> Check:
-    def check(value: Any) -> int:
-        if not _is_int(value) or not lo <= value <= hi:
-            raise _Bad(f"a whole number in {lo}..{hi}{unit}")
-        return value
-    return check
+    return functools.partial(validate.whole, low=lo, high=hi, unit=unit)
 
 
 def _float(lo: float, hi: float, unit: str = "", *, lo_open: bool = False) -> Check:
-    def check(value: Any) -> float:
-        ok = (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
-        ok = ok and (value > lo if lo_open else value >= lo) and value <= hi
-        if not ok:
-            low = f"{lo} < x" if lo_open else f"{lo} <= x"
-            raise _Bad(f"a number with {low} <= {hi}{unit}")
-        return float(value)
-    return check
+    return functools.partial(validate.number, low=lo, high=hi, unit=unit, low_open=lo_open)
 
 
-def _bool(value: Any) -> bool:
-    if not isinstance(value, bool):
-        raise _Bad("true or false")
-    return value
+def _lower(value: Any) -> Any:
+    return value.lower() if isinstance(value, str) else value
 
 
 def _choice(options: tuple[Any, ...]) -> Check:
-    def check(value: Any) -> Any:
-        if isinstance(value, str):
-            value = value.lower()
-        if value not in options:
-            raise _Bad("one of " + ", ".join(repr(o) for o in options))
-        return value
+    def check(owner: str, name: str, value: Any) -> Any:
+        return validate.choice(owner, name, _lower(value), options)
     return check
 
 
-def _text(value: Any) -> str:
-    if not isinstance(value, str) or not value.strip() or "\0" in value:
-        raise _Bad("a non-empty string")
-    return value
+def _text(owner: str, name: str, value: Any) -> str:
+    return validate.text(owner, name, value, non_empty=True, no_nul=True)
 
 
-def _depth_uri(value: Any) -> str:
-    text = _text(value)
+def _depth_uri(owner: str, name: str, value: Any) -> str:
+    text = _text(owner, name, value)
     try:
         parse_uri(text)
     except UriError as exc:
-        raise _Bad(f"a depth URI such as 'openni2://', 'openni2://SERIAL', 'oni:FILE.oni' or "
-                   f"'images:DIR/' ({exc})") from None
+        raise BadValue(owner, name, value, f"a depth URI such as 'openni2://', "
+                       f"'openni2://SERIAL', 'oni:FILE.oni' or 'images:DIR/' ({exc})") from None
     return text
 
 
 def _triple(limit: float, unit: str) -> Check:
-    def check(value: Any) -> tuple[float, float, float]:
-        ok = isinstance(value, (list, tuple)) and len(value) == 3 and all(
-            (_is_int(v) or isinstance(v, float)) and math.isfinite(v) and abs(v) <= limit
-            for v in value)
-        if not ok:
-            raise _Bad(f"three numbers, each within +-{limit}{unit}, e.g. [0.2, 0.0, 0.45]")
-        return tuple(float(v) for v in value)  # type: ignore[return-value]
+    def check(owner: str, name: str, value: Any) -> tuple[float, float, float]:
+        if not isinstance(value, (list, tuple)) or len(value) != 3:
+            raise BadValue(owner, name, value, f"three numbers, each within +-{limit}{unit}, "
+                           "e.g. [0.2, 0.0, 0.45]", wrong_type=True)
+        return tuple(validate.number(owner, f"{name}[{i}]", v, -limit, limit, unit=unit)
+                     for i, v in enumerate(value))  # type: ignore[return-value]
     return check
 
 
@@ -146,50 +117,39 @@ def _param(name: str) -> Check:
     """The range of the protocol's runtime parameter ``name`` (same bounds on the wire)."""
     p = PARAM_BY_NAME[name]
     if p.unit == "bool":
-        return _bool
+        return validate.flag
     return _int(p.minimum, p.maximum, f" {p.unit}")
 
 
-def _cloud(name: str) -> Check:
-    """Checked by CloudParams itself, so the bounds live in one place (robot_change.cloud.chain)."""
-    def check(value: Any) -> Any:
-        if name == "plane_up":
-            if (not isinstance(value, list) or len(value) != 3
-                    or not all(_is_int(v) or isinstance(v, float) for v in value)):
-                raise _Bad("an array of 3 numbers, e.g. [0, -1, 0] (camera frame, y down)")
-            value = tuple(float(v) for v in value)
-            trial = {"plane_up": value, "plane_max_tilt_deg": 10.0}
-        elif name == "plane_max_tilt_deg":
-            trial = {"plane_up": (0.0, -1.0, 0.0), "plane_max_tilt_deg": value}
-        else:
-            trial = {name: value}
-        if isinstance(value, bool) != isinstance(getattr(CloudParams(), name, None), bool):
-            raise _Bad("true or false" if isinstance(getattr(CloudParams(), name), bool)
-                       else "a number")
-        try:
-            CloudParams(**trial)
-        except InputError as exc:
-            raise _Bad(str(exc).split(": ", 1)[-1].removeprefix("must be ")) from None
-        return float(value) if isinstance(getattr(CloudParams(), name), float) else value
-    return check
+def _library(params: type, owner: str) -> Callable[[str], Check]:
+    """A key checked by the library's own parameter class (CloudParams, SceneParams: the
+    bounds live in one place), built with only that key changed from the defaults."""
+    defaults = params()
+
+    def for_key(key: str) -> Check:
+        def check(section: str, name: str, value: Any) -> Any:
+            default = getattr(defaults, key)
+            value = _lower(value)
+            trial = {key: value}
+            if key == "plane_up":
+                if not isinstance(value, list):
+                    raise BadValue(section, name, value, "an array of 3 numbers, e.g. "
+                                   "[0, -1, 0] (camera frame, y down)", wrong_type=True)
+                trial["plane_max_tilt_deg"] = 10.0
+            elif key == "plane_max_tilt_deg":
+                trial["plane_up"] = (0.0, -1.0, 0.0)
+            try:
+                checked = params(**trial)
+            except BadValue as exc:
+                raise BadValue(section, name, value, exc.allowed,
+                               wrong_type=exc.wrong_type) from None
+            return float(value) if isinstance(default, float) else getattr(checked, key)
+        return check
+    return for_key
 
 
-def _scene(name: str) -> Check:
-    """Checked by SceneParams itself (robot_change.change.scene holds the bounds)."""
-    def check(value: Any) -> Any:
-        default = getattr(SceneParams(), name)
-        if isinstance(value, str):
-            value = value.lower()
-        if name == "search_points" and (not _is_int(value) or value < 100):
-            raise _Bad("a whole number >= 100")
-        if isinstance(value, bool) or (isinstance(default, int) and not _is_int(value)):
-            raise _Bad("a whole number" if isinstance(default, int) else "a number")
-        try:
-            SceneParams(**{name: value})
-        except InputError as exc:
-            raise _Bad(str(exc).split(": ", 1)[-1].removeprefix("must be ")) from None
-        return float(value) if isinstance(default, float) else value
-    return check
+_cloud = _library(CloudParams, "CloudParams")
+_scene = _library(SceneParams, "SceneParams")
 
 
 def _key(default: Any, check: Check, doc: str) -> Any:
@@ -211,8 +171,8 @@ class _Section:
             if value is None and f.default is None:
                 continue  # an optional key left out
             try:
-                object.__setattr__(self, f.name, f.metadata["check"](value))
-            except _Bad as bad:
+                object.__setattr__(self, f.name, f.metadata["check"](self.NAME, f.name, value))
+            except BadValue as bad:
                 raise ConfigError(f"{self.NAME}.{f.name} = {_show(value)}: must be "
                                   f"{bad.allowed}") from None
         self._cross_check()
@@ -376,7 +336,7 @@ class ChangeConfig(_Section):
                                  "true: a change raises PAUSE; false: report only")
     extra: Mapping[str, float | int | bool] = dataclasses.field(
         default_factory=lambda: types.MappingProxyType({}),
-        metadata={"check": lambda v: v, "doc": "further thresholds of the change step"})
+        metadata={"check": lambda _section, _key, value: value, "doc": "further thresholds of the change step"})
 
     def _cross_check(self) -> None:
         known = [f.name for f in dataclasses.fields(self) if f.name != "extra"]
@@ -394,7 +354,7 @@ class ChangeConfig(_Section):
             if near:
                 raise ConfigError(f"{where}: unknown key; did you mean change.{near[0]}? "
                                   "(free-form thresholds must not be near-misses of known keys)")
-            if not (isinstance(value, bool) or _is_int(value)
+            if not (isinstance(value, (bool, int))
                     or (isinstance(value, float) and math.isfinite(value))):
                 raise ConfigError(f"{where}: a free-form threshold must be a finite number or "
                                   "true/false")
@@ -425,7 +385,7 @@ class ServiceConfig(_Section):
     """The daemon itself."""
 
     NAME: ClassVar[str] = "service"
-    watchdog: bool = _key(True, _bool,
+    watchdog: bool = _key(True, validate.flag,
                           "send WATCHDOG=1 when systemd's WatchdogSec= asks for it (false only "
                           "for debugging: systemd then kills the service after WatchdogSec)")
     log_level: str = _key("info", _choice(LOG_LEVELS), "journal verbosity")

@@ -24,6 +24,8 @@ import threading
 import time
 from typing import Callable
 
+from robot_change import validate
+
 __all__ = ["Progress"]
 
 
@@ -36,9 +38,7 @@ class Progress:
 
     def __init__(self, bound_s: float, bounds: dict[str, float] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        if not bound_s > 0:
-            raise ValueError(f"bound_s={bound_s!r}: must be > 0 seconds")
-        self.bound_s = float(bound_s)
+        self.bound_s = validate.positive("Progress", "bound_s", bound_s, unit=" seconds")
         self._bounds = dict(bounds or {})
         self._clock = clock
         self._lock = threading.Lock()

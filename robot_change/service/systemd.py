@@ -20,6 +20,9 @@ import re
 import socket
 import time
 
+from robot_change import validate
+from robot_change.errors import InputError
+
 __all__ = [
     "extend_timeout",
     "notify",
@@ -50,21 +53,21 @@ def notify(**fields: object) -> bool:
 
     Keys are upper-cased; ``True``/``False`` become 1/0.  Returns True when the message was
     sent, False without ``$NOTIFY_SOCKET`` or when sending failed (logged: a daemon must not
-    die because its supervisor's socket is gone).  Raises ``ValueError`` for an empty call, a
+    die because its supervisor's socket is gone).  Raises InputError for an empty call, a
     key that is not ``[A-Z][A-Z0-9_]*`` or a value with a newline (it would end the field).
     """
     if not fields:
-        raise ValueError("notify() needs at least one field, e.g. READY=1")
+        raise InputError("notify() needs at least one field, e.g. READY=1")
     lines = []
     for key, value in fields.items():
         key = key.upper()
         if not _KEY.match(key):
-            raise ValueError(f"notify field {key!r}: keys are upper-case letters, digits and '_'")
+            raise InputError(f"notify field {key!r}: keys are upper-case letters, digits and '_'")
         if isinstance(value, bool):
             value = int(value)
         text = str(value)
         if "\n" in text or "\0" in text:
-            raise ValueError(f"notify field {key}={text!r}: a value cannot hold a newline or NUL")
+            raise InputError(f"notify field {key}={text!r}: a value cannot hold a newline or NUL")
         lines.append(f"{key}={text}")
     target = os.environ.get("NOTIFY_SOCKET", "")
     if not target:
@@ -115,8 +118,7 @@ def stopping() -> bool:
 def extend_timeout(seconds: float) -> bool:
     """EXTEND_TIMEOUT_USEC: ask for ``seconds`` more of the start (or stop) timeout, e.g.
     while numba compiles its kernels on a cold cache."""
-    if not seconds > 0:
-        raise ValueError(f"extend_timeout({seconds!r}): give a number of seconds > 0")
+    seconds = validate.positive("extend_timeout", "seconds", seconds, unit=" seconds")
     return notify(EXTEND_TIMEOUT_USEC=int(seconds * 1e6))
 
 
