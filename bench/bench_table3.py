@@ -73,7 +73,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from robot_change.change.detect import ChangeParams, detect_changes, detect_plain  # noqa: E402
+from robot_change.change.baselines import detect_plain  # noqa: E402
+from robot_change.change.detect import detect_changes  # noqa: E402
+from robot_change.change.params import ChangeParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams, clean_cloud  # noqa: E402
 from robot_change.cloud.filters import fuse_depth  # noqa: E402

@@ -42,13 +42,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robot_change.change.detect import (  # noqa: E402
-    ChangeParams,
-    detect_changes,
+from robot_change.change.baselines import (  # noqa: E402
     detect_geometric,
     detect_nn_threshold,
     detect_plain,
 )
+from robot_change.change.detect import detect_changes  # noqa: E402
+from robot_change.change.params import ChangeParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402

@@ -31,8 +31,8 @@ from robot_change.errors import (  # noqa: E402 -- after __version__, which modu
 #: public name -> the module that defines it (the one place that knows where things live)
 _API = {
     "CameraMount": "robot_change.change.mount",
-    "ChangeParams": "robot_change.change.detect",
-    "ChangeSet": "robot_change.change.detect",
+    "ChangeParams": "robot_change.change.params",
+    "ChangeSet": "robot_change.change.results",
     "CloudParams": "robot_change.cloud.chain",
     "Mixture": "robot_change.mixture.model",
     "Registration": "robot_change.change.registration",

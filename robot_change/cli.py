@@ -353,13 +353,14 @@ def _detect_mount(args: argparse.Namespace, reference) -> CameraMount:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     """Compare a reference with now: what appeared, what disappeared, where."""
-    from robot_change.change import detect as change
+    from robot_change.change import baselines
+    from robot_change.change.detect import detect_changes
 
     started = time.perf_counter()
     reference = _reference_scene(args)
     current, current_depth, camera = _current_input(args, reference)
-    detector = {"novelty": change.detect_changes, "plain": change.detect_plain,
-                "geometric": change.detect_geometric, "nn": change.detect_nn_threshold}
+    detector = {"novelty": detect_changes, "plain": baselines.detect_plain,
+                "geometric": baselines.detect_geometric, "nn": baselines.detect_nn_threshold}
     mount = _detect_mount(args, reference)
     changes = detector[args.method](reference, current, intrinsics=camera)
     seconds = time.perf_counter() - started

@@ -9,17 +9,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from robot_change.change import detect as ch
-from robot_change.change.detect import (
-    ChangeParams,
-    ChangeSet,
-    detect_changes,
-    detect_geometric,
-    detect_nn_threshold,
-    detect_plain,
-    free_space_votes,
-    label_voxel_components,
-)
+from robot_change.change import free_space, greedy
+from robot_change.change.baselines import detect_geometric, detect_nn_threshold, detect_plain
+from robot_change.change.detect import detect_changes
+from robot_change.change.free_space import free_space_votes
+from robot_change.change.params import ChangeParams
+from robot_change.change.regions import label_voxel_components
+from robot_change.change.results import ChangeSet
 from robot_change.change.scene import SceneParams, build_scene
 from robot_change.cloud.chain import CloudParams
 from robot_change.cloud.filters import pack_keys
@@ -153,8 +149,8 @@ def test_accept_trajectory_rule():
     p = ChangeParams(accept_min_drop_m=0.01, accept_min_drop_rel=0.1, min_region_points=5)
     w = np.array([0.5, 0.3, 0.1, 0.1])
     emd_after = np.array([1.0, 0.5, 0.45, 0.1])  # drops 0.5, 0.05 (< 0.1 * 1.0), 0.35
-    assert ch.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 100, p) == 1
-    assert ch.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 10, p) == 0  # 3 points
+    assert greedy.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 100, p) == 1
+    assert greedy.accept_trajectory(np.array([1, 2, 3]), emd_after, w, 10, p) == 0  # 3 points
 
 
 def test_ground_distance_changes_the_emd(models):
@@ -246,7 +242,7 @@ def test_window_filter_matches_numpy(radius):
     depth[rng.random(depth.shape) < 0.3] = 0
     depth[5:20, 10:30] = 0  # a hole wider than the window
     for take_min in (True, False):
-        np.testing.assert_array_equal(ch._window_filter(depth, radius, take_min),
+        np.testing.assert_array_equal(free_space._window_filter(depth, radius, take_min),
                                       _window_twin(depth, radius, take_min))
 
 
@@ -323,9 +319,9 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     T = np.eye(4)
     T[:3, :3] = rpy_deg_to_rotation(1.0, -2.0, 3.0)
     T[:3, 3] = shift
-    window = ch.sensing_window(other)
+    window = free_space.sensing_window(other)
     assert window == (0, h - 1, 0, w - 4)
-    got_t, got_z = ch._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
+    got_t, got_z = free_space._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
                                    intr.cx, intr.cy, w, np.array(window), 0.4, 2.9)
     want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window)
     np.testing.assert_array_equal(got_t, want_t)

@@ -207,7 +207,7 @@ def test_each_key_belongs_to_one_section():
 def test_the_library_and_the_daemon_run_one_set_of_defaults():
     """What `detect` (the library's ChangeParams) and the robot (configuration + wire
     parameters) decide with, when nobody overrides anything, is the same."""
-    from robot_change.change.detect import ChangeParams
+    from robot_change.change.params import ChangeParams
     from robot_change.service.params import change_params
 
     config = Config()

@@ -11,7 +11,8 @@ import pytest
 
 from hw.depth import Intrinsics
 from robot_change.change import registration as reg_mod
-from robot_change.change.detect import ChangeParams, detect_changes
+from robot_change.change.detect import detect_changes
+from robot_change.change.params import ChangeParams
 from robot_change.change.registration import (
     RegistrationParams,
     depth_sigma,

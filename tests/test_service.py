@@ -134,7 +134,7 @@ def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
     from robot_change.cloud.filters import fuse_depth
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
-    from robot_change.change.detect import ChangeParams
+    from robot_change.change.params import ChangeParams
 
     margins = ChangeParams().free_space_margin_m, ChangeParams().free_space_margin_per_m2
     quiet = max(depth_gate(fused, f, *margins) for f in ref)

@@ -740,7 +740,7 @@ def _fixed_mask(fixed, k: int) -> np.ndarray:
 def component_of(points: np.ndarray, reg_covar: float) -> tuple[np.ndarray, np.ndarray]:
     """The Gaussian of a group of points (M, 3), float64: (mean (3,), covariance (3, 3), the
     maximum-likelihood one plus ``reg_covar`` on the diagonal): how a new component is seeded,
-    here and in robot_change.change.detect."""
+    here and in robot_change.change.detect (novelty seeds)."""
     xs = np.asarray(points, dtype=np.float64)
     return xs.mean(axis=0), np.cov(xs, rowvar=False, bias=True) + reg_covar * np.eye(3)
 

@@ -319,7 +319,7 @@ _FREE_KEY = re.compile(r"[a-z][a-z0-9_]{0,63}\Z")
 @dataclasses.dataclass(frozen=True)
 class ChangeConfig(_Section):
     """Thresholds of change detection.  The protocol's three are checked here; further keys are
-    fields of :class:`robot_change.change.detect.ChangeParams`, kept in ``extra`` (snake_case
+    fields of :class:`robot_change.change.params.ChangeParams`, kept in ``extra`` (snake_case
     names, finite numbers or booleans, no near-miss of a known key) and checked against
     ChangeParams by :func:`robot_change.service.params.check_config` (an unknown one is
     refused with a hint)."""

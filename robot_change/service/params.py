@@ -9,7 +9,7 @@ import difflib
 import os
 from pathlib import Path
 
-from robot_change.change.detect import ChangeParams
+from robot_change.change.params import ChangeParams
 from robot_change.errors import ConfigError, InputError
 from robot_change.service.config import Config, load_config
 
@@ -56,7 +56,7 @@ def _check_state_dir(where: str, path: Path) -> None:
 
 
 def change_params(config: Config, params: dict[str, int]):
-    """The :class:`robot_change.change.detect.ChangeParams` of a check: the configuration's free-form
+    """The :class:`robot_change.change.params.ChangeParams` of a check: the configuration's free-form
     ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points`` and
     ``min_region_extent_mm`` (whose defaults are ChangeParams' own: one set of defaults)."""
     fields = {f.name for f in dataclasses.fields(ChangeParams)}

@@ -36,7 +36,8 @@ import numpy as np
 
 from hw.depth import DepthFrame
 from robot_change.change import detect
-from robot_change.change.detect import ChangeParams, ChangeSet
+from robot_change.change.params import ChangeParams
+from robot_change.change.results import ChangeSet
 from robot_change.change.scene import SceneModel
 from robot_change.errors import EmptySceneError, SceneMismatchError
 from robot_change.link.protocol import FaultCode, PauseCause

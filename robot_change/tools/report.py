@@ -181,7 +181,7 @@ def draw_change(
     per region.
 
     ``reference_depth`` / ``current_depth``: (H, W) uint16 mm; ``changes``: a
-    :class:`robot_change.change.detect.ChangeSet`.  Returns the PNG's path.
+    :class:`robot_change.change.results.ChangeSet`.  Returns the PNG's path.
     """
     plt = _pyplot()
     figure, axes = plt.subplots(1, 2, figsize=(14, 5.6), constrained_layout=True)

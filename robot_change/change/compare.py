@@ -1,0 +1,216 @@
+"""What every method shares: the two epochs of a check aligned in the current camera frame
+(registration, the station test, the reference moved, the free-space checks both ways), the
+observed / free-space / nearest-neighbour filters of a direction's candidates, and the
+ChangeSet made from the two directions (regions, masks, the unobserved share).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import TypeAlias
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hw.depth import Intrinsics
+from robot_change.change.epoch import (
+    Epoch,
+    as_epoch,
+    check_pair,
+    check_scene_models,
+    current_epoch,
+)
+from robot_change.change.free_space import free_and_observed
+from robot_change.change.params import ChangeParams
+from robot_change.change.regions import group_regions, pixel_mask
+from robot_change.change.registration import (
+    Registration,
+    register_depth,
+    transform_points,
+)
+from robot_change.change.results import ChangeSet, GreedyTrace
+from robot_change.change.scene import SceneModel
+from robot_change.mixture.model import Mixture, fit_mixture
+
+__all__ = [
+    "Aligned",
+    "Current",
+    "Direction",
+    "Reference",
+    "align",
+    "finish",
+    "fit_own",
+    "geometric_filters",
+    "nn_far",
+    "not_at_station_result",
+    "timed_free",
+]
+
+
+#: What a comparison takes as the reference, and as now (a depth array: (H, W) uint16 mm).
+Reference: TypeAlias = "SceneModel | Epoch"
+Current: TypeAlias = "SceneModel | Epoch | np.ndarray"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Direction:
+    """One direction's result before regions: candidate mask (M,) bool, posteriors (M, K) of
+    the searched mixture (or None), that mixture, its greedy trace, and the observed mask."""
+
+    changed: np.ndarray
+    posterior: np.ndarray | None
+    mixture: Mixture | None
+    trace: GreedyTrace | None
+    observed: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Aligned:
+    """The two epochs of a check in the current camera frame: ``ref`` with its points (and
+    mixture) mapped through the registration, ``cur`` as it is; ``registration``; ``reason``
+    why this is not the station ("" when it is); the free-space results (free, observed) of
+    the current's points and, when the disappeared direction runs, of the reference's."""
+
+    ref: Epoch
+    cur: Epoch
+    registration: Registration
+    reason: str = ""
+    free_cur: np.ndarray | None = None
+    observed_cur: np.ndarray | None = None
+    free_ref: np.ndarray | None = None
+    observed_ref: np.ndarray | None = None
+
+    @property
+    def at_station(self) -> bool:
+        return not self.reason
+
+
+def fit_own(ep: Epoch, params: ChangeParams) -> Mixture:
+    return fit_mixture(ep.points, leaf=ep.leaf_m, seed=params.seed)
+
+
+def align(reference: Reference, current: Current, params: ChangeParams, intrinsics: Intrinsics | None,
+           timings: dict, initial_pose: np.ndarray | None = None) -> Aligned:
+    """Checks, the current's clean cloud, registration and whether this is the station at all,
+    the reference moved into the current camera frame, the free-space checks both ways."""
+    check_scene_models(reference, current)
+    ref = as_epoch(reference, "reference")
+    cur = current_epoch(ref, current, intrinsics, timings,
+                        reference if isinstance(reference, SceneModel) else None)
+    check_pair(ref, cur, params)
+    reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration,
+                         initial=initial_pose)
+    timings["registration_ms"] = reg.ms
+    reason = reg.not_at_station(params.registration)
+    if reason:
+        return Aligned(ref, cur, reg, reason)
+    identity = reg.is_identity
+    if not identity:
+        T = reg.inverse()
+        ref = dataclasses.replace(
+            ref, points=transform_points(T, ref.points),
+            mixture=ref.mixture.transformed(T) if ref.mixture is not None else None)
+    free_cur, obs_cur = timed_free(cur, ref, params, timings, "appeared_",
+                                    None if identity else reg.T_ref_from_cur)
+    if not params.disappeared:
+        return Aligned(ref, cur, reg, reason, free_cur, obs_cur)
+    free_ref, obs_ref = timed_free(ref, cur, params, timings, "disappeared_",
+                                    None if identity else reg.inverse())
+    return Aligned(ref, cur, reg, reason, free_cur, obs_cur, free_ref, obs_ref)
+
+
+def timed_free(other: Epoch, base: Epoch, params: ChangeParams, timings: dict, prefix: str,
+                base_from_other: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`free_and_observed`, timed."""
+    t0 = time.perf_counter()
+    out = free_and_observed(other, base, params, base_from_other)
+    timings[f"{prefix}free_space_ms"] = (time.perf_counter() - t0) * 1e3
+    return out
+
+
+def geometric_filters(other: Epoch, base: Epoch, cand: np.ndarray, params: ChangeParams,
+                       timings: dict, prefix: str, free: np.ndarray, observed: np.ndarray
+                       ) -> np.ndarray:
+    """What the other camera could not see is never a change; then the free-space check
+    (against ``base``'s depth image) and the optional NN check (``base.points`` are in
+    ``other``'s frame)."""
+    t0 = time.perf_counter()
+    cand = cand & observed
+    if params.free_space:
+        cand = cand & free
+    t1 = time.perf_counter()
+    if params.nn_check_m > 0 and cand.any():
+        rows = np.flatnonzero(cand)
+        keep = np.zeros_like(cand)
+        keep[rows[nn_far(cKDTree(base.points), other.points[rows], params.nn_check_m)]] = True
+        cand = keep
+    timings[f"{prefix}free_space_ms"] = timings.get(f"{prefix}free_space_ms", 0.0) + \
+        (t1 - t0) * 1e3
+    timings[f"{prefix}nn_check_ms"] = (time.perf_counter() - t1) * 1e3
+    return cand
+
+
+def nn_far(tree: cKDTree, points: np.ndarray, d: float) -> np.ndarray:
+    dist, _ = tree.query(points, k=1, distance_upper_bound=d)
+    return ~np.isfinite(dist)
+
+
+def finish(method: str, params: ChangeParams, aligned: Aligned, app: Direction | None,
+            dis: Direction | None, k_ref: int, k_cur: int, timings: dict, t_start: float
+            ) -> ChangeSet:
+    ref, cur = aligned.ref, aligned.cur
+    t0 = time.perf_counter()
+    regions_a = group_regions("appeared", cur, app.changed, params, app.posterior,
+                              app.trace.change if app.trace is not None else None) \
+        if app is not None else ()
+    regions_d = group_regions("disappeared", ref, dis.changed, params, dis.posterior,
+                              dis.trace.change if dis.trace is not None else None) \
+        if dis is not None else ()
+    rows_a = (np.sort(np.concatenate([r.point_index for r in regions_a]))
+              if regions_a else np.zeros(0, np.int64))
+    rows_d = (np.sort(np.concatenate([r.point_index for r in regions_d]))
+              if regions_d else np.zeros(0, np.int64))
+    unseen = sum(int((~d.observed).sum()) for d in (app, dis) if d is not None)
+    seen_of = (cur.n_points if app is not None else 0) + (ref.n_points if dis is not None else 0)
+    timings["regions_ms"] = (time.perf_counter() - t0) * 1e3
+    timings["detect_ms"] = (time.perf_counter() - t_start) * 1e3
+    changed = bool(regions_a or regions_d)
+    return ChangeSet(
+        changed=changed,
+        appeared=regions_a, disappeared=regions_d,
+        appeared_points=cur.points[rows_a].astype(np.float32),
+        disappeared_points=ref.points[rows_d].astype(np.float32),
+        appeared_index=rows_a, disappeared_index=rows_d,
+        appeared_mask=pixel_mask(cur, rows_a), disappeared_mask=pixel_mask(ref, rows_d),
+        appeared_mixture=app.mixture if app is not None else None,
+        disappeared_mixture=dis.mixture if dis is not None else None,
+        k_reference=k_ref, k_current=k_cur,
+        greedy_appeared=app.trace if app is not None else None,
+        greedy_disappeared=dis.trace if dis is not None else None,
+        method=method, params=params, timings_ms=timings,
+        outcome="changed" if changed else "no_change",
+        registration=aligned.registration,
+        unobserved_fraction=unseen / seen_of if seen_of else 0.0)
+
+
+def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, timings: dict,
+                    t_start: float) -> ChangeSet:
+    """The camera is not where the reference was taken: nothing is compared, nothing
+    reported."""
+    ref, cur = aligned.ref, aligned.cur
+    none = np.zeros(0, np.int64)
+    timings["detect_ms"] = (time.perf_counter() - t_start) * 1e3
+    return ChangeSet(
+        changed=False, appeared=(), disappeared=(),
+        appeared_points=np.zeros((0, 3), np.float32),
+        disappeared_points=np.zeros((0, 3), np.float32),
+        appeared_index=none, disappeared_index=none,
+        appeared_mask=np.zeros(cur.depth.shape, bool),
+        disappeared_mask=np.zeros(ref.depth.shape, bool),
+        appeared_mixture=None, disappeared_mixture=None,
+        k_reference=ref.mixture.n_components if ref.mixture is not None else 0, k_current=0,
+        greedy_appeared=None, greedy_disappeared=None, method=method, params=params,
+        timings_ms=timings, outcome="not_at_station", registration=aligned.registration,
+        unobserved_fraction=1.0 - aligned.registration.fitness,
+        not_at_station_reason=aligned.reason)

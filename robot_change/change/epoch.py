@@ -1,0 +1,153 @@
+"""One epoch of a comparison (:class:`Epoch`: depth image, intrinsics, clean cloud, mixture),
+made from a SceneModel or a depth image, and the checks that two epochs can be compared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+
+from hw.depth import Intrinsics
+from robot_change.change.params import ChangeParams
+from robot_change.change.scene import (
+    COMPARED_CLOUD_FIELDS,
+    SceneModel,
+    check_compatible,
+)
+from robot_change.cloud.chain import CloudParams, clean_cloud
+from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change.mixture.model import Mixture
+
+__all__ = [
+    "Epoch",
+    "as_epoch",
+    "check_pair",
+    "check_scene_models",
+    "current_epoch",
+    "epoch_from_depth",
+]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Epoch:
+    """What change detection needs of one epoch (a view of a SceneModel).
+
+    ``depth`` (H, W) uint16 mm (fused for a reference), ``intrinsics``, the clean cloud
+    ``points`` (M, 3) float32 with its voxel ``keys`` (M,) int64 and ``pixel_voxel`` (H, W)
+    int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``.
+    """
+
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    points: np.ndarray
+    keys: np.ndarray
+    pixel_voxel: np.ndarray
+    leaf_m: float
+    mixture: Mixture | None
+    cloud_params: CloudParams | None = None
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
+                     cloud_params: CloudParams = CloudParams(),
+                     mixture: Mixture | None = None) -> Epoch:
+    """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an :class:`Epoch`."""
+    cloud = clean_cloud(depth, intrinsics, cloud_params)
+    return Epoch(np.ascontiguousarray(depth), intrinsics, cloud.points, cloud.keys,
+                 cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params)
+
+
+def as_epoch(obj: Any, name: str) -> Epoch:
+    """An :class:`Epoch` from an Epoch or a SceneModel (duck-typed: ``depth``, ``intrinsics``,
+    ``cloud`` or ``points``/``keys``/``pixel_voxel``, ``mixture``, ``params``)."""
+    if isinstance(obj, Epoch):
+        return obj
+    try:
+        depth = obj.depth
+        intrinsics = obj.intrinsics
+        cloud = getattr(obj, "cloud", None)
+        src = cloud if cloud is not None else obj
+        points, keys, pixel_voxel = src.points, src.keys, src.pixel_voxel
+        params = getattr(obj, "params", None)
+        cloud_params = getattr(params, "cloud", None) if params is not None else None
+        if cloud_params is None:
+            cloud_params = getattr(src, "params", None)
+        leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
+        mixture = getattr(obj, "mixture", None)
+    except AttributeError as exc:
+        raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
+                         f"{type(obj).__name__} ({exc})") from None
+    return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
+                 np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
+                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None)
+
+
+def check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
+    if ref.depth.shape != cur.depth.shape or ref.intrinsics != cur.intrinsics:
+        _raise_mismatch(f"reference {ref.depth.shape[::-1]} {ref.intrinsics} and current "
+                        f"{cur.depth.shape[::-1]} {cur.intrinsics} differ in image size or "
+                        f"intrinsics; take both with the same camera mode, or rebuild the "
+                        f"reference")
+    if ref.cloud_params is not None and cur.cloud_params is not None:
+        diff = [f"{n} {getattr(ref.cloud_params, n)!r} vs {getattr(cur.cloud_params, n)!r}"
+                for n in COMPARED_CLOUD_FIELDS
+                if getattr(ref.cloud_params, n) != getattr(cur.cloud_params, n)]
+        if diff:
+            _raise_mismatch(f"reference and current were cleaned with different CloudParams "
+                            f"({'; '.join(diff)}); build the current with the reference's "
+                            f"params (SceneModel.params.cloud)")
+    for name, ep in (("reference", ref), ("current", cur)):
+        if ep.n_points < params.min_cloud_points:
+            raise EmptySceneError(
+                f"the {name} cloud has {ep.n_points} points after cleaning (< min_cloud_points"
+                f" = {params.min_cloud_points}) from {int(np.count_nonzero(ep.depth))} valid "
+                f"depth pixels: the camera sees nothing to compare (covered, closer than its "
+                f"minimum range, pointed at open space, or broken); treat it as a fault")
+
+
+def _raise_mismatch(message: str) -> None:
+    raise SceneMismatchError(message)
+
+
+def current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None,
+                   timings: dict, reference_model: Any = None) -> Epoch:
+    t0 = time.perf_counter()
+    if isinstance(current, np.ndarray):
+        if intrinsics is None:
+            intrinsics = reference.intrinsics
+        if not isinstance(intrinsics, Intrinsics):
+            raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
+                             f"{type(intrinsics).__name__}")
+        if current.ndim != 2 or current.dtype != np.uint16:
+            raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
+                             f"{current.dtype} of shape {current.shape}")
+        if reference_model is not None:
+            check_compatible(reference_model, (intrinsics, reference_model.params))
+        if current.shape != (intrinsics.height, intrinsics.width):
+            raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
+                             f"intrinsics are for {intrinsics.width}x{intrinsics.height}")
+        if current.shape != reference.depth.shape or intrinsics != reference.intrinsics:
+            _raise_mismatch(f"current depth {current.shape[::-1]} with {intrinsics} does not "
+                            f"match the reference's {reference.depth.shape[::-1]} "
+                            f"{reference.intrinsics}; use the camera mode the reference was "
+                            f"taken with, or rebuild the reference")
+        cloud_params = reference.cloud_params or CloudParams(leaf_m=reference.leaf_m)
+        ep = epoch_from_depth(current, intrinsics, cloud_params)
+        timings["current_cloud_ms"] = (time.perf_counter() - t0) * 1e3
+        return ep
+    if intrinsics is not None:
+        raise InputError("intrinsics= is only for a current depth array; a SceneModel "
+                         "carries its own")
+    return as_epoch(current, "current")
+
+
+def check_scene_models(reference: Any, current: Any) -> None:
+    """scene.check_compatible for two SceneModels, when scene.py provides it."""
+    if isinstance(reference, SceneModel) and isinstance(current, SceneModel):
+        check_compatible(reference, current)

@@ -1,0 +1,229 @@
+"""The free-space check: which points of one epoch the other epoch's depth image sees through
+(ALGORITHM.md section 3), projected through the registration, with the pose tolerance, the
+hole filling and the sensing window; and which points the other camera could see at all.
+
+Kernels are ``@njit(cache=True, nogil=True)`` with NumPy twins in ``tests/test_change.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from hw.depth import Intrinsics
+from robot_change.change.epoch import Epoch
+from robot_change.change.params import ChangeParams
+from robot_change.cloud.chain import CloudParams
+from robot_change.errors import InputError
+
+__all__ = [
+    "free_and_observed",
+    "free_space_votes",
+    "sensing_window",
+]
+
+
+@numba.njit(cache=True, nogil=True)
+def _filter_pass(src, dst, radius, take_min, along_rows):
+    """One 1-D pass of :func:`_window_filter` (min over readings > 0, or max)."""
+    height, width = src.shape
+    for r in range(height):
+        for c in range(width):
+            best = np.int64(65535) if take_min else np.int64(0)
+            if along_rows:
+                lo, hi = max(c - radius, 0), min(c + radius + 1, width)
+            else:
+                lo, hi = max(r - radius, 0), min(r + radius + 1, height)
+            for t in range(lo, hi):
+                d = np.int64(src[r, t]) if along_rows else np.int64(src[t, c])
+                if take_min:
+                    if d > 0 and d < best:
+                        best = d
+                elif d > best:
+                    best = d
+            if take_min and best == 65535:
+                best = 0
+            dst[r, c] = best
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_filter(depth, radius, take_min):
+    """Square-window min (``take_min``: readings > 0 only, 0 where the window has none) or
+    max of a uint16 depth image, window (2 radius + 1)^2, separable."""
+    tmp = np.zeros(depth.shape, dtype=np.uint16)
+    out = np.zeros(depth.shape, dtype=np.uint16)
+    _filter_pass(depth, tmp, radius, take_min, True)
+    _filter_pass(tmp, out, radius, take_min, False)
+    return out
+
+
+def sensing_window(depth: np.ndarray, min_fraction: float = 0.05) -> tuple[int, int, int, int]:
+    """(row0, row1, col0, col1), inclusive: the part of a depth image the sensor delivers.
+
+    Depth cameras leave strips along the image border without readings (a Kinect's right
+    columns, cropped images); rows and columns at the border with fewer than ``min_fraction``
+    readings are outside the window.  A point that lands there was not observed, rather than
+    seen through.  The whole image when it has no readings at all.
+    """
+    valid = depth > 0
+    rows = np.flatnonzero(valid.mean(axis=1) >= min_fraction)
+    cols = np.flatnonzero(valid.mean(axis=0) >= min_fraction)
+    if rows.size == 0 or cols.size == 0:
+        return 0, depth.shape[0] - 1, 0, depth.shape[1] - 1
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, max_m):
+    """Where each pixel of this epoch's depth image lands in the other epoch's image.
+
+    ``own_depth`` (H, W) uint16 mm; (``rot`` (3, 3), ``trans`` (3,)) maps this camera's frame
+    into the other's (same intrinsics, image ``width`` pixels wide).  Returns ``target`` (P,)
+    int64, the flat index of the other image's pixel the reading projects to (-1 for no reading
+    here; -2 when the other camera could not have seen it: behind it, outside its sensing
+    ``window`` (row0, row1, col0, col1, inclusive), or outside its depth range
+    ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other frame (m).
+    """
+    h, w = own_depth.shape
+    target = np.full(h * w, -1, dtype=np.int64)
+    z_other = np.zeros(h * w)
+    for r in range(h):
+        for c in range(w):
+            d = own_depth[r, c]
+            if d == 0:
+                continue
+            p = r * w + c
+            z = d * 0.001
+            x = (c - cx) * z / fx
+            y = (r - cy) * z / fy
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            target[p] = -2
+            if pz < min_m or pz > max_m:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if v < window[0] or v > window[1] or u < window[2] or u > window[3]:
+                continue
+            target[p] = v * width + u
+            z_other[p] = pz
+    return target, z_other
+
+
+@numba.njit(cache=True, nogil=True)
+def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_points, margin_m,
+                       margin_per_m2, no_reading_is_free):
+    """Per point: how many of its pixels the other image sees through, how many it has, and
+    how many of them the other camera could not have seen.
+
+    ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``target`` (P,) and
+    ``z_other`` (P,) from :func:`_warp_kernel`; ``near_other`` (P',) the other image's
+    nearest reading in the pose window (0: none there), ``far_other`` (P',) its farthest
+    reading in the hole window (0: none).  The other reading is ``near_other``, else
+    ``far_other``; with neither, the pixel is seen through when ``no_reading_is_free``.  Seen
+    through: reading > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
+    """
+    votes = np.zeros(n_points, dtype=np.int32)
+    total = np.zeros(n_points, dtype=np.int32)
+    unseen = np.zeros(n_points, dtype=np.int32)
+    for p in range(pixel_voxel.shape[0]):
+        v = pixel_voxel[p]
+        if v < 0:
+            continue
+        total[v] += 1
+        q = target[p]
+        if q < 0:
+            unseen[v] += 1
+            continue
+        d1 = near_other[q]
+        if d1 == 0:
+            d1 = far_other[q]
+        if d1 == 0:
+            if no_reading_is_free:
+                votes[v] += 1
+            continue
+        z = z_other[p]
+        if d1 * 0.001 > z + margin_m + margin_per_m2 * z * z:
+            votes[v] += 1
+    return votes, total, unseen
+
+
+def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth: np.ndarray,
+                     n_points: int, margin_m: float, margin_per_m2: float = 0.0,
+                     pose_radius: int = 0, hole_radius: int = 0,
+                     no_reading_is_free: bool = True, *,
+                     intrinsics: Intrinsics | None = None,
+                     other_from_own: np.ndarray | None = None,
+                     depth_range_m: tuple[float, float] = (0.0, 65.535)
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Free-space evidence per point of one epoch against the other epoch's depth image.
+
+    Each of the point's pixels (``pixel_voxel == v``) is back-projected with its own reading,
+    moved into the other camera by ``other_from_own`` ((4, 4), the registration; identity when
+    not given, and then the pixel is its own projection) and projected into the other image
+    (same ``intrinsics``).  There the other epoch saw *through* the point when its reading is
+    farther by more than ``margin_m + margin_per_m2 * z**2`` (z = the depth in the other
+    frame, m).  The reading used is the *nearest* one of the other image within
+    ``pose_radius`` pixels (a square window: a small residual pose error does not make static
+    edges look seen through); where that window has no reading, the *farthest* reading within
+    ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
+    with none there either, the pixel counts as seen through when ``no_reading_is_free``
+    (open space beyond the sensor's range).  A pixel that lands behind the other camera,
+    outside the part of its image it has readings in (:func:`sensing_window`) or outside
+    ``depth_range_m`` was not observed by it.
+
+    Returns
+    -------
+    votes, total, unseen : (n_points,) int32
+        Pixels seen through, pixels, and pixels the other camera could not observe, per point.
+    """
+    if pixel_voxel.ndim != 2 or pixel_voxel.shape != own_depth.shape or \
+            own_depth.shape != other_depth.shape:
+        raise InputError(f"pixel_voxel {pixel_voxel.shape}, own depth {own_depth.shape} and "
+                         f"other depth {other_depth.shape} must be the same (H, W)")
+    for name, a in (("own_depth", own_depth), ("other_depth", other_depth)):
+        if a.dtype != np.uint16:
+            raise InputError(f"{name} must be uint16 millimetres, got {a.dtype}")
+    height, width = own_depth.shape
+    if intrinsics is None:
+        intrinsics = Intrinsics(width, height, 525.0, 525.0, (width - 1) / 2, (height - 1) / 2)
+    T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError("other_from_own must be a finite (4, 4) rigid transform")
+    own = np.ascontiguousarray(own_depth)
+    if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
+        target = np.where(own.ravel() > 0, np.arange(own.size), -1)
+        z_other = own.ravel() * 0.001
+    else:
+        window = np.array(sensing_window(other_depth), dtype=np.int64)
+        target, z_other = _warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx,
+                                       intrinsics.fy, intrinsics.cx, intrinsics.cy, width,
+                                       window, float(depth_range_m[0]),
+                                       float(depth_range_m[1]))
+    other = np.ascontiguousarray(other_depth)
+    near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
+    far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
+    return _free_space_kernel(np.ascontiguousarray(pixel_voxel, dtype=np.int32).ravel(),
+                              target, z_other, near.ravel(), far.ravel(), int(n_points),
+                              float(margin_m), float(margin_per_m2), bool(no_reading_is_free))
+
+
+def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from_other: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(free, observed), (M,) bool each over ``other``'s points: the points ``base``'s depth
+    image sees through, and those ``base``'s camera could see at all (the majority of their
+    pixels land inside its image and depth range)."""
+    cp = base.cloud_params or CloudParams()
+    votes, total, unseen = free_space_votes(
+        other.pixel_voxel, other.depth, base.depth, other.n_points, params.free_space_margin_m,
+        params.free_space_margin_per_m2, params.free_space_pose_radius_px,
+        params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
+        intrinsics=other.intrinsics, other_from_own=base_from_other,
+        depth_range_m=(cp.min_depth_m, cp.max_depth_m))
+    observed = (total > 0) & (2 * unseen < total)
+    seen = total - unseen
+    free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))
+    return free, observed

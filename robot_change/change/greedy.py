@@ -1,0 +1,77 @@
+"""The EMD part of a check: the ground cost between two mixtures, the greedy EMD trajectory
+over the candidate components and the explicit acceptance rule on it, and the posteriors of
+the components a direction found changed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robot_change.change import transport as emd_mod
+from robot_change.change.params import ChangeParams
+from robot_change.change.results import GreedyTrace
+from robot_change.mixture.model import Mixture
+
+__all__ = [
+    "accept_trajectory",
+    "greedy_trace",
+    "ground_cost",
+    "posteriors",
+]
+
+
+def ground_cost(ma: Mixture, mb: Mixture, kind: str) -> np.ndarray:
+    if kind == "euclidean":
+        return emd_mod.ground_distance(ma.means, mb.means, kind="euclidean")
+    return emd_mod.ground_distance(ma.means, mb.means, ma.covariances, mb.covariances,
+                                   kind="wasserstein2")
+
+
+def accept_trajectory(order: np.ndarray, emd_after: np.ndarray, weights: np.ndarray,
+                      n_points: int, params: ChangeParams) -> int:
+    """How many leading removals of a greedy EMD trajectory the acceptance rule keeps.
+
+    Step i (removing ``order[i]``) is accepted while ``emd_after[i] - emd_after[i + 1]`` is at
+    least ``accept_min_drop_m`` and at least ``accept_min_drop_rel * emd_after[0]``, and the
+    removed component holds at least ``min_region_points`` points (``n_points * w``); the
+    first step that fails stops it.
+    """
+    d0 = float(emd_after[0]) if len(emd_after) else 0.0
+    need = max(params.accept_min_drop_m, params.accept_min_drop_rel * d0)
+    n_ok = 0
+    for i, k in enumerate(order):
+        drop = float(emd_after[i] - emd_after[i + 1])
+        if drop < need or n_points * float(weights[k]) < params.min_region_points:
+            break
+        n_ok += 1
+    return n_ok
+
+
+def greedy_trace(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n_points: int,
+            params: ChangeParams) -> GreedyTrace:
+    cand_idx = np.flatnonzero(candidates)
+    if cand_idx.size == 0:
+        return GreedyTrace(cand_idx, np.zeros(0, np.int64),
+                           np.array([np.nan]), 0, np.zeros(0, np.int64))
+    cost = ground_cost(fixed_mix, var_mix, params.ground_distance)
+    res = emd_mod.greedy_emd(fixed_mix.weights, var_mix.weights, cost, candidates,
+                             int(cand_idx.size))
+    order = np.asarray(res.order, dtype=np.int64)
+    emd_after = np.asarray(res.emd_after, dtype=np.float64)
+    if params.greedy:
+        n_ok = accept_trajectory(order, emd_after, var_mix.weights, n_points, params)
+        change = order[:n_ok]
+    else:
+        n_ok = int(order.size)
+        change = cand_idx
+    return GreedyTrace(cand_idx, order, emd_after, n_ok, np.sort(change))
+
+
+def posteriors(mix: Mixture, points: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    """(M, K) posteriors; only ``rows`` filled when given (zeros elsewhere)."""
+    if rows is None:
+        return mix.responsibilities(points)
+    post = np.zeros((points.shape[0], mix.n_components))
+    if rows.size:
+        post[rows] = mix.responsibilities(points[rows])
+    return post
