@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from hw.depth import Intrinsics  # noqa: E402
 from hw.images import read_depth_image  # noqa: E402
 from robot_change.cloud.chain import CloudParams  # noqa: E402
-from robot_change.cloud.filters import fuse_depth  # noqa: E402
+from robot_change.cloud.fusion import fuse_depth  # noqa: E402
 from robot_change.tools.benchmark import bench_preprocess, machine_info  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"

@@ -78,7 +78,7 @@ from robot_change.change.detect import detect_changes  # noqa: E402
 from robot_change.change.params import ChangeParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams, clean_cloud  # noqa: E402
-from robot_change.cloud.filters import fuse_depth  # noqa: E402
+from robot_change.cloud.fusion import fuse_depth  # noqa: E402
 from robot_change.mixture.model import N_PARAMS_COMPONENT, fit_mixture  # noqa: E402
 from robot_change.tools.benchmark import machine_info  # noqa: E402
 from sim_fixtures import load_scene  # noqa: E402

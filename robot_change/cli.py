@@ -63,7 +63,7 @@ def _read_depth(uri: str, frames: int, intrinsics: str | None) -> tuple[np.ndarr
     Returns ((H, W) uint16 mm, intrinsics, number of frames read).
     """
     from robot_change.change.scene import SceneParams
-    from robot_change.cloud.filters import fuse_depth
+    from robot_change.cloud.fusion import fuse_depth
 
     read = _read_frames(uri, frames)
     camera = _camera(read, intrinsics)
@@ -306,7 +306,7 @@ def _current_input(args: argparse.Namespace, reference):
     """The current epoch: a saved SceneModel, or the fused depth of a URI's frames and the
     intrinsics to read it with."""
     from robot_change.change.scene import SceneModel
-    from robot_change.cloud.filters import fuse_depth
+    from robot_change.cloud.fusion import fuse_depth
 
     if _is_scene_file(args.current):
         scene = SceneModel.load(args.current)

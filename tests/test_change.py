@@ -18,7 +18,7 @@ from robot_change.change.regions import label_voxel_components
 from robot_change.change.results import ChangeSet
 from robot_change.change.scene import SceneParams, build_scene
 from robot_change.cloud.chain import CloudParams
-from robot_change.cloud.filters import pack_keys
+from robot_change.cloud.voxels import pack_keys
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from sim_fixtures import load_scene
 

@@ -20,8 +20,8 @@ from robot_change.cloud.chain import (
     CloudParams,
     clean_cloud,
 )
-from robot_change.cloud.filters import pack_keys
 from robot_change.cloud.geometry import depth_to_points
+from robot_change.cloud.voxels import pack_keys
 from robot_change.errors import InputError
 
 INTR = Intrinsics.openni_default()
@@ -131,7 +131,8 @@ def test_clean_cloud_equals_the_stages_run_by_hand(scene):
     """Twin of clean_cloud's bookkeeping (including the numba pixel-map kernel): the public
     stages called one by one, the maps built with NumPy."""
     from robot_change.cloud.depth_voxels import depth_voxel_grid
-    from robot_change.cloud.filters import fit_plane_ransac, statistical_outliers
+    from robot_change.cloud.outliers import statistical_outliers
+    from robot_change.cloud.plane import fit_plane_ransac
 
     depth, _ = scene
     params = LEVEL

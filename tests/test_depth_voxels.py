@@ -12,8 +12,8 @@ from test_geometry import twin_depth_to_points
 from hw.depth import Intrinsics
 from hw.images import read_depth_image
 from robot_change.cloud.depth_voxels import _depth_voxel_kernel, depth_voxel_grid
-from robot_change.cloud.filters import voxel_grid, voxel_table_size
 from robot_change.cloud.geometry import depth_kernel_args, depth_to_points
+from robot_change.cloud.voxels import voxel_grid, voxel_table_size
 from robot_change.errors import InputError
 
 RNG = np.random.default_rng(5)

@@ -1,4 +1,5 @@
-"""robot_change.cloud.filters: every numba kernel against a plain NumPy twin, plus edge cases."""
+"""robot_change.cloud.voxels, .outliers, .plane, .fusion: every numba kernel against a plain NumPy
+twin, plus edge cases."""
 
 from __future__ import annotations
 
@@ -8,30 +9,31 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.cloud.filters import (
-    KEY_MAX_INDEX,
-    KEY_MIN_INDEX,
+from robot_change.cloud.fusion import fuse_depth
+from robot_change.cloud.geometry import depth_to_points
+from robot_change.cloud.outliers import knn_mean_distance, statistical_outliers
+from robot_change.cloud.plane import (
     RANSAC_BAIL_SIGMAS,
     RANSAC_SAMPLE,
-    VOXEL_CHUNK,
     Plane,
     _inlier_scatter,
     _plane_inliers,
     _ransac_kernel,
-    _voxel_kernel,
     fit_plane_ransac,
-    fuse_depth,
-    knn_mean_distance,
-    pack_keys,
     ransac_sample,
     ransac_triples,
     remove_plane,
-    statistical_outliers,
+)
+from robot_change.cloud.voxels import (
+    KEY_MAX_INDEX,
+    KEY_MIN_INDEX,
+    VOXEL_CHUNK,
+    _voxel_kernel,
+    pack_keys,
     unpack_keys,
     voxel_grid,
     voxel_table_size,
 )
-from robot_change.cloud.geometry import depth_to_points
 from robot_change.errors import InputError
 
 RNG = np.random.default_rng(7)

@@ -365,7 +365,7 @@ def test_format_1_file_loads_with_its_cloud_rebuilt(tmp_path):
     """A reference saved before the key layout change (format 1: keys packed x, y, z from the
     top) still loads: the cloud is rebuilt from its depth image with the current layout, the
     mixture is the stored one, and saving it again writes the current format."""
-    from robot_change.cloud.filters import KEY_BITS, unpack_keys
+    from robot_change.cloud.voxels import KEY_BITS, unpack_keys
 
     legacy = SIM_FIXTURES / "legacy" / "office_reference_v1.npz"
     header, arrays = read_npz(legacy)

@@ -131,7 +131,7 @@ def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
 
     ref = [read_image(f) for f in scene_frames["reference"]]
     cur = [read_image(f) for f in scene_frames["current"]]
-    from robot_change.cloud.filters import fuse_depth
+    from robot_change.cloud.fusion import fuse_depth
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
     from robot_change.change.params import ChangeParams

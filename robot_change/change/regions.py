@@ -11,7 +11,7 @@ import numpy as np
 from robot_change.change.epoch import Epoch
 from robot_change.change.params import ChangeParams
 from robot_change.change.results import Region
-from robot_change.cloud.filters import KEY_BITS
+from robot_change.cloud.voxels import KEY_BITS
 from robot_change.errors import InputError
 
 __all__ = [
@@ -91,7 +91,7 @@ def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:
     Parameters
     ----------
     keys : (M,) int64
-        Packed voxel keys (:func:`robot_change.cloud.filters.pack_keys`), any order, no duplicates.
+        Packed voxel keys (:func:`robot_change.cloud.voxels.pack_keys`), any order, no duplicates.
     radius : int
         Voxels whose indices differ by at most this on every axis are connected (1: the
         26-neighbourhood).

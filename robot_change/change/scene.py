@@ -1,7 +1,7 @@
 """A scene model: what the camera saw at one epoch, kept so that another epoch can be compared.
 
     frames (N x (H, W) uint16 mm)
-      -> fused depth   :func:`robot_change.cloud.filters.fuse_depth` (per-pixel median)
+      -> fused depth   :func:`robot_change.cloud.fusion.fuse_depth` (per-pixel median)
       -> clean cloud   :func:`robot_change.cloud.chain.clean_cloud` (voxels, outliers, plane)
       -> mixture       :func:`robot_change.mixture.model.fit_mixture` (split-EM, MDL / BIC / AIC)
 
@@ -32,7 +32,8 @@ from hw.errors import FrameError
 from robot_change import npzfile, validate
 from robot_change.change.mount import CameraMount
 from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
-from robot_change.cloud.filters import Plane, fuse_depth
+from robot_change.cloud.fusion import fuse_depth
+from robot_change.cloud.plane import Plane
 from robot_change.errors import (
     BadValue,
     EmptySceneError,
@@ -62,7 +63,7 @@ __all__ = [
 ]
 
 FILE_FORMAT = "robot_change.scene"
-#: 2: voxel keys pack z, y, x from the top (robot_change.cloud.filters); version 1 packed x, y, z.
+#: 2: voxel keys pack z, y, x from the top (robot_change.cloud.voxels); version 1 packed x, y, z.
 #: A version-1 file still loads: its cloud is rebuilt from its own depth image and parameters
 #: (keys, point order and pixel maps as this version makes them); its mixture is kept.
 FILE_VERSION = 2

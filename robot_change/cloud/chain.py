@@ -4,11 +4,11 @@
       -> points and voxel grid, in one pass
                       :func:`robot_change.cloud.depth_voxels.depth_voxel_grid` (min/max depth, one
                       centroid per voxel; the same as geometry.depth_to_points followed by
-                      filters.voxel_grid)
-      -> outliers     :func:`robot_change.cloud.filters.statistical_outliers` (on the voxel cloud)
-      -> plane        :func:`robot_change.cloud.filters.fit_plane_ransac` (dominant plane removed)
+                      voxels.voxel_grid)
+      -> outliers     :func:`robot_change.cloud.outliers.statistical_outliers` (on the voxel cloud)
+      -> plane        :func:`robot_change.cloud.plane.fit_plane_ransac` (dominant plane removed)
 
-Temporal fusion (:func:`robot_change.cloud.filters.fuse_depth`) happens before this, on the frames.
+Temporal fusion (:func:`robot_change.cloud.fusion.fuse_depth`) happens before this, on the frames.
 Numeric module: arrays in, arrays out; no I/O, no logging, no global state.
 """
 
@@ -24,8 +24,9 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change import validate
 from robot_change.cloud.depth_voxels import depth_voxel_grid
-from robot_change.cloud.filters import Plane, fit_plane_ransac, statistical_outliers
 from robot_change.cloud.geometry import MAX_DEPTH_M
+from robot_change.cloud.outliers import statistical_outliers
+from robot_change.cloud.plane import Plane, fit_plane_ransac
 from robot_change.errors import BadValue, InputError
 
 __all__ = [
@@ -68,7 +69,7 @@ class CloudParams:
     # quantization step of the disparity (~7 cm at 5 m) exceeds three voxels.
     min_depth_m: float = 0.4
     max_depth_m: float = 5.0
-    # Outlier removal on the voxel cloud: see filters.statistical_outliers for why k = 4,
+    # Outlier removal on the voxel cloud: see outliers.statistical_outliers for why k = 4,
     # alpha = 2 and a cap of 2 leaves (PCL's k = 50 assumes the raw cloud's density).
     remove_outliers: bool = True
     outlier_k: int = 4
@@ -132,7 +133,7 @@ class CleanCloud:
 
     ``points``: (M, 3) float32 voxel centroids in metres (camera optical frame) that survived
     all four stages, sorted by voxel key.  ``keys``: (M,) int64 their packed voxel keys
-    (:func:`robot_change.cloud.filters.unpack_keys`).  ``counts``: (M,) int32 depth pixels per point.
+    (:func:`robot_change.cloud.voxels.unpack_keys`).  ``counts``: (M,) int32 depth pixels per point.
     ``pixel_voxel``: (H, W) int32, for each depth pixel the row in ``points`` it was merged
     into, -1 for pixels that were invalid, out of range, or whose voxel was dropped as an
     outlier or as part of the plane.  ``pixel_stage``: (H, W) uint8, which of those happened

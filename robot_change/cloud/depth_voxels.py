@@ -1,7 +1,7 @@
 """Depth image straight to a voxel grid (ALGORITHM.md section 1, first two steps in one pass).
 
 :func:`depth_voxel_grid` gives what :func:`robot_change.cloud.geometry.depth_to_points` followed by
-:func:`robot_change.cloud.filters.voxel_grid` gives (the same float32 points in the same voxels, summed
+:func:`robot_change.cloud.voxels.voxel_grid` gives (the same float32 points in the same voxels, summed
 in float64 in point order), without writing the (N, 3) points out and reading them back: each
 image row is back-projected into row buffers and goes straight into the voxel hash.  The one
 difference is where the hash bands end (at image rows here, at chunks of points there), which
@@ -20,7 +20,8 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change import validate
-from robot_change.cloud.filters import (
+from robot_change.cloud.geometry import depth_kernel_args
+from robot_change.cloud.voxels import (
     _KEY_OFFSET,
     VoxelGrid,
     _accumulate_row,
@@ -30,7 +31,6 @@ from robot_change.cloud.filters import (
     _voxel_slot,
     voxel_table_size,
 )
-from robot_change.cloud.geometry import depth_kernel_args
 
 __all__ = ["DepthVoxels", "depth_voxel_grid"]
 
@@ -40,7 +40,7 @@ class DepthVoxels:
     """A depth image's voxel grid.
 
     ``points`` (M, 3) float32 centroids, ``counts`` (M,) int32, ``keys`` (M,) int64 strictly
-    increasing, ``leaf_m``: as in :class:`~robot_change.cloud.filters.VoxelGrid`.  Which pixel went
+    increasing, ``leaf_m``: as in :class:`~robot_change.cloud.voxels.VoxelGrid`.  Which pixel went
     where, in two steps (so the kernel need not rewrite every pixel): ``pixel_record`` (H * W,)
     int32, row-major, the hash record of each pixel (-1: no point), and ``record_voxel`` (R,)
     int32, the voxel of each record; :meth:`pixel_voxel` composes them.  ``n_points``: pixels
@@ -66,7 +66,7 @@ class DepthVoxels:
         return out
 
     def grid(self) -> VoxelGrid:
-        """The same voxels as a :class:`~robot_change.cloud.filters.VoxelGrid` whose ``inverse`` is
+        """The same voxels as a :class:`~robot_change.cloud.voxels.VoxelGrid` whose ``inverse`` is
         :meth:`pixel_voxel` (per pixel, not per point)."""
         return VoxelGrid(points=self.points, counts=self.counts, keys=self.keys,
                          inverse=self.pixel_voxel(), leaf_m=self.leaf_m)
@@ -79,9 +79,9 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
 
     Per image row: a branch-free loop (vectorised) back-projects every pixel exactly as
     :func:`robot_change.cloud.geometry._depth_to_points_kernel` does (float64, then float32), and
-    computes its key exactly as :func:`robot_change.cloud.filters._voxel_kernel` does, with -1 for a
+    computes its key exactly as :func:`robot_change.cloud.voxels._voxel_kernel` does, with -1 for a
     pixel that is not kept; a second loop looks the keys up and accumulates, with an image row
-    as the row of the band rule (see :func:`robot_change.cloud.filters._voxel_kernel`).
+    as the row of the band rule (see :func:`robot_change.cloud.voxels._voxel_kernel`).
     """
     height, width = depth.shape
     inverse, tmask, tshift, table, rec_keys, rec = _band_workspace(height * width, tbits)

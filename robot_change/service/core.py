@@ -75,11 +75,11 @@ from hw.atomic import write_atomically
 from hw.depth import DepthFrame, DepthSource
 from robot_change import npzfile
 from robot_change.change import detect, scene
+from robot_change.change.mount import CameraMount
 from robot_change.change.results import ChangeSet
 from robot_change.change.results import Region as ChangeRegion
-from robot_change.change.mount import CameraMount
 from robot_change.change.scene import SceneModel
-from robot_change.cloud.filters import fuse_depth
+from robot_change.cloud.fusion import fuse_depth
 from robot_change.errors import (
     EmptySceneError,
     ReferenceMissing,
