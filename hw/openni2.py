@@ -567,21 +567,15 @@ class OpenNI2Source(DepthSource):
         if self._proc is None:
             self._reconnect(deadline)
         while True:
-            assert self._conn is not None and self._proc is not None
             remaining = max(0.0, deadline - time.monotonic())
-            ready = multiprocessing.connection.wait([self._conn, self._proc.sentinel], min(remaining, 0.25))
-            if self._conn in ready:
-                try:
-                    msg = self._conn.recv()
-                except (EOFError, OSError):
-                    msg = None
-                if msg is not None:
-                    self._last_heard = time.monotonic()
-                    result = self._on_message(msg)
-                    if result is not None or self._ended:
-                        return result
-                    continue
-            if ready:  # the reader died (sentinel fired or pipe closed)
+            msg, died = self._receive(min(remaining, 0.25))
+            if msg is not None:
+                self._last_heard = time.monotonic()
+                result = self._on_message(msg)
+                if result is not None or self._ended:
+                    return result
+                continue
+            if died:  # the reader died (sentinel fired or pipe closed)
                 self._on_reader_death(self._describe_death())
                 # a recording resumes in a new reader: give it a moment for the next frame
                 deadline = max(deadline, time.monotonic() + 1.0)
@@ -746,23 +740,17 @@ class OpenNI2Source(DepthSource):
         self._last_heard = time.monotonic()
 
     def _await_ready(self) -> dict[str, Any]:
-        assert self._conn is not None and self._proc is not None
         deadline = time.monotonic() + self.start_timeout
         while True:
-            ready = multiprocessing.connection.wait([self._conn, self._proc.sentinel],
-                                                    max(0.0, deadline - time.monotonic()))
-            if self._conn in ready:
-                try:
-                    msg = self._conn.recv()
-                except (EOFError, OSError):
-                    msg = None
-                if msg is not None:
-                    if msg[0] == "ready":
-                        return msg[1]
-                    if msg[0] == "error":
-                        raise self._error(msg[1], msg[2])
-                    continue
-            if ready:
+            msg, died = self._receive(max(0.0, deadline - time.monotonic()))
+            if msg is not None:
+                if msg[0] == "ready":
+                    return msg[1]
+                if msg[0] == "error":
+                    raise self._error(msg[1], msg[2])
+                continue
+            if died:
+                assert self._proc is not None
                 self._proc.join(0.5)
                 how = _describe_exit(self._proc.exitcode)
                 if self.kind == "file":
@@ -772,6 +760,18 @@ class OpenNI2Source(DepthSource):
             raise DeviceError(f"{self.uri}: the OpenNI2 reader did not open the "
                               f"{'recording' if self.kind == 'file' else 'camera'} within "
                               f"{self.start_timeout:.0f} s")
+
+    def _receive(self, timeout: float) -> tuple[tuple | None, bool]:
+        """Wait up to ``timeout`` s for the reader: (message, False); (None, False) when
+        nothing came; (None, True) when it died (its sentinel fired or the pipe closed)."""
+        assert self._conn is not None and self._proc is not None
+        ready = multiprocessing.connection.wait([self._conn, self._proc.sentinel], timeout)
+        if self._conn in ready:
+            try:
+                return self._conn.recv(), False
+            except (EOFError, OSError):
+                pass
+        return None, bool(ready)
 
     def _stop_reader(self, kill: bool = False) -> None:
         proc, conn = self._proc, self._conn
