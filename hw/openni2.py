@@ -1,13 +1,17 @@
 """OpenNI2 depth backend: live Kinect / PrimeSense / Asus Xtion cameras and ``.oni`` playback.
 
-The native library runs in a **child process** (multiprocessing, "spawn") that hands frames to
-this process through a shared-memory ring of a few frame slots and a control pipe.  A crash,
+The native library runs in a **child process** that hands frames to this process through a
+shared-memory ring of a few frame slots and a control socket.  The child is a fresh interpreter
+started with :mod:`subprocess` (not multiprocessing, whose "spawn" re-imports the caller's main
+module and dies when that is standard input, ``-c``, a notebook or an embedding program): it is
+the same process whatever the caller is.  A crash,
 hang or deadlock inside libOpenNI2 (it has several: closing a file device right after opening
 it, seeking, unloading with a device open) therefore costs a restart of the reader, never the
 service:
 
 * every :meth:`OpenNI2Source.read` waits at most its timeout (:class:`FrameTimeout`);
-* a reader that dies is seen at once (its process sentinel); one that stops answering for
+* a reader that dies is seen at once (its pidfd, or its end of the socket closing), and what it
+  wrote last on stderr is kept for the message; one that stops answering for
   ``stall_timeout`` seconds is killed.  Either way it is restarted (``stats.restarts``);
 * a live camera that stops delivering frames for ``lost_after`` seconds, or whose reader died,
   raises :class:`DeviceLost` once; the following reads reconnect with exponential backoff
@@ -41,12 +45,16 @@ import ctypes
 import itertools
 import logging
 import math
-import multiprocessing
+import mmap
 import multiprocessing.connection
 import os
 import signal
+import socket
+import subprocess
+import sys
 import tempfile
 import time
+import weakref
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any, Iterator
@@ -177,6 +185,124 @@ def _child_main(conn: multiprocessing.connection.Connection, spec: dict[str, Any
     os._exit(0)
 
 
+def _attach_ring(name: str, size: int) -> mmap.mmap:
+    """The parent's shared-memory ring, mapped without multiprocessing's resource tracker (which
+    in a process not started by multiprocessing would unlink the parent's segment at exit)."""
+    fd = os.open(os.path.join("/dev/shm", name.lstrip("/")), os.O_RDWR)
+    try:
+        return mmap.mmap(fd, size)
+    finally:
+        os.close(fd)
+
+
+#: What the reader process runs: read sys.path and the spec from the socket, then the reader.
+_BOOT = """\
+import sys
+from multiprocessing.connection import Connection
+conn = Connection(int(sys.argv[1]))
+path, spec = conn.recv()
+sys.path[:0] = [p for p in path if p not in sys.path]
+from hw.openni2 import _child_main
+_child_main(conn, spec)
+"""
+
+
+class _Reader:
+    """A reader process: a fresh interpreter running :func:`_child_main`, a connection to it,
+    and what it wrote on stderr (kept in a temporary file, so a chatty driver never blocks it).
+    In its own session, so a Ctrl-C at the terminal goes to the caller, which stops it."""
+
+    def __init__(self, spec: dict[str, Any]) -> None:
+        ours, theirs = socket.socketpair()
+        self._stderr = tempfile.TemporaryFile()
+        try:
+            self._popen = subprocess.Popen(
+                [sys.executable, "-c", _BOOT, str(theirs.fileno())], pass_fds=(theirs.fileno(),),
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr,
+                start_new_session=True)
+        except OSError as exc:
+            self._stderr.close()
+            ours.close()
+            raise BackendUnavailable(f"cannot start the OpenNI2 reader ({sys.executable!r}: "
+                                     f"{exc.strerror or exc})") from None
+        finally:
+            theirs.close()
+        self.pid = self._popen.pid
+        self.conn = multiprocessing.connection.Connection(ours.detach())
+        try:
+            self._pidfd: int | None = os.pidfd_open(self.pid)
+        except (AttributeError, OSError):  # not Linux >= 5.3: the socket closing tells
+            self._pidfd = None
+        # a reader outlives no caller that forgets to close its source
+        self._finalizer = weakref.finalize(self, _Reader._end, self._popen)
+        self.conn.send((list(sys.path), spec))
+
+    @staticmethod
+    def _end(popen: subprocess.Popen) -> None:
+        if popen.poll() is None:
+            popen.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                popen.wait(2.0)
+
+    def receive(self, timeout: float) -> tuple[tuple | None, bool]:
+        """Wait up to ``timeout`` s: (message, False); (None, False) when nothing came; (None,
+        True) when the reader died (its pidfd fired or the socket closed)."""
+        waitables: list[Any] = [self.conn] + ([self._pidfd] if self._pidfd is not None else [])
+        ready = multiprocessing.connection.wait(waitables, timeout)
+        if self.conn in ready:
+            try:
+                return self.conn.recv(), False
+            except (EOFError, OSError):
+                pass
+        return None, bool(ready)
+
+    @property
+    def exitcode(self) -> int | None:
+        """Its exit status (negative: the signal that ended it); None while it runs."""
+        return self._popen.poll()
+
+    def join(self, timeout: float) -> None:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._popen.wait(timeout)
+
+    def is_alive(self) -> bool:
+        return self._popen.poll() is None
+
+    def kill(self) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            self._popen.kill()
+
+    def last_error(self) -> str:
+        """The last line the reader wrote on stderr ("" when none)."""
+        with contextlib.suppress(Exception):
+            self._stderr.flush()
+            self._stderr.seek(0, os.SEEK_END)
+            size = self._stderr.tell()
+            self._stderr.seek(max(0, size - 4096))
+            lines = [line.strip() for line in
+                     self._stderr.read().decode(errors="replace").splitlines() if line.strip()]
+            return lines[-1][:300] if lines else ""
+        return ""
+
+    def describe_exit(self) -> str:
+        """How it ended, with its last line on stderr when there is one."""
+        self.join(0.5)
+        how = _describe_exit(self.exitcode)
+        last = self.last_error()
+        return f"{how} (its last error output: {last})" if last else how
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.conn.close()
+        if self._pidfd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._pidfd)
+            self._pidfd = None
+        with contextlib.suppress(Exception):
+            self._stderr.close()
+        self._finalizer.detach()
+
+
 class _ChildExit(Exception):
     def __init__(self, code: int) -> None:
         super().__init__(code)
@@ -228,7 +354,7 @@ class _ChildReader:
         self.stream: Any = None
         self.free: set[int] = set()
         self.ring: np.ndarray | None = None
-        self.shm: shared_memory.SharedMemory | None = None
+        self.shm: mmap.mmap | None = None
         self.stopped_stream = False
 
     # --- setup ----------------------------------------------------------------------------
@@ -239,9 +365,9 @@ class _ChildReader:
         if msg[0] != "shm":
             raise _ChildExit(0)
         _, name, slots = msg
-        self.shm = shared_memory.SharedMemory(name=name)
         w, h = info["width"], info["height"]
-        self.ring = np.ndarray((slots, h * w), dtype=np.uint16, buffer=self.shm.buf)
+        self.shm = _attach_ring(name, slots * h * w * 2)
+        self.ring = np.ndarray((slots, h * w), dtype=np.uint16, buffer=self.shm)
         self.free = set(range(slots))
         self.width, self.height = w, h
         self.scale_100um = info["pixel_format"] == _PIXEL_FORMAT_100_UM
@@ -443,9 +569,6 @@ class _ChildReader:
 # =================================================================================================
 # the parent side
 # =================================================================================================
-_CONTEXT = multiprocessing.get_context("spawn")
-
-
 class OpenNI2Source(DepthSource):
     """A depth source read through OpenNI2 in a child process.  Use :func:`open_device` or
     :func:`open_recording` (or :func:`hw.depth.open_depth`) to make one.
@@ -482,7 +605,7 @@ class OpenNI2Source(DepthSource):
         #: What the reader reported when it opened the source (uri, vendor, name, serial, mode).
         self.info: dict[str, Any] = {}
         self._intrinsics: Intrinsics | None = None
-        self._proc: Any = None
+        self._proc: _Reader | None = None
         self._conn: multiprocessing.connection.Connection | None = None
         self._shm: shared_memory.SharedMemory | None = None
         self._ring: np.ndarray | None = None
@@ -647,11 +770,7 @@ class OpenNI2Source(DepthSource):
         self._restart_due = time.monotonic()
 
     def _describe_death(self) -> str:
-        code = self._proc.exitcode if self._proc is not None else None
-        with contextlib.suppress(Exception):
-            self._proc.join(0.5)
-            code = self._proc.exitcode
-        return _describe_exit(code)
+        return self._proc.describe_exit() if self._proc is not None else _describe_exit(None)
 
     def _on_reader_death(self, how: str) -> None:
         """The reader died or hung (``how``): a recording continues in a new reader, skipping
@@ -710,12 +829,8 @@ class OpenNI2Source(DepthSource):
                 "skip": skip, "frames": self._header.frames if self.kind == "file" else 0,
                 "loop": self.loop, "lap_us": lap_us,
                 "stall_timeout": self.stall_timeout, "lost_after": self.lost_after}
-        parent_conn, child_conn = _CONTEXT.Pipe(duplex=True)
-        proc = _CONTEXT.Process(target=_child_main, args=(child_conn, spec), daemon=True,
-                                name=f"openni2-reader {self.uri}")
-        proc.start()
-        child_conn.close()
-        self._proc, self._conn = proc, parent_conn
+        proc = _Reader(spec)
+        self._proc, self._conn = proc, proc.conn
         try:
             info = self._await_ready()
         except BaseException:
@@ -736,7 +851,7 @@ class OpenNI2Source(DepthSource):
                     self._shm.unlink()
             self._shm = shared_memory.SharedMemory(create=True, size=need)
         self._ring = np.ndarray((self.slots, width * height), dtype=np.uint16, buffer=self._shm.buf)
-        parent_conn.send(("shm", self._shm.name, self.slots))
+        proc.conn.send(("shm", self._shm.name, self.slots))
         self._last_heard = time.monotonic()
 
     def _await_ready(self) -> dict[str, Any]:
@@ -751,27 +866,18 @@ class OpenNI2Source(DepthSource):
                 continue
             if died:
                 assert self._proc is not None
-                self._proc.join(0.5)
-                how = _describe_exit(self._proc.exitcode)
+                how = self._proc.describe_exit()
                 if self.kind == "file":
                     raise DepthFileError(f"{self.uri}: the OpenNI2 player {how} while opening the "
-                                         "recording; the file is probably corrupt")
+                                         "recording (its .oni header was checked and is valid)")
                 raise DeviceError(f"{self.uri}: the OpenNI2 reader {how} while opening the camera")
             raise DeviceError(f"{self.uri}: the OpenNI2 reader did not open the "
                               f"{'recording' if self.kind == 'file' else 'camera'} within "
                               f"{self.start_timeout:.0f} s")
 
     def _receive(self, timeout: float) -> tuple[tuple | None, bool]:
-        """Wait up to ``timeout`` s for the reader: (message, False); (None, False) when
-        nothing came; (None, True) when it died (its sentinel fired or the pipe closed)."""
-        assert self._conn is not None and self._proc is not None
-        ready = multiprocessing.connection.wait([self._conn, self._proc.sentinel], timeout)
-        if self._conn in ready:
-            try:
-                return self._conn.recv(), False
-            except (EOFError, OSError):
-                pass
-        return None, bool(ready)
+        assert self._proc is not None
+        return self._proc.receive(timeout)
 
     def _stop_reader(self, kill: bool = False) -> None:
         proc, conn = self._proc, self._conn
@@ -851,28 +957,22 @@ def list_devices(timeout: float = 10.0) -> list[dict[str, Any]]:
     ``usb_product_id`` and ``serial`` when the driver reports one.  Empty when none is plugged
     in.  Enumerated in a child process, like everything native."""
     lib_dir = library_dir()
-    parent_conn, child_conn = _CONTEXT.Pipe(duplex=True)
-    proc = _CONTEXT.Process(target=_child_main, args=(child_conn, {"kind": "list", "lib_dir": lib_dir}),
-                            daemon=True, name="openni2-list")
-    proc.start()
-    child_conn.close()
+    proc = _Reader({"kind": "list", "lib_dir": lib_dir})
     try:
-        if not parent_conn.poll(timeout):
+        msg, died = proc.receive(timeout)
+        if msg is None and not died:
             raise DeviceError(f"listing OpenNI2 cameras took more than {timeout:.0f} s (a driver hangs?)")
-        msg = parent_conn.recv()
+        if msg is None:
+            raise DeviceError(f"the OpenNI2 reader {proc.describe_exit()} while listing cameras")
         if msg[0] == "error":
             raise BackendUnavailable(msg[2]) if msg[1] == "backend" else DeviceError(msg[2])
         return list(msg[1])
-    except EOFError:
-        proc.join(1.0)
-        how = _describe_exit(proc.exitcode)
-        raise DeviceError(f"the OpenNI2 reader {how} while listing cameras") from None
     finally:
-        parent_conn.close()
         proc.join(2.0)
         if proc.is_alive():
             proc.kill()
             proc.join(1.0)
+        proc.close()
 
 
 def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | None = None,

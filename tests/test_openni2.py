@@ -355,3 +355,50 @@ def test_loop_and_rate_are_refused_for_a_live_camera() -> None:
 
     with pytest.raises(UriError, match="for recordings"):
         open_device("Oz", loop="1")
+
+
+# --------------------------------------------------------------------------------------------
+# the reader starts the same way whatever the caller is
+
+_CALLER = """\
+from hw.depth import open_depth
+with open_depth({uri!r}) as source:
+    print(sum(1 for _ in source))
+"""
+
+
+@pytest.mark.parametrize("how", ["stdin", "-c", "-m", "script"])
+def test_the_reader_starts_whatever_the_callers_main_module_is(
+        tmp_path: Path, recording: tuple[Path, list[np.ndarray]], how: str) -> None:
+    """multiprocessing's spawn re-imported the caller's __main__ and died on standard input
+    ("the file is probably corrupt"); the reader is now its own interpreter."""
+    import subprocess
+    import sys
+
+    path, frames = recording
+    code = _CALLER.format(uri=f"oni:{path}")
+    (tmp_path / "caller_mod.py").write_text(code)
+    args = {"stdin": ["-"], "-c": ["-c", code], "-m": ["-m", "caller_mod"],
+            "script": [str(tmp_path / "caller_mod.py")]}[how]
+    done = subprocess.run([sys.executable, *args], input=code if how == "stdin" else None,
+                          capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == [str(len(frames))]
+    assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_reader_that_dies_at_start_says_how_and_what_it_wrote_last(
+        recording: tuple[Path, list[np.ndarray]], monkeypatch) -> None:
+    """Not "the file is probably corrupt": its header was checked; the exit status and the
+    reader's last stderr line say what happened."""
+    import hw.openni2
+
+    monkeypatch.setattr(hw.openni2, "_BOOT", "import sys\nsys.stderr.write('driver: cannot map "
+                        "the device buffer\\n')\nsys.exit(3)\n")
+    source = open_recording(str(recording[0]))
+    with pytest.raises(DepthFileError) as info:
+        source.open()
+    text = str(info.value)
+    assert "exited with status 3" in text and "cannot map the device buffer" in text
+    assert "corrupt" not in text and "header was checked" in text
+    source.close()
