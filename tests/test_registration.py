@@ -235,27 +235,27 @@ def test_seen_through_matches_numpy(office_pair):
     assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
 
 
-def test_translation_search_scores_match_numpy(office_pair):
-    """Each offset's score: inliers within the step, less the cells either view sees through."""
+def test_pose_scores_match_numpy(office_pair):
+    """Each pose's score: inliers within the step, less the cells either view sees through."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = reg_mod._levels(ref, INTR, params)[1]
     cl = reg_mod._levels(cur, INTR, params)[1]
     T = sc.T_ref_from_cur
-    offsets = np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]], float)
+    tilt = rpy_deg_to_rotation(1.0, -2.0, 3.0)
+    rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
+    transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
     pairs = reg_mod._Pairs(cl)
-    got = reg_mod._search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
-                                 T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8,
-                                 3.0, 0.03, 0.004, pairs.res, pairs.jac, pairs.zs)
-    for score, off in zip(got, offsets):
-        t = T[:3, 3] + off
-        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], t,
+    got = reg_mod._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
+                               rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, pairs.res,
+                               pairs.jac, pairs.zs)
+    for score, rot, t in zip(got, rots, transs):
+        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, rot, t,
                                         rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8)
         inliers = int((np.abs(res) <= 3.0 * depth_sigma(zs)).sum())
-        through_cur = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], t, rl.fx, rl.fy, rl.cx,
+        through_cur = _seen_through_twin(cl.vertex, rl.vertex, rot, t, rl.fx, rl.fy, rl.cx,
                                          rl.cy, 0.03, 0.004)[0]
-        back = -T[:3, :3].T @ t
-        through_ref = _seen_through_twin(rl.vertex, cl.vertex, T[:3, :3].T, back, cl.fx, cl.fy,
+        through_ref = _seen_through_twin(rl.vertex, cl.vertex, rot.T, -rot.T @ t, cl.fx, cl.fy,
                                          cl.cx, cl.cy, 0.03, 0.004)[0]
         assert score == inliers - through_cur - through_ref
     assert got[0] == got.max()  # the true pose scores best

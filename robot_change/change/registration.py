@@ -565,20 +565,19 @@ def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_scores(cur_v, cur_n, ref_v, ref_n, rot, trans, offsets, fx, fy, cx, cy, max_dist,
-                   min_cos, sigmas, margin_m, margin_per_m2, res, jac, zs):
-    """Scores of the translation offsets ``offsets`` (n, 3) (metres, added to ``trans``): per
-    offset, the inlier pairs of :func:`_count_inliers` minus the cells of either view the
-    other sees through (:func:`_seen_through`, both ways).  A wrong slide along a room fits
-    floor and walls (inliers) but puts surfaces where the other camera saw free space.
-    Returns (n,) float64."""
-    out = np.empty(offsets.shape[0])
-    rot_t = np.ascontiguousarray(rot.T)
-    t = np.empty(3)
+def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
+                 sigmas, margin_m, margin_per_m2, res, jac, zs):
+    """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
+    metres): per pose, the inlier pairs of :func:`_count_inliers` minus the cells of either
+    view the other sees through (:func:`_seen_through`, both ways).  A wrong slide along a
+    room fits floor and walls (inliers) but puts surfaces where the other camera saw free
+    space.  Returns (n,) float64."""
+    out = np.empty(rots.shape[0])
     back = np.empty(3)
-    for m in range(offsets.shape[0]):
-        for a in range(3):
-            t[a] = trans[a] + offsets[m, a]
+    for m in range(rots.shape[0]):
+        rot = rots[m]
+        t = transs[m]
+        rot_t = np.ascontiguousarray(rot.T)
         for a in range(3):
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers = _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
@@ -839,28 +838,35 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
     return T, n_it, False, lam_n, vec, A
 
 
+def _score_poses(rl: _Level, cl: _Level, poses: list[np.ndarray], params: RegistrationParams,
+                 min_cos: float, pairs: _Pairs) -> np.ndarray:
+    """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
+    search step, less the cells either view sees through."""
+    rots = np.array([T[:3, :3] for T in poses])
+    transs = np.array([T[:3, 3] for T in poses])
+    return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
+                        rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
+                        params.seen_through_margin_m, params.seen_through_margin_per_m2,
+                        pairs.res, pairs.jac, pairs.zs)
+
+
 def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
                         params: RegistrationParams, min_cos: float, pairs: _Pairs
                         ) -> np.ndarray | None:
     """The best-scoring translation offset of ``T`` along each of the two least constrained
-    translation directions of ``A`` (:func:`_search_scores`: inliers within one search step,
-    less the cells either view sees through); None when ``T`` itself scores best."""
+    translation directions of ``A`` (:func:`_score_poses`); None when ``T`` itself scores
+    best."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
     steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
     steps = np.concatenate([-steps[::-1], steps])
-    offsets = np.concatenate([np.zeros((1, 3)), steps[:, None] * vecs[:, 0],
-                              steps[:, None] * vecs[:, 1]])
-    scores = _search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
-                            T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy,
-                            params.search_step_m, min_cos, params.inlier_sigmas,
-                            params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                            pairs.res, pairs.jac, pairs.zs)
-    best = int(np.argmax(scores))  # the first of equal scores: no offset wins ties
-    if best == 0:
-        return None
-    out = T.copy()
-    out[:3, 3] += offsets[best]
-    return out
+    poses = [T]
+    for d in (vecs[:, 0], vecs[:, 1]):
+        for st in steps:
+            c = T.copy()
+            c[:3, 3] += st * d
+            poses.append(c)
+    best = int(np.argmax(_score_poses(rl, cl, poses, params, min_cos, pairs)))
+    return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
