@@ -180,27 +180,28 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
 
 
-def _weighted_system_twin(res, jac, zs, c):
+def _weighted_system_twin(res, jac, zs, c, min_cut_m):
     sig = np.hypot(0.0012 + 0.0019 * (zs - 0.4) ** 2, 2.85e-3 * zs ** 2 / math.sqrt(12.0))
     e = res / sig
     scale = max(1.4826 * float(np.median(np.abs(e))), 0.5)
-    u = e / (c * scale)
+    u = res / np.maximum(c * scale * sig, min_cut_m)
     wts = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0) / sig ** 2
     jw = jac * wts[:, None]
     return jw.T @ jac, jw.T @ res, wts.sum(), math.sqrt(float(np.median(zs ** 2)))
 
 
-@pytest.mark.parametrize("tukey_c", [1.0, 4.685])
-def test_weighted_normal_equations_match_numpy(office_pair, tukey_c):
+@pytest.mark.parametrize("tukey_c,min_cut_m", [(1.0, 0.0), (4.685, 0.0), (4.685, 0.05)])
+def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = reg_mod._levels(ref, INTR, params)[-1]
     cl = reg_mod._levels(cur, INTR, params)[-1]
     pairs = reg_mod._Pairs(cl)
     n = pairs.associate(rl, cl, np.eye(4), 0.1, 0.8)  # identity: many large residuals
-    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c)
+    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
+                                                  min_cut_m)
     wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
-                                                   tukey_c)
+                                                   tukey_c, min_cut_m)
     assert n > 1000
     np.testing.assert_allclose(A, wA, rtol=1e-9, atol=1e-6)
     np.testing.assert_allclose(b, wb, rtol=1e-9, atol=1e-9)

@@ -86,6 +86,12 @@ class RegistrationParams:
     search_level: int = 1
     search_step_m: float = 0.1
     search_reach_m: float = 0.4
+    # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
+    # not), and goes on from the better-scoring of the two ends (inliers less seen-through
+    # cells, as the search).  On a table top the plane aligns first, the residual scale
+    # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
+    # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
+    wide_cut_m: float = 0.2
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -136,6 +142,7 @@ class RegistrationParams:
         _int("search_level", self.search_level, 0, n - 1)
         _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
+        _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -642,13 +649,13 @@ def _check_depth(name: str, depth: Any, intrinsics: Intrinsics) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _weighted_system(res, jac, zs, n, tukey_c):
+def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
     ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
 
     Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
     normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
-    max(1.4826 median |e|, 0.5).  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
+    max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
     the weights, radius: the root of the median squared depth, m)."""
     e = np.empty(n)
     inv_var = np.empty(n)
@@ -665,7 +672,7 @@ def _weighted_system(res, jac, zs, n, tukey_c):
     b = np.zeros(6)
     wsum = 0.0
     for k in range(n):
-        u = e[k] / cut
+        u = e[k] / max(cut, min_cut_m * math.sqrt(inv_var[k]))
         if u >= 1.0:
             continue
         wt = (1.0 - u * u) ** 2 * inv_var[k]
@@ -753,8 +760,15 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     vec = np.eye(6)
     for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
         pairs = _Pairs(cl)
-        T, n_it, converged, lam_n, vec, A = _icp_level(rl, cl, T, params, li, min_cos, pairs)
+        start = T
+        T, n_it, converged, lam_n, vec, A = _icp_level(rl, cl, start, params, li, min_cos, pairs)
         iterations += n_it
+        if li == 0 and params.wide_cut_m > 0:
+            wide = _icp_level(rl, cl, start, params, li, min_cos, pairs, params.wide_cut_m)
+            iterations += wide[1]
+            scores = _score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
+            if scores[1] > scores[0]:  # the narrow cut wins ties
+                T, n_it, converged, lam_n, vec, A = wide
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
             moved = _translation_search(rl, cl, T, A, params, min_cos, pairs)
             if moved is not None:
@@ -808,9 +822,10 @@ class _Pairs:
 
 
 def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, li: int,
-               min_cos: float, pairs: _Pairs):
-    """Gauss-Newton iterations of one level from ``T``; returns (T, iterations, converged,
-    eigenvalues, eigenvectors, last normal matrix or None)."""
+               min_cos: float, pairs: _Pairs, min_cut_m: float = 0.0):
+    """Gauss-Newton iterations of one level from ``T`` (Tukey's cut at least ``min_cut_m``
+    metres); returns (T, iterations, converged, eigenvalues, eigenvectors, last normal matrix
+    or None)."""
     lam_n, vec, A = np.zeros(6), np.eye(6), None
     n_it = 0
     for _ in range(params.iterations[li]):
@@ -818,7 +833,7 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
         if n < 6:
             break
         A, b, wsum, radius = _weighted_system(pairs.res, pairs.jac, pairs.zs, n,
-                                              params.tukey_c)
+                                              params.tukey_c, min_cut_m)
         step, lam_n, vec = _solve(A, b, radius, wsum, params.weak_eigenvalue)
         # a trust region: no step moves a point by more than half the pairing distance (a
         # first step from many wrong pairs must not throw the estimate out of the basin)
