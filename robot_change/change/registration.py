@@ -86,6 +86,11 @@ class RegistrationParams:
     search_level: int = 1
     search_step_m: float = 0.1
     search_reach_m: float = 0.4
+    # ... and screw motions (rotation and translation together) along the two least
+    # constrained directions of the whole 6-D system, rotations scaled by the cloud's radius,
+    # search_screw_steps steps of search_step_m each way (0: none): a table top leaves the
+    # turn about its normal coupled with a slide.
+    search_screw_steps: int = 2
     # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
     # not), and goes on from the better-scoring of the two ends (inliers less seen-through
     # cells, as the search).  On a table top the plane aligns first, the residual scale
@@ -142,6 +147,7 @@ class RegistrationParams:
         _int("search_level", self.search_level, 0, n - 1)
         _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
+        _int("search_screw_steps", self.search_screw_steps, 0, 20)
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
@@ -770,7 +776,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             if scores[1] > scores[0]:  # the narrow cut wins ties
                 T, n_it, converged, lam_n, vec, A = wide
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
-            moved = _translation_search(rl, cl, T, A, params, min_cos, pairs)
+            moved = _weak_search(rl, cl, T, A, params, min_cos, pairs)
             if moved is not None:
                 T, n_it, converged, lam_n, vec, _ = _icp_level(rl, cl, moved, params, li,
                                                                min_cos, pairs)
@@ -865,12 +871,13 @@ def _score_poses(rl: _Level, cl: _Level, poses: list[np.ndarray], params: Regist
                         pairs.res, pairs.jac, pairs.zs)
 
 
-def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
-                        params: RegistrationParams, min_cos: float, pairs: _Pairs
-                        ) -> np.ndarray | None:
-    """The best-scoring translation offset of ``T`` along each of the two least constrained
-    translation directions of ``A`` (:func:`_score_poses`); None when ``T`` itself scores
-    best."""
+def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
+                 params: RegistrationParams, min_cos: float, pairs: _Pairs) -> np.ndarray | None:
+    """The best-scoring (:func:`_score_poses`) of ``T`` moved along the least constrained
+    directions of the normal matrix ``A`` (6, 6): translation offsets along the two weakest
+    directions of its translation block, and screw motions along the two weakest directions
+    of the whole, rotations scaled by the radius (root median squared depth) of the current
+    level; None when ``T`` itself scores best."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
     steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
     steps = np.concatenate([-steps[::-1], steps])
@@ -880,6 +887,18 @@ def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
             c = T.copy()
             c[:3, 3] += st * d
             poses.append(c)
+    if params.search_screw_steps:
+        z = cl.vertex[:, :, 2]
+        radius = math.sqrt(float(np.median(np.square(z[z > 0], dtype=np.float64))))
+        s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
+        _lam6, vecs6 = np.linalg.eigh(A / np.outer(s, s))
+        screw = params.search_step_m * np.arange(1, params.search_screw_steps + 1)
+        for d in (vecs6[:, 0] / s, vecs6[:, 1] / s):
+            for st in np.concatenate([-screw[::-1], screw]):
+                inc = np.eye(4)
+                inc[:3, :3] = _exp_so3(st * d[:3])
+                inc[:3, 3] = st * d[3:]
+                poses.append(inc @ T)
     best = int(np.argmax(_score_poses(rl, cl, poses, params, min_cos, pairs)))
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
