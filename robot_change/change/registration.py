@@ -88,9 +88,9 @@ class RegistrationParams:
     search_reach_m: float = 0.4
     # ... and screw motions (rotation and translation together) along the two least
     # constrained directions of the whole 6-D system, rotations scaled by the cloud's radius,
-    # search_screw_steps steps of search_step_m each way (0: none): a table top leaves the
-    # turn about its normal coupled with a slide.
-    search_screw_steps: int = 2
+    # search_screw_steps steps of search_step_m each way (0: none; 1 did as well as 2-4 on the
+    # table tops): a table top leaves the turn about its normal coupled with a slide.
+    search_screw_steps: int = 1
     # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
     # not), and goes on from the better-scoring of the two ends (inliers less seen-through
     # cells, as the search).  On a table top the plane aligns first, the residual scale
