@@ -3,7 +3,8 @@ ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorit
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
         [--sweep SEEDS [--no-fixtures] [--sweep-levels 2,5,10,15] [--sweep-seed-base N]
-         [--sweep-tag T]] [--tabletop SEEDS] [--methods ours,small_gicp,open3d_icp]
+         [--sweep-tag T]] [--tabletop SEEDS [--tabletop-seed-base N] [--tabletop-tag T]
+        [--tabletop-static]] [--methods ours,small_gicp,open3d_icp]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -14,7 +15,10 @@ peers the two depth images back-projected (0.4-5 m) and voxelised at 2 cm.  Open
 (ALGORITHM.md section 4's recipe).  small_gicp: GICP, 2 cm downsampling, 25 cm correspondences.
 With ``--tabletop``: the real table-top pairs (../shared/data/osd-tabletop, the change in view)
 with the current re-rendered from a camera displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its
-back-projected points moved and splatted into a z-buffer (disocclusions stay holes).
+back-projected points moved and splatted into a z-buffer (disocclusions stay holes);
+``--tabletop-static`` re-renders the reference instead (no change in view), and
+``--tabletop-seed-base`` / ``--tabletop-tag`` draw other offsets (base 93000, tag "held": the
+held-out table-top set of issue 12, looked at once after the choice).
 One thread each; the methods alternate per pair and per run, so they share the machine's load.
 Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
 """
@@ -139,9 +143,11 @@ def reproject(depth, intrinsics, T_new_from_old):
     return out.astype(np.uint16)
 
 
-def tabletop_pairs(seeds: int):
+def tabletop_pairs(seeds: int, seed_base: int = 5000, tag: str = "", static: bool = False):
     """The real table-top pairs, the current displaced (module docstring); skipped with a
-    message when ../shared/data is absent."""
+    message when ../shared/data is absent.  Each pair's offset is drawn from ``seed_base`` and
+    ``tag`` (the defaults: the set of docs/benchmarks.md); ``static``: the displaced view is
+    of the reference itself (no change in view)."""
     from sim_fixtures.scenes import Pose, pose_offset
     from sim_fixtures.tabletop import TabletopDataMissing, load_tabletop_pair
     from sim_fixtures.tabletop import tabletop_pairs as names
@@ -155,10 +161,11 @@ def tabletop_pairs(seeds: int):
         tm, rd = LEVELS[level]
         for pr in pairs:
             for s in range(seeds):
-                seed = 5000 + s + zlib.crc32(f"{pr.name}{tm}".encode()) % 1000
+                seed = seed_base + s + zlib.crc32(f"{tag}{pr.name}{tm}".encode()) % 1000
                 old = Pose((0.0, 0.0, 0.0))
                 truth = invert(old.matrix()) @ pose_offset(old, tm, rd, seed).matrix()
-                cur = reproject(pr.current, pr.intrinsics, invert(truth))  # T_ref_from_cur
+                cur = reproject(pr.reference if static else pr.current, pr.intrinsics,
+                                invert(truth))  # truth: T_ref_from_cur
                 yield f"tabletop_{pr.name}_{level}cm_{s}", pr.reference, cur, truth, \
                     pr.intrinsics
 
@@ -173,6 +180,10 @@ def main(argv=None):
     ap.add_argument("--sweep-tag", default="", help="mixed into each pair's seed")
     ap.add_argument("--tabletop", type=int, default=0,
                     help="displaced real table-top pairs per pair and level")
+    ap.add_argument("--tabletop-seed-base", type=int, default=5000)
+    ap.add_argument("--tabletop-tag", default="", help="mixed into each table-top pair's seed")
+    ap.add_argument("--tabletop-static", action="store_true",
+                    help="displace the reference's own view (no change in view)")
     ap.add_argument("--methods", default=",".join(METHODS),
                     help="comma-separated subset (ours alone: its speed without the peers' "
                          "threads and caches in between)")
@@ -186,7 +197,8 @@ def main(argv=None):
     pairs = ([] if args.no_fixtures else list(fixture_pairs())) + \
         (list(sweep_pairs(args.sweep, tuple(int(v) for v in args.sweep_levels.split(",")),
                           args.sweep_seed_base, args.sweep_tag)) if args.sweep else []) + \
-        (list(tabletop_pairs(args.tabletop)) if args.tabletop else [])
+        (list(tabletop_pairs(args.tabletop, args.tabletop_seed_base, args.tabletop_tag,
+                             args.tabletop_static)) if args.tabletop else [])
     for fn in methods.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
     rows = []

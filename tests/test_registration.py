@@ -181,27 +181,28 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
 
 
-def _weighted_system_twin(res, jac, zs, c):
+def _weighted_system_twin(res, jac, zs, c, min_cut_m):
     sig = np.hypot(0.0012 + 0.0019 * (zs - 0.4) ** 2, 2.85e-3 * zs ** 2 / math.sqrt(12.0))
     e = res / sig
     scale = max(1.4826 * float(np.median(np.abs(e))), 0.5)
-    u = e / (c * scale)
+    u = res / np.maximum(c * scale * sig, min_cut_m)
     wts = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0) / sig ** 2
     jw = jac * wts[:, None]
     return jw.T @ jac, jw.T @ res, wts.sum(), math.sqrt(float(np.median(zs ** 2)))
 
 
-@pytest.mark.parametrize("tukey_c", [1.0, 4.685])
-def test_weighted_normal_equations_match_numpy(office_pair, tukey_c):
+@pytest.mark.parametrize("tukey_c,min_cut_m", [(1.0, 0.0), (4.685, 0.0), (4.685, 0.05)])
+def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = reg_mod._levels(ref, INTR, params)[-1]
     cl = reg_mod._levels(cur, INTR, params)[-1]
     pairs = reg_mod._Pairs(cl)
     n = pairs.associate(rl, cl, np.eye(4), 0.1, 0.8)  # identity: many large residuals
-    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c)
+    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
+                                                  min_cut_m)
     wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
-                                                   tukey_c)
+                                                   tukey_c, min_cut_m)
     assert n > 1000
     np.testing.assert_allclose(A, wA, rtol=1e-9, atol=1e-6)
     np.testing.assert_allclose(b, wb, rtol=1e-9, atol=1e-9)
@@ -236,27 +237,27 @@ def test_seen_through_matches_numpy(office_pair):
     assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
 
 
-def test_translation_search_scores_match_numpy(office_pair):
-    """Each offset's score: inliers within the step, less the cells either view sees through."""
+def test_pose_scores_match_numpy(office_pair):
+    """Each pose's score: inliers within the step, less the cells either view sees through."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = reg_mod._levels(ref, INTR, params)[1]
     cl = reg_mod._levels(cur, INTR, params)[1]
     T = sc.T_ref_from_cur
-    offsets = np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]], float)
+    tilt = rpy_deg_to_rotation(1.0, -2.0, 3.0)
+    rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
+    transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
     pairs = reg_mod._Pairs(cl)
-    got = reg_mod._search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
-                                 T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8,
-                                 3.0, 0.03, 0.004, pairs.res, pairs.jac, pairs.zs)
-    for score, off in zip(got, offsets):
-        t = T[:3, 3] + off
-        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], t,
+    got = reg_mod._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
+                               rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, pairs.res,
+                               pairs.jac, pairs.zs)
+    for score, rot, t in zip(got, rots, transs):
+        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, rot, t,
                                         rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8)
         inliers = int((np.abs(res) <= 3.0 * depth_sigma(zs)).sum())
-        through_cur = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], t, rl.fx, rl.fy, rl.cx,
+        through_cur = _seen_through_twin(cl.vertex, rl.vertex, rot, t, rl.fx, rl.fy, rl.cx,
                                          rl.cy, 0.03, 0.004)[0]
-        back = -T[:3, :3].T @ t
-        through_ref = _seen_through_twin(rl.vertex, cl.vertex, T[:3, :3].T, back, cl.fx, cl.fy,
+        through_ref = _seen_through_twin(rl.vertex, cl.vertex, rot.T, -rot.T @ t, cl.fx, cl.fy,
                                          cl.cx, cl.cy, 0.03, 0.004)[0]
         assert score == inliers - through_cur - through_ref
     assert got[0] == got.max()  # the true pose scores best

@@ -86,6 +86,17 @@ class RegistrationParams:
     search_level: int = 1
     search_step_m: float = 0.1
     search_reach_m: float = 0.4
+    # ... and screw motions (rotation and translation together) along the two least
+    # constrained directions of the whole 6-D system, rotations scaled by the cloud's radius,
+    # search_screw_steps steps of search_step_m each way (0: none; 1 did as well as 2-4 on the
+    # table tops): a table top leaves the turn about its normal coupled with a slide.
+    search_screw_steps: int = 1
+    # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
+    # not), and goes on from the better-scoring of the two ends (inliers less seen-through
+    # cells, as the search).  On a table top the plane aligns first, the residual scale
+    # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
+    # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
+    wide_cut_m: float = 0.2
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -136,6 +147,8 @@ class RegistrationParams:
         _int("search_level", self.search_level, 0, n - 1)
         _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
+        _int("search_screw_steps", self.search_screw_steps, 0, 20)
+        _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -565,20 +578,19 @@ def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_scores(cur_v, cur_n, ref_v, ref_n, rot, trans, offsets, fx, fy, cx, cy, max_dist,
-                   min_cos, sigmas, margin_m, margin_per_m2, res, jac, zs):
-    """Scores of the translation offsets ``offsets`` (n, 3) (metres, added to ``trans``): per
-    offset, the inlier pairs of :func:`_count_inliers` minus the cells of either view the
-    other sees through (:func:`_seen_through`, both ways).  A wrong slide along a room fits
-    floor and walls (inliers) but puts surfaces where the other camera saw free space.
-    Returns (n,) float64."""
-    out = np.empty(offsets.shape[0])
-    rot_t = np.ascontiguousarray(rot.T)
-    t = np.empty(3)
+def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
+                 sigmas, margin_m, margin_per_m2, res, jac, zs):
+    """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
+    metres): per pose, the inlier pairs of :func:`_count_inliers` minus the cells of either
+    view the other sees through (:func:`_seen_through`, both ways).  A wrong slide along a
+    room fits floor and walls (inliers) but puts surfaces where the other camera saw free
+    space.  Returns (n,) float64."""
+    out = np.empty(rots.shape[0])
     back = np.empty(3)
-    for m in range(offsets.shape[0]):
-        for a in range(3):
-            t[a] = trans[a] + offsets[m, a]
+    for m in range(rots.shape[0]):
+        rot = rots[m]
+        t = transs[m]
+        rot_t = np.ascontiguousarray(rot.T)
         for a in range(3):
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers = _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
@@ -643,13 +655,13 @@ def _check_depth(name: str, depth: Any, intrinsics: Intrinsics) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _weighted_system(res, jac, zs, n, tukey_c):
+def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
     ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
 
     Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
     normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
-    max(1.4826 median |e|, 0.5).  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
+    max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
     the weights, radius: the root of the median squared depth, m)."""
     e = np.empty(n)
     inv_var = np.empty(n)
@@ -666,7 +678,7 @@ def _weighted_system(res, jac, zs, n, tukey_c):
     b = np.zeros(6)
     wsum = 0.0
     for k in range(n):
-        u = e[k] / cut
+        u = e[k] / max(cut, min_cut_m * math.sqrt(inv_var[k]))
         if u >= 1.0:
             continue
         wt = (1.0 - u * u) ** 2 * inv_var[k]
@@ -754,10 +766,17 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     vec = np.eye(6)
     for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
         pairs = _Pairs(cl)
-        T, n_it, converged, lam_n, vec, A = _icp_level(rl, cl, T, params, li, min_cos, pairs)
+        start = T
+        T, n_it, converged, lam_n, vec, A = _icp_level(rl, cl, start, params, li, min_cos, pairs)
         iterations += n_it
+        if li == 0 and params.wide_cut_m > 0:
+            wide = _icp_level(rl, cl, start, params, li, min_cos, pairs, params.wide_cut_m)
+            iterations += wide[1]
+            scores = _score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
+            if scores[1] > scores[0]:  # the narrow cut wins ties
+                T, n_it, converged, lam_n, vec, A = wide
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
-            moved = _translation_search(rl, cl, T, A, params, min_cos, pairs)
+            moved = _weak_search(rl, cl, T, A, params, min_cos, pairs)
             if moved is not None:
                 T, n_it, converged, lam_n, vec, _ = _icp_level(rl, cl, moved, params, li,
                                                                min_cos, pairs)
@@ -809,9 +828,10 @@ class _Pairs:
 
 
 def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, li: int,
-               min_cos: float, pairs: _Pairs):
-    """Gauss-Newton iterations of one level from ``T``; returns (T, iterations, converged,
-    eigenvalues, eigenvectors, last normal matrix or None)."""
+               min_cos: float, pairs: _Pairs, min_cut_m: float = 0.0):
+    """Gauss-Newton iterations of one level from ``T`` (Tukey's cut at least ``min_cut_m``
+    metres); returns (T, iterations, converged, eigenvalues, eigenvectors, last normal matrix
+    or None)."""
     lam_n, vec, A = np.zeros(6), np.eye(6), None
     n_it = 0
     for _ in range(params.iterations[li]):
@@ -819,7 +839,7 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
         if n < 6:
             break
         A, b, wsum, radius = _weighted_system(pairs.res, pairs.jac, pairs.zs, n,
-                                              params.tukey_c)
+                                              params.tukey_c, min_cut_m)
         step, lam_n, vec = _solve(A, b, radius, wsum, params.weak_eigenvalue)
         # a trust region: no step moves a point by more than half the pairing distance (a
         # first step from many wrong pairs must not throw the estimate out of the basin)
@@ -839,28 +859,48 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
     return T, n_it, False, lam_n, vec, A
 
 
-def _translation_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
-                        params: RegistrationParams, min_cos: float, pairs: _Pairs
-                        ) -> np.ndarray | None:
-    """The best-scoring translation offset of ``T`` along each of the two least constrained
-    translation directions of ``A`` (:func:`_search_scores`: inliers within one search step,
-    less the cells either view sees through); None when ``T`` itself scores best."""
+def _score_poses(rl: _Level, cl: _Level, poses: list[np.ndarray], params: RegistrationParams,
+                 min_cos: float, pairs: _Pairs) -> np.ndarray:
+    """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
+    search step, less the cells either view sees through."""
+    rots = np.array([T[:3, :3] for T in poses])
+    transs = np.array([T[:3, 3] for T in poses])
+    return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
+                        rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
+                        params.seen_through_margin_m, params.seen_through_margin_per_m2,
+                        pairs.res, pairs.jac, pairs.zs)
+
+
+def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
+                 params: RegistrationParams, min_cos: float, pairs: _Pairs) -> np.ndarray | None:
+    """The best-scoring (:func:`_score_poses`) of ``T`` moved along the least constrained
+    directions of the normal matrix ``A`` (6, 6): translation offsets along the two weakest
+    directions of its translation block, and screw motions along the two weakest directions
+    of the whole, rotations scaled by the radius (root median squared depth) of the current
+    level; None when ``T`` itself scores best."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
     steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
     steps = np.concatenate([-steps[::-1], steps])
-    offsets = np.concatenate([np.zeros((1, 3)), steps[:, None] * vecs[:, 0],
-                              steps[:, None] * vecs[:, 1]])
-    scores = _search_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
-                            T[:3, 3].copy(), offsets, rl.fx, rl.fy, rl.cx, rl.cy,
-                            params.search_step_m, min_cos, params.inlier_sigmas,
-                            params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                            pairs.res, pairs.jac, pairs.zs)
-    best = int(np.argmax(scores))  # the first of equal scores: no offset wins ties
-    if best == 0:
-        return None
-    out = T.copy()
-    out[:3, 3] += offsets[best]
-    return out
+    poses = [T]
+    for d in (vecs[:, 0], vecs[:, 1]):
+        for st in steps:
+            c = T.copy()
+            c[:3, 3] += st * d
+            poses.append(c)
+    if params.search_screw_steps:
+        z = cl.vertex[:, :, 2]
+        radius = math.sqrt(float(np.median(np.square(z[z > 0], dtype=np.float64))))
+        s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
+        _lam6, vecs6 = np.linalg.eigh(A / np.outer(s, s))
+        screw = params.search_step_m * np.arange(1, params.search_screw_steps + 1)
+        for d in (vecs6[:, 0] / s, vecs6[:, 1] / s):
+            for st in np.concatenate([-screw[::-1], screw]):
+                inc = np.eye(4)
+                inc[:3, :3] = _exp_so3(st * d[:3])
+                inc[:3, 3] = st * d[3:]
+                poses.append(inc @ T)
+    best = int(np.argmax(_score_poses(rl, cl, poses, params, min_cos, pairs)))
+    return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
