@@ -40,7 +40,7 @@ import math
 import os
 import struct
 from pathlib import Path
-from typing import BinaryIO, Iterable
+from typing import BinaryIO, Callable, Iterable
 
 import numpy as np
 from numba import njit
@@ -332,6 +332,11 @@ class OniWriter:
         self.frames = frame_id
         return frame_id
 
+    @property
+    def size(self) -> int:
+        """Bytes written so far (0 once closed or aborted)."""
+        return self._file.tell() if self._file is not None else 0
+
     def close(self) -> Path:
         """Finish the file (seek table, end record, patched header) and move it into place.
         Raises :class:`FrameError` if no frame was written (the player rejects empty files)."""
@@ -436,9 +441,12 @@ def write_oni(
     fps: int = 30,
     codec: str = "none",
     intrinsics: Intrinsics | None = None,
+    on_frame: Callable[[int, int], None] | None = None,
 ) -> int:
     """Write depth images ((H, W) uint16 mm arrays, or :class:`DepthFrame` objects whose
-    timestamps and intrinsics are kept) to ``path`` atomically.  Returns the number of frames."""
+    timestamps and intrinsics are kept) to ``path`` atomically.  Returns the number of frames.
+    ``on_frame(frames, bytes)`` is called after each frame with the count so far and the size
+    of the file so far."""
     writer: OniWriter | None = None
     try:
         for item in frames:
@@ -455,6 +463,8 @@ def write_oni(
             if stamp is not None and first_stamp is not None:
                 stamp -= first_stamp
             writer.write(depth, stamp)
+            if on_frame is not None:
+                on_frame(writer.frames, writer.size)
         if writer is None:
             raise FrameError(f"{path}: no frames to write; an .oni file needs at least one")
         writer.close()

@@ -424,9 +424,21 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames {args.frames}: record at least one frame")
+    shown = [0.0]
+
+    def progress(frames: int, seconds: float, size: int) -> None:
+        if time.monotonic() - shown[0] >= 0.25:  # a line on a terminal, 4 times a second
+            shown[0] = time.monotonic()
+            print(f"\rrecording: {frames} frames, {seconds:.1f} s, {size / 1e6:.1f} MB "
+                  "(Ctrl-C stops and keeps them)", end="", file=sys.stderr, flush=True)
+
     with open_depth(args.source) as source:
-        written = record(source, args.out, frames=args.frames, codec=args.codec)
-    print(f"wrote {written} frame(s) to {args.out}")
+        written = record(source, args.out, frames=args.frames, codec=args.codec,
+                         progress=progress if sys.stderr.isatty() else None)
+    if sys.stderr.isatty():
+        print(file=sys.stderr)
+    size = Path(args.out).stat().st_size
+    print(f"wrote {written} frame(s), {size / 1e6:.1f} MB, to {args.out}")
     return 0
 
 

@@ -77,6 +77,38 @@ def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):
     assert "wrote 3 frame(s)" in result.stdout
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_record_stopped_by_a_signal_keeps_a_playable_file_and_leaves_nothing_else(tmp_path,
+                                                                                  sig):
+    """Ctrl-C (SIGINT) and kill / systemctl stop (SIGTERM) mid-recording of a live camera
+    (OpenNI's DummyDevice): exit 0, the frames so far finished into an .oni that libOpenNI2
+    plays, no temp file, no leaked shared memory."""
+    import signal
+    import time
+
+    from hw.depth import open_depth
+
+    out = tmp_path / "live.oni"
+    proc = subprocess.Popen([sys.executable, "-m", "robot_change.cli", "record", "--source",
+                             "openni2://Oz", "--out", str(out)], cwd=REPO, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not any(p.name.endswith(".tmp") for p in tmp_path.iterdir()):  # frames flowing
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(getattr(signal, sig))
+    stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 0, stderr
+    assert "leaked" not in stderr and "Traceback" not in stderr, stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["live.oni"]
+    written = int(stdout.split("wrote ")[1].split(" frame")[0])
+    assert written >= 2
+    with open_depth(f"oni:{out}") as source:
+        played = sum(1 for _ in source)
+    assert played == written
+
+
 def test_list_devices_without_a_camera_says_so():
     result = run("list-devices", "--json")
     assert result.returncode == 0, result.stderr
