@@ -8,6 +8,7 @@ power cut.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -30,6 +31,12 @@ class AtomicFile:
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         folder = self.path.parent
+        if str(folder) and not folder.is_dir():  # name the folder, not the temp file
+            if folder.exists():
+                raise NotADirectoryError(errno.ENOTDIR, f"cannot write it: {folder} is not a "
+                                         "folder", str(self.path))
+            raise FileNotFoundError(errno.ENOENT, f"cannot write it: the folder {folder} does "
+                                    "not exist", str(self.path))
         fd, temp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
                                     dir=folder if str(folder) else ".")
         self.temp_path = Path(temp)

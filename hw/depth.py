@@ -272,6 +272,10 @@ def _scheme_of_path(path: str) -> str:
         return "images"
     if not Path(path).exists():
         return "images"  # let the backend say the path is missing
+    if suffix in (".pcd", ".ply", ".bag", ".mcap", ".npz", ".npy", ".xyz"):
+        raise UriError(f"{path}: a {suffix} file is not a depth source; depth sources are 16-bit "
+                       "depth images (PNG, TIFF), folders of them, .oni recordings and "
+                       "openni2:// cameras")
     raise UriError(
         f"depth URI {path!r}: cannot tell the backend from the file name; use 'oni:{path}' "
         f"or 'images:{path}'"

@@ -48,6 +48,29 @@ def read_depth_image(path: str | Path, scale: float = 1000.0) -> np.ndarray:
     return to_millimetres(raw, scale)
 
 
+#: Depths (mm) a depth camera reads: a first image whose readings mostly lie outside is in other
+#: units than the scale says.
+PLAUSIBLE_DEPTH_MM = (300, 10_000)
+
+
+def check_depth_scale(depth: np.ndarray, scale: float, name: str) -> None:
+    """Raise :class:`DepthFileError` naming ``?scale=`` when most readings of ``depth`` (H, W)
+    uint16 mm lie outside :data:`PLAUSIBLE_DEPTH_MM` (a TUM image, 5000 units per metre, read
+    as millimetres lands at 5-30 m; one in metres x 100 at 1-5 cm)."""
+    valid = depth[depth > 0]
+    if valid.size < 100:
+        return  # nothing to judge by (a covered lens is the check's business)
+    low, high = PLAUSIBLE_DEPTH_MM
+    outside = np.count_nonzero((valid < low) | (valid > high))
+    if 2 * outside > valid.size:
+        median = float(np.median(valid)) / 1000.0
+        raise DepthFileError(
+            f"{name}: at scale={scale:g} units per metre the median reading is {median:.2f} m "
+            f"and {100 * outside // valid.size} % lie outside the {low / 1000:g}-"
+            f"{high / 1000:g} m a depth camera reads: the image holds other units; give them "
+            "with ?scale= (e.g. images:DIR?scale=5000 for TUM RGB-D depth)")
+
+
 def to_millimetres(raw: np.ndarray, scale: float) -> np.ndarray:
     """(H, W) uint16 raw units, ``scale`` of them per metre -> (H, W) uint16 millimetres
     (rounded half up, saturated at 65535; 0 stays 0).  Returns ``raw`` itself when scale is
@@ -180,6 +203,8 @@ class ImageFolderSource(DepthSource):
         self._position = 0
         self._pacer.reset()
         self.intrinsics  # noqa: B018 - decode the first file: size and intrinsics errors now
+        if self._first is not None:
+            check_depth_scale(self._first, self.scale, str(self.files[0]))
         self._open = True
 
     def close(self) -> None:

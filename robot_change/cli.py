@@ -266,14 +266,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _is_scene_file(target: str) -> bool:
-    """A saved SceneModel (``*.npz`` on disk) rather than a depth URI."""
-    return target.lower().endswith(".npz") and Path(target).is_file()
+    """A saved SceneModel (``*.npz``) rather than a depth URI."""
+    return target.lower().endswith(".npz")
 
 
 def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
     """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter)."""
-    if frames < 1:
-        raise InputError(f"--frames {frames}: read at least one frame")
     read: list[DepthFrame] = []
     with open_depth(uri) as source:
         for frame in source:
@@ -282,6 +280,9 @@ def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
                 break
     if not read:
         raise InputError(f"{uri}: the source delivered no frame")
+    if len(read) < frames:
+        print(f"robot-change: note: {uri} ended after {len(read)} of the {frames} frames asked "
+              f"for (--frames); using {len(read)}", file=sys.stderr)
     return read
 
 
@@ -422,8 +423,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     """Record any depth source (a live camera, images, another .oni) to an .oni file."""
     from hw.openni2 import record
 
-    if args.frames is not None and args.frames < 1:
-        raise InputError(f"--frames {args.frames}: record at least one frame")
     shown = [0.0]
 
     def progress(frames: int, seconds: float, size: int) -> None:
@@ -493,6 +492,17 @@ def cmd_link_bench(args: argparse.Namespace) -> int:
 # parser
 
 
+def _count(text: str) -> int:
+    """An argparse type: a whole number >= 1 (frames, runs, round trips)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="robot-change",
@@ -502,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     cloud = commands.add_parser("cloud", help="depth -> clean point cloud, with a summary and a picture")
     cloud.add_argument("--source", required=True, help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
-    cloud.add_argument("--frames", type=int, default=1, help="frames to fuse by per-pixel median (default 1)")
+    cloud.add_argument("--frames", type=_count, default=1, help="frames to fuse by per-pixel median (default 1)")
     cloud.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
     cloud.add_argument("--leaf", type=float, help="voxel size in metres (default from CloudParams)")
     cloud.add_argument("--out", help="folder for cloud.npy ((M,3) float32, metres) and cloud.png")
@@ -523,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
-    bench.add_argument("--runs", type=int, default=30, help="timed runs after warm-up (default 30)")
+    bench.add_argument("--runs", type=_count, default=30, help="timed runs after warm-up (default 30)")
     bench.add_argument("--source", help="depth URI to benchmark instead of the bundled frame")
     bench.set_defaults(func=cmd_bench)
 
@@ -531,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
                                   "N frames and save it")
     capture.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
     capture.add_argument("--out", required=True, help="the file to write, e.g. kitchen.scene.npz")
-    capture.add_argument("--frames", type=int, default=5, help="frames to fuse (default 5)")
+    capture.add_argument("--frames", type=_count, default=5, help="frames to fuse (default 5)")
     capture.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's)")
     capture.add_argument("--leaf", type=float, help="voxel size in metres (default 0.03)")
     capture.add_argument("--mount", help="the camera on the base, recorded with the reference: "
@@ -545,7 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a saved scene (*.npz from capture) or a depth URI")
     detect.add_argument("--current", required=True,
                         help="a saved scene (*.npz) or a depth URI (.oni, images, camera)")
-    detect.add_argument("--frames", type=int, default=5,
+    detect.add_argument("--frames", type=_count, default=5,
                         help="frames to fuse from a depth URI (default 5, fewer if it is shorter)")
     detect.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, "
                         "else OpenNI's VGA default)")
@@ -568,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     record = commands.add_parser("record", help="record a depth source to an .oni file")
     record.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
     record.add_argument("--out", required=True, help="the .oni file to write")
-    record.add_argument("--frames", type=int, help="stop after N frames (default: to the end, or Ctrl-C)")
+    record.add_argument("--frames", type=_count, help="stop after N frames (default: to the end, or Ctrl-C)")
     record.add_argument("--codec", choices=("16zt", "16z", "none"), default="16zt",
                         help="16zt: lossless, ~4x smaller than raw on Kinect depth (default); "
                         "16z: lossless, for unquantised depth; none: raw uint16")
@@ -604,7 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "through a noisy, baud-paced relay")
     link_bench.add_argument("--corrupt", type=float, default=0.1,
                             help="probability that a byte is corrupted (default 0.1)")
-    link_bench.add_argument("--count", type=int, default=200, help="round trips (default 200)")
+    link_bench.add_argument("--count", type=_count, default=200, help="round trips (default 200)")
     link_bench.add_argument("--baud", type=int, default=115200,
                             help="line speed the relay paces (default 115200)")
     link_bench.add_argument("--seed", type=int, help="random seed of the noise")
@@ -629,6 +639,11 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. piped into head: the reader has gone, nothing to report
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # a path the user gave: a missing folder, not a folder, no access
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"robot-change {args.command}: error: {where}{exc.strerror or exc}",
+              file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -75,11 +75,15 @@ def read(path: str | Path, fmt: str, version: int, names: Iterable[str],
     path = Path(path)
     names = tuple(names)
     try:
-        loaded = np.load(path, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
+        with open(path, "rb") as probe:
+            magic = probe.read(4)
+        if magic.startswith(b"\x93NUM"):
             raise error(f"{path}: a single .npy array, not a {fmt} file (.npz); is this the "
                         f"right file?")
-        with loaded as data:
+        if magic != b"PK\x03\x04":  # every .npz is a zip archive
+            raise error(f"{path}: not a {fmt} file (not an .npz archive: it starts with "
+                        f"{magic!r}); is this the right file?")
+        with np.load(path, allow_pickle=False) as data:
             present = set(data.files)
             if "header" not in present:
                 raise error(f"{path}: no header, not a {fmt} file (arrays: "

@@ -129,13 +129,51 @@ def test_list_devices_without_a_camera_says_so():
          "fx,fy,cx,cy"),
         (["record", "--source", "sim_fixtures/frames/room_vga.png", "--out", "/nonexistent/x.oni"],
          "/nonexistent"),
+        (["capture", "--source", "sim_fixtures/frames/room_vga.png", "--out",
+          "/nonexistent/x.scene.npz"], "the folder /nonexistent does not exist"),
+        (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--out", "/dev/null/x"],
+         "/dev/null/x: Not a directory"),
+        (["detect", "--reference", "{scene}", "--current", "sim_fixtures/frames/room_vga.png",
+          "--out", "/dev/null/x"], "/dev/null/x: Not a directory"),
+        (["bench", "--runs", "0"], "--runs: 0: must be at least 1"),
+        (["link-bench", "--count", "zero"], "'zero' is not a whole number"),
+        (["cloud", "--source", "{pcd}"], "a .pcd file is not a depth source"),
+        (["detect", "--reference", "/nonexistent/dock.scene.npz", "--current",
+          "sim_fixtures/frames/room_vga.png"], "/nonexistent/dock.scene.npz: No such file"),
+        (["detect", "--reference", "{text}", "--current", "sim_fixtures/frames/room_vga.png"],
+         "not an .npz archive"),
     ],
 )
-def test_bad_input_is_a_clear_error_with_exit_status_2(args, message):
+def test_bad_input_is_a_clear_error_with_exit_status_2(args, message, tmp_path):
+    (tmp_path / "cloud.pcd").write_text("# .PCD v0.7 - Point Cloud Data file format\n")
+    (tmp_path / "notes.scene.npz").write_text("not a scene\n")
+    if "{scene}" in args:
+        made = run("capture", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "1",
+                   "--out", str(tmp_path / "room.scene.npz"))
+        assert made.returncode == 0, made.stderr
+    args = [a.format(scene=tmp_path / "room.scene.npz", pcd=tmp_path / "cloud.pcd",
+                     text=tmp_path / "notes.scene.npz") for a in args]
     result = run(*args)
     assert result.returncode == 2, (result.stdout, result.stderr)
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_depth_in_other_units_than_the_scale_says_is_refused_naming_scale(shared_data):
+    """A TUM depth image (5000 units per metre) read as millimetres: 5-30 m readings, which gave
+    "0 points -> 0 kept" and exit 0; now an error that names ?scale=, and with it, a cloud."""
+    tum = shared_data / "open3d-tum-sample" / "TUM_depth.png"
+    result = run("cloud", "--source", str(tum))
+    assert result.returncode == 2 and "?scale=" in result.stderr, result.stderr
+    result = run("cloud", "--source", f"{tum}?scale=5000")
+    assert result.returncode == 0 and " 0 kept" not in result.stdout, result.stderr
+
+
+def test_a_source_shorter_than_frames_is_said(tmp_path):
+    result = run("capture", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "3",
+                 "--out", str(tmp_path / "one.scene.npz"))
+    assert result.returncode == 0, result.stderr
+    assert "ended after 1 of the 3 frames" in result.stderr
 
 
 def test_a_corrupt_oni_is_refused_before_the_native_library_sees_it(tmp_path):

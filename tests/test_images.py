@@ -25,7 +25,8 @@ RNG = np.random.default_rng(3)
 
 
 def depth_image(shape=(6, 8), base=900):
-    depth = (base + np.arange(shape[0] * shape[1]).reshape(shape)).astype(np.uint16)
+    """Millimetres a depth camera reads (base + 0..5999, wrapping on large images)."""
+    depth = (base + np.arange(shape[0] * shape[1]).reshape(shape) % 6000).astype(np.uint16)
     depth[0, 0] = 0
     return depth
 

@@ -76,7 +76,7 @@ def test_broken_and_foreign_files_are_typed_errors(tmp_path):
     with zipfile.ZipFile(tmp_path / "nohdr.npz", "w") as z:
         z.writestr("depth.npy", b"")
     for name, match in (("half.npz", "truncated or damaged.*write it again"),
-                        ("text.npz", "not a readable"), ("one.npy", "single .npy"),
+                        ("text.npz", "not an .npz archive"), ("one.npy", "single .npy"),
                         ("nohdr.npz", "no header")):
         with pytest.raises(Oops, match=match):
             _read(tmp_path / name)
