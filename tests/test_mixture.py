@@ -623,3 +623,27 @@ def test_prune_never_drops_fixed_components():
     assert len(x) * m.weights[k] < 10
     others = np.arange(m.n_components) != k
     assert (len(x) * m.weights[others] >= 10).all()
+
+
+# ----------------------------------------------------------------------------- refinement
+
+
+def test_refine_keeps_k_and_never_raises_the_criterion():
+    # split-and-merge moves at the K the search chose: K unchanged, every accepted move lowered
+    # the criterion (on the refinement subset), the result at least as good as without them
+    x = blob_cloud(6000, n_blobs=12, seed=3)
+    plain = fit_mixture(x, max_components=8, refine=0)
+    ref = fit_mixture(x, max_components=8, refine=12, refine_points=3000)
+    assert ref.n_components == plain.n_components == 8
+    steps = [s for s in ref.record.steps if s.action.startswith("refine ")]
+    assert 0 < len(steps) <= 12
+    base = next(s for s in ref.record.steps if s.action == "refine")
+    crits = [base.criterion] + [s.criterion for s in steps if s.accepted]
+    assert crits == sorted(crits, reverse=True)
+    assert ref.score(x) >= plain.score(x) - 1e-9
+    assert_finite(ref)
+    again = fit_mixture(x, max_components=8, refine=12, refine_points=3000)
+    np.testing.assert_array_equal(again.means, ref.means)
+    # not run from a given mixture or without splitting
+    fixed_k = fit_mixture(x, init=ref, split=False)
+    assert not any(s.action.startswith("refine") for s in fixed_k.record.steps)

@@ -264,7 +264,9 @@ class FitStep:
     """One EM run inside :func:`fit_mixture`.
 
     ``action`` is ``"start"`` (the initial EM), ``"split k"`` (component k of the current
-    mixture was split), ``"seed"`` (a novelty component was added), ``"polish"`` (the final EM
+    mixture was split), ``"seed"`` (a novelty component was added), ``"refine"`` (EM on the
+    refinement subset before the split-and-merge moves) and ``"refine i+j/k"`` (components i and
+    j merged and k split, at the same K), ``"polish"`` (the final EM
     on all points after a search on a subsample) or ``"prune"`` (free components left with
     fewer than ``min_points`` points of mass by the polish were dropped and EM run again);
     ``accepted`` says whether the result became the current mixture.
@@ -527,6 +529,10 @@ def fit_mixture(
     entropy_k: int = 4,
     entropy_subsample: int = 2000,
     search_points: int | None = 2000,
+    refine: int = 12,
+    refine_points: int | None = 4000,
+    refine_tol: float = 1e-4,
+    refine_iter: int = 20,
 ) -> Mixture:
     """Fit a Gaussian mixture to 3-D points by split-EM, choosing K by a criterion.
 
@@ -576,6 +582,20 @@ def fit_mixture(
         sqrt(N / search_points)), and a final EM on all points polishes the chosen mixture.
         None: the search uses every point (exact, about 5x slower on a room-sized cloud).
         Ignored when ``split`` is False.
+    refine : int
+        Budget of split-and-merge moves at the K the search chose (Ueda et al., SMEM; 0: none;
+        see bench/bench_mixture_quality.py for what 12 gains).  Each round tries, in turn, merging one of the 3 most overlapping pairs
+        of components and splitting the component with the largest ``w_k J_k`` outside the
+        pair, runs EM (tolerance ``refine_tol``, at most ``refine_iter`` iterations) and keeps
+        the first result that lowers the criterion; rounds go on until no candidate helps or
+        ``refine`` moves were tried.  K does not change.  Skipped when starting from ``init`` or
+        with ``split`` False.  ``"refine"`` steps in the record.
+    refine_points : int, optional
+        The moves run on a fixed random subset of this many points (None or N smaller: all).
+    refine_tol, refine_iter :
+        EM tolerance and iteration bound of each move (a tighter tolerance than ``tol``: a
+        move's gain shows only once EM has moved the neighbours; hitting ``refine_iter`` does
+        not warn).
 
     Returns
     -------
@@ -593,9 +613,12 @@ def fit_mixture(
     for name, v, lo in (("max_components", max_components, 1), ("max_iter", max_iter, 1),
                         ("min_points", min_points, 1), ("max_tries", max_tries, 1),
                         ("entropy_k", entropy_k, 1), ("entropy_subsample", entropy_subsample, 8),
-                        ("search_points", 100 if search_points is None else search_points, 100)):
+                        ("search_points", 100 if search_points is None else search_points, 100),
+                        ("refine", refine, 0), ("refine_iter", refine_iter, 1),
+                        ("refine_points", 100 if refine_points is None else refine_points, 100)):
         validate.whole("fit_mixture", name, v, lo, 2**63 - 1)
     validate.number("fit_mixture", "tol", tol, 0.0, math.inf)
+    validate.number("fit_mixture", "refine_tol", refine_tol, 0.0, math.inf)
     rng = np.random.default_rng(seed)
     opts = dict(fix_weights=bool(fix_weights), reg_covar=float(reg_covar), tol=float(tol),
                 max_iter=int(max_iter))
@@ -672,11 +695,21 @@ def fit_mixture(
         if not improved:
             break
 
+    refined = split and refine > 0 and init is None and len(cur.weights) >= 3
+    if refined:
+        xr = x
+        if refine_points is not None and n > refine_points:
+            xr = x[np.sort(rng.choice(n, refine_points, replace=False))]
+        cur = _refine(xr, cur, n, criterion, refine, float(refine_tol), int(refine_iter),
+                      reg_covar, opts,
+                      math.sqrt(12.0 * reg_covar) * math.sqrt(n / xr.shape[0]), entropy_k,
+                      entropy_subsample, min_points, rng, steps)
+
     n_pruned = 0
-    if xs is not x:
+    if xs is not x or refined:
         cur, _ = run(cur, "polish", x)
         accept()
-        # The search kept every free component at >= min_points of mass on the subsample, but
+        # The search kept every free component at >= min_points of mass on a subsample, but
         # the polish on all points can leave some below it (high max_components, small
         # subsample).  Drop those, renormalise and re-run EM until none is left; each round
         # removes at least one component, so this ends.
@@ -696,9 +729,10 @@ def fit_mixture(
             accept()
             n_pruned += k_before - len(cur.weights)  # incl. any the re-run EM emptied
     n_iter = sum(s.n_iter for s in steps)
-    if not all(s.converged for s in steps):
+    unconverged = sum(not s.converged for s in steps if not s.action.startswith("refine"))
+    if unconverged:
         warnings.warn(f"EM reached max_iter = {max_iter} without converging to tol = {tol} in "
-                      f"{sum(not s.converged for s in steps)} of {len(steps)} runs; "
+                      f"{unconverged} of {len(steps)} runs; "
                       f"the result is the last iterate. Raise max_iter or tol.",
                       ConvergenceWarning, stacklevel=2)
     record = FitRecord(criterion, n, float(reg_covar), int(max_components), tuple(steps), n_iter,
@@ -791,3 +825,71 @@ def _split_order(x, labels, cur: _State, min_points, entropy_k, subsample, blur,
         scored.append((-cur.weights[k] * cur.j[k], int(k)))
     scored.sort()
     return [k for _, k in scored]
+
+
+def _merged(cur: _State, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Moment-matched merge of components i and j: (weight, mean, covariance)."""
+    wi, wj = cur.weights[i], cur.weights[j]
+    w = wi + wj
+    mu = (wi * cur.means[i] + wj * cur.means[j]) / w
+    di, dj = cur.means[i] - mu, cur.means[j] - mu
+    cov = (wi * (cur.covs[i] + np.outer(di, di)) + wj * (cur.covs[j] + np.outer(dj, dj))) / w
+    return w, mu, _symmetric(cov[None])[0]
+
+
+def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts, blur,
+            entropy_k, entropy_subsample, min_points, rng, steps, n_pairs: int = 3) -> _State:
+    """Split-and-merge moves at fixed K on ``x`` (see ``refine`` of :func:`fit_mixture`)."""
+    em_opts = dict(opts, tol=tol, max_iter=max_iter)
+    t0 = time.perf_counter()
+    cur = _run_em(x, _State(cur.weights, cur.means, cur.covs, cur.fixed, np.full(len(cur.weights),
+                                                                                  np.nan)),
+                  **em_opts)
+    labels = _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
+    steps.append(_replace_accepted(FitStep("refine", len(cur.weights), cur.crit, cur.log_l,
+                                           cur.n_iter, cur.converged, True,
+                                           time.perf_counter() - t0)))
+    k_n = len(cur.weights)
+    while True:
+        prec, log_det, _ = em.precision_cholesky(cur.covs)
+        log_resp, _ = em.e_step(x, cur.weights, cur.means, prec, log_det)
+        resp = np.exp(log_resp)
+        gram = resp.T @ resp
+        norm = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+        overlap = gram / np.outer(norm, norm)
+        iu, ju = np.triu_indices(k_n, 1)
+        pairs = np.argsort(-overlap[iu, ju], kind="stable")[:n_pairs]
+        order = _split_order(x, labels, cur, min_points, entropy_k, entropy_subsample, blur, rng)
+        improved = False
+        for p in pairs:
+            if budget <= 0:
+                return cur
+            budget -= 1
+            i, j = int(iu[p]), int(ju[p])
+            k = next((q for q in order if q not in (i, j)), None)
+            if k is None:
+                continue
+            t0 = time.perf_counter()
+            parts = _split_component(x[labels == k], cur.means[k], cur.covs[k], cur.weights[k],
+                                     reg_covar)
+            if parts is None:
+                continue
+            wm, mm, cm = _merged(cur, i, j)
+            keep = np.array([q not in (i, j, k) for q in range(k_n)])
+            start = _State(np.concatenate([cur.weights[keep], [wm], parts[0]]),
+                           np.vstack([cur.means[keep], mm[None], parts[1]]),
+                           np.concatenate([cur.covs[keep], cm[None], parts[2]]),
+                           np.zeros(k_n, dtype=bool),
+                           np.concatenate([cur.j[keep], [np.nan, np.nan, np.nan]]))
+            start.weights = start.weights / start.weights.sum()
+            cand = _run_em(x, start, **em_opts)
+            cand_labels = _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
+            ok = bool(len(cand.weights) == k_n and cand.crit < cur.crit
+                  and (n_total * cand.weights >= min_points).all())
+            steps.append(FitStep(f"refine {i}+{j}/{k}", len(cand.weights), cand.crit, cand.log_l,
+                                 cand.n_iter, cand.converged, ok, time.perf_counter() - t0))
+            if ok:
+                cur, labels, improved = cand, cand_labels, True
+                break
+        if not improved:
+            return cur
