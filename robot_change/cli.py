@@ -217,6 +217,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     return status
 
 
+def cmd_warm_up(args: argparse.Namespace) -> int:
+    """Compile the numba kernels into the cache (NUMBA_CACHE_DIR, else beside the package), so
+    that the next start of the daemon or of a command loads them instead."""
+    from robot_change.service.warmup import warm_up
+
+    seconds = warm_up()
+    where = os.environ.get("NUMBA_CACHE_DIR") or "the package's __pycache__ folders"
+    print(f"kernels ready in {seconds:.1f} s (cache: {where})")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
     from robot_change.tools.benchmark import (
@@ -530,6 +541,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", required=True, metavar="FILE",
                      help="TOML file, e.g. /etc/robot-change/robot-change.toml")
     run.set_defaults(func=cmd_run)
+
+    warm = commands.add_parser("warm-up", help="compile the numba kernels into the cache now "
+                               "(a cold first start otherwise spends a minute or more on it)")
+    warm.set_defaults(func=cmd_warm_up)
 
     bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
     bench.add_argument("--json", action="store_true", help="print one JSON object")

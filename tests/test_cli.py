@@ -109,6 +109,12 @@ def test_record_stopped_by_a_signal_keeps_a_playable_file_and_leaves_nothing_els
     assert played == written
 
 
+def test_warm_up_compiles_or_loads_the_kernels_and_says_where():
+    result = run("warm-up", timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert "kernels ready in" in result.stdout and "cache:" in result.stdout
+
+
 def test_list_devices_without_a_camera_says_so():
     result = run("list-devices", "--json")
     assert result.returncode == 0, result.stderr
