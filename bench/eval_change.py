@@ -412,21 +412,23 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
     import matplotlib.pyplot as plt
 
     folder.mkdir(parents=True, exist_ok=True)
-    groups = list(report["results"])
+    # the groups with changes to find (not_at_station and the hand-held no-change pairs have none)
+    groups = [g for g in report["results"] if "not_at_station" not in g and "hand-held" not in g]
     methods = [m for m in ("ours", "geometric", "free_space_only", "nn", "plain")
                if m in report["results"][groups[0]]]
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    fig, ax = plt.subplots(figsize=(2 + 1.1 * len(groups), 3.8))
     width = 0.8 / len(methods)
     for i, m in enumerate(methods):
         vals = [report["results"][g][m]["total"]["f1"] for g in groups]
         xs = np.arange(len(groups)) + i * width
         ax.bar(xs, vals, width, label=m)
         for x, v in zip(xs, vals):
-            ax.text(x, v + 0.01, f"{v:.2f}", ha="center", fontsize=7)
+            ax.text(x, v + 0.01, f"{v:.2f}", ha="center", va="bottom", fontsize=6, rotation=90)
     ax.axhline(0.85, color="k", lw=0.8, ls="--")
-    ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2, groups)
+    ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2,
+                  [g.replace(" pose_", "\n") for g in groups], fontsize=8)
     ax.set_ylabel("F1, changed points")
-    ax.set_ylim(0, 1.1)
+    ax.set_ylim(0, 1.25)
     ax.legend(fontsize=7, ncol=len(methods), loc="upper center")
     fig.tight_layout()
     fig.savefig(folder / "change_f1.png", dpi=110)
