@@ -516,11 +516,12 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 def _setup_logging(level: str) -> None:
     """Log lines to stderr, with a timestamp unless the journal (which stamps them) reads it;
     ``level`` for robot_change and hw, warnings and worse from the libraries underneath."""
+    from robot_change.service.daemon import set_log_level  # (cli imports lazily: a quick --help)
+
     stamp = "" if os.environ.get("JOURNAL_STREAM") else "%(asctime)s "
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, force=True,
                         format=stamp + "%(levelname)s %(name)s: %(message)s")
-    for name in ("robot_change", "hw"):
-        logging.getLogger(name).setLevel(level.upper())
+    set_log_level(level)
 
 
 def _count(text: str) -> int:
