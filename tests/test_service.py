@@ -576,7 +576,8 @@ def test_a_hang_is_told_to_the_base_as_a_stall(tmp_path: Path, scene_frames, mon
     hang = Hang()
     owner, name = _hang_target(where)
     monkeypatch.setattr(owner, name, hang.wrap(getattr(owner, name)))
-    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
+    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0,
+                             command_allowance_s=1.0)
     with Rig(tmp_path, scene_frames, options=options) as rig:
         try:
             watching = where in ("detector", "camera")
