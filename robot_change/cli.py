@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import logging
 import os
 import sys
 import time
@@ -18,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+import robot_change
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
 from robot_change.change.mount import CameraMount
@@ -26,6 +28,9 @@ from robot_change.errors import ConfigError, InputError, RobotChangeError
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
 #: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
 EXIT_CONFIG = 78
+
+log = logging.getLogger("robot_change.cli")  # also when run as __main__ (python -m)
+
 
 def _fixtures_folder() -> Path:
     """The bundled fixtures: the ``sim_fixtures`` package (installed with the demo's and the
@@ -179,8 +184,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     """The daemon (robot_change.service.core): camera, serial line and store from the configuration,
     until SIGTERM; SIGHUP reloads the configuration.  Exit 78 for a configuration error, 70
     after a stall (robot_change.service.daemon)."""
-    import logging
-
     from hw.serial_port import ReopeningPort
     from robot_change.service import systemd
     from robot_change.service.core import Service, ServiceOptions
@@ -189,8 +192,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from robot_change.service.store import ReferenceStore
 
     config = load_checked_config(args.config)
-    logging.basicConfig(level=config.service.log_level.upper(), stream=sys.stderr,
-                        format="%(levelname)s %(name)s: %(message)s")
+    _setup_logging(args.log_level or config.service.log_level)
 
     def make_camera(cfg: Any) -> Any:  # the one place a depth source is built
         return lambda: open_depth(cfg.camera.source)
@@ -198,7 +200,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     port = ReopeningPort(config.serial.port, config.serial.baud, timeout=0.01)
     service = None
     try:
-        store = ReferenceStore(config.store.references)
+        store = ReferenceStore(config.store.references, max_stations=config.store.max_stations,
+                               min_free_mb=config.store.min_free_mb)
         options = ServiceOptions(report_dir=Path(config.store.state_dir) / "reports",
                                  stall_after_s=stall_bound(systemd.watchdog_interval()))
         service = Service(config, make_camera(config), port, store, options)
@@ -271,8 +274,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.json:
         _print_json(result)
     else:
+        width = max(len(key) for key in result) + 2
         for key, value in result.items():
-            print(f"{key:16s}{value}")
+            print(f"{key:{width}s}{value}")
     return 0
 
 
@@ -292,8 +296,8 @@ def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
     if not read:
         raise InputError(f"{uri}: the source delivered no frame")
     if len(read) < frames:
-        print(f"robot-change: note: {uri} ended after {len(read)} of the {frames} frames asked "
-              f"for (--frames); using {len(read)}", file=sys.stderr)
+        log.warning("%s ended after %d of the %d frames asked for (--frames); using %d", uri,
+                    len(read), frames, len(read))
     return read
 
 
@@ -401,7 +405,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         _print_json(summary)
     else:
         _print_change_summary(summary)
-    return 0
+    return DETECT_EXIT[changes.outcome] if args.exit_code else 0
 
 
 def _print_change_summary(summary: dict[str, Any]) -> None:
@@ -476,10 +480,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     if args.json:
         _print_json(config.as_dict())
     else:
-        print(f"{args.file}: OK")
-        for section, table in config.as_dict().items():
-            for key, value in table.items():
-                print(f"{section}.{key} = {value!r}")
+        print(f"# {args.file}: OK; the effective settings (defaults included):")
+        print(config.as_toml(), end="")
     return 0
 
 
@@ -503,6 +505,25 @@ def cmd_link_bench(args: argparse.Namespace) -> int:
 # parser
 
 
+#: ``detect --exit-code``: the exit status of each outcome (2 stays "an error").
+DETECT_EXIT = {"no_change": 0, "changed": 1, "not_at_station": 3}
+
+#: Logging as every command sets it up (``--log-level``, ``-v``, ``-q``); the daemon's default
+#: is its configuration's ``[service] log_level``, a one-shot command's "warning".
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _setup_logging(level: str) -> None:
+    """Log lines to stderr, with a timestamp unless the journal (which stamps them) reads it;
+    ``level`` for robot_change and hw, warnings and worse from the libraries underneath."""
+    from robot_change.service.daemon import set_log_level  # (cli imports lazily: a quick --help)
+
+    stamp = "" if os.environ.get("JOURNAL_STREAM") else "%(asctime)s "
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, force=True,
+                        format=stamp + "%(levelname)s %(name)s: %(message)s")
+    set_log_level(level)
+
+
 def _count(text: str) -> int:
     """An argparse type: a whole number >= 1 (frames, runs, round trips)."""
     try:
@@ -519,7 +540,28 @@ def build_parser() -> argparse.ArgumentParser:
         prog="robot-change",
         description="Scene change detection for robots with a depth camera.",
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.add_argument("--version", action="version",
+                        version=f"robot-change {robot_change.__version__}")
+    # every command takes the logging options (base-sim keeps -v for its own verbose output)
+    logs = argparse.ArgumentParser(add_help=False)
+    logs.add_argument("--log-level", choices=LOG_LEVELS,
+                      help="log verbosity (default: warning; run: the configuration's)")
+    logs.add_argument("-q", "--quiet", dest="log_level", action="store_const", const="error",
+                      help="errors only")
+    verbose = argparse.ArgumentParser(add_help=False, parents=[logs])
+    verbose.add_argument("-v", "--verbose", dest="log_level", action="store_const", const="debug",
+                         help="debug logging")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    class _Commands:
+        """add_parser with the logging options on every command."""
+
+        @staticmethod
+        def add_parser(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+            parents = [logs] if name == "base-sim" else [verbose]
+            return subparsers.add_parser(name, parents=parents, **kwargs)
+
+    commands = _Commands()
 
     cloud = commands.add_parser("cloud", help="depth -> clean point cloud, with a summary and a picture")
     cloud.add_argument("--source", required=True, help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
@@ -588,6 +630,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "0,0,0,0,0,0: at the base origin, looking ahead); base-frame "
                         "positions and the robot's offset in report.json use it")
     detect.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    detect.add_argument("--exit-code", action="store_true",
+                        help="exit 1 when something changed, 3 when not at the station, 0 when "
+                             "nothing changed (2 stays an error), like git diff --exit-code")
     detect.set_defaults(func=cmd_detect)
 
     record = commands.add_parser("record", help="record a depth source to an .oni file")
@@ -640,6 +685,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command != "run":  # the daemon sets it up once its configuration is read
+        _setup_logging(args.log_level or "warning")
     try:
         return int(args.func(args) or 0)
     except ConfigError as exc:

@@ -109,6 +109,44 @@ def test_record_stopped_by_a_signal_keeps_a_playable_file_and_leaves_nothing_els
     assert played == written
 
 
+def test_version_and_the_logging_options_on_every_command():
+    from robot_change import __version__
+
+    result = run("--version")
+    assert result.returncode == 0 and result.stdout.strip() == f"robot-change {__version__}"
+    for command in ("cloud", "capture", "detect", "record", "run", "bench", "demo", "warm-up",
+                    "check-config", "list-devices", "link-bench", "base-sim"):
+        text = run(command, "--help").stdout
+        assert "--log-level" in text and "-q" in text, command
+    # -q silences the warning about a source shorter than --frames; without it, it is a
+    # timestamped log line
+    loud = run("cloud", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "2")
+    quiet = run("cloud", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "2", "-q")
+    assert "ended after 1 of the 2 frames" in loud.stderr and quiet.stderr == ""
+    assert loud.stderr[:4].isdigit()  # "2026-..." when not under the journal
+
+
+def test_detect_exit_code_tells_change_from_no_change():
+    changed = run("detect", "--reference", str(SCENES / "office_box_added" / "reference.oni"),
+                  "--current", str(SCENES / "office_box_added" / "current.oni"), "--frames",
+                  "3", "--exit-code")
+    same = run("detect", "--reference", str(SCENES / "office_no_change" / "reference.oni"),
+               "--current", str(SCENES / "office_no_change" / "current.oni"), "--frames", "3",
+               "--exit-code")
+    plain = run("detect", "--reference", str(SCENES / "office_box_added" / "reference.oni"),
+                "--current", str(SCENES / "office_box_added" / "current.oni"), "--frames", "3")
+    assert (changed.returncode, same.returncode, plain.returncode) == (1, 0, 0), (
+        changed.stderr, same.stderr)
+
+
+def test_bench_text_keeps_keys_and_values_apart():
+    result = run("bench", "--runs", "1")
+    assert result.returncode == 0, result.stderr
+    for line in result.stdout.splitlines():
+        key, _, value = line.partition(" ")
+        assert key and value.strip(), line  # a space after every key, however long
+
+
 def test_warm_up_compiles_or_loads_the_kernels_and_says_where():
     result = run("warm-up", timeout=600)
     assert result.returncode == 0, result.stderr
@@ -204,7 +242,13 @@ def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tm
     assert EXIT_CONFIG == CONFIG_EXIT == 78
     result = run("check-config", str(REPO / "systemd" / "robot-change.toml"))
     assert result.returncode == 0, result.stderr
-    assert "cloud.leaf_m" in result.stdout
+    import tomllib
+
+    from robot_change.service.config import load_config
+
+    printed = tomllib.loads(result.stdout)  # TOML, not Python reprs: it reads back the same
+    assert printed == load_config(REPO / "systemd" / "robot-change.toml").as_dict()
+    assert "[cloud]" in result.stdout and "leaf_m = 0.03" in result.stdout
     bad = tmp_path / "bad.toml"
     bad.write_text("[cloud]\nleaf_m = -1\n")
     result = run("check-config", str(bad))

@@ -126,3 +126,18 @@ def test_a_bound_must_be_positive(bound):
                                                 (0.5, MIN_STALL_S), (30.0, 30.0)])
 def test_the_stall_bound_is_half_of_watchdogsec_with_a_floor(interval, expected):
     assert stall_bound(interval) == expected
+
+
+def test_a_unit_of_work_may_have_a_bound_of_its_own():
+    now = [0.0]
+    progress = Progress(1.0, clock=lambda: now[0])
+    slow = progress.begin("control", "CAPTURE_REFERENCE dock", bound_s=3.0)
+    quick = progress.begin("link", "a turn")
+    now[0] = 2.0
+    assert progress.stalled() == "link: a turn has not finished after 2.0 s"
+    progress.end(quick)
+    assert progress.stalled() == ""  # the capture is within its own 3 s
+    now[0] = 3.5
+    assert progress.stalled() == "control: CAPTURE_REFERENCE dock has not finished after 3.5 s"
+    progress.end(slow)
+    assert progress.stalled() == ""

@@ -576,7 +576,8 @@ def test_a_hang_is_told_to_the_base_as_a_stall(tmp_path: Path, scene_frames, mon
     hang = Hang()
     owner, name = _hang_target(where)
     monkeypatch.setattr(owner, name, hang.wrap(getattr(owner, name)))
-    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0)
+    options = ServiceOptions(report_dir=tmp_path / "reports", stall_after_s=1.0,
+                             command_allowance_s=1.0)
     with Rig(tmp_path, scene_frames, options=options) as rig:
         try:
             watching = where in ("detector", "camera")
@@ -671,3 +672,22 @@ def test_a_camera_never_healthy_for_long_enough_stays_lost(tmp_path: Path, scene
     with Rig(tmp_path, scene_frames, camera=camera) as rig:
         rig.run("expect FAULT code=CAMERA_LOST 3\nexpect-none FAULT 3")
         assert not rig.service.camera_ok
+
+
+def test_a_capture_beyond_the_station_limit_is_a_storage_fault_on_the_wire(
+        tmp_path: Path, scene_frames) -> None:
+    """Names come from the serial line: a new station past [store] max_stations is refused
+    with FAULT STORAGE_ERROR (and logged); capturing a known station again still works."""
+    rig = Rig(tmp_path, scene_frames)
+    rig.store.max_stations = 1
+    with rig:
+        rig.run("""
+            capture dock
+            expect CAPTURED station=dock 10
+            capture kitchen
+            expect FAULT code=STORAGE_ERROR 10
+            capture dock
+            expect CAPTURED station=dock 10
+        """)
+    assert rig.store.stations() == ["dock"]
+    assert "max_stations" in rig.out.getvalue()

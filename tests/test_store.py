@@ -20,6 +20,7 @@ from conftest import REPO, SIM_FIXTURES
 from hw.depth import open_depth
 from robot_change.change.scene import SceneModel, build_scene
 from robot_change.errors import (
+    ConfigError,
     MessageError,
     ReferenceMissing,
     StationNameError,
@@ -276,3 +277,36 @@ def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scen
     removed = ReferenceStore(root).remove_stale_temp_files()
     assert len(removed) >= 1
     assert sorted(p.name for p in root.iterdir()) == ["dock.prev.scene.npz", "dock.scene.npz"]
+
+
+def test_a_new_station_beyond_the_limit_is_refused_and_an_old_one_still_saves(tmp_path, scenes):
+    store = ReferenceStore(tmp_path, max_stations=2)
+    store.save("a", scenes[0])
+    store.save("b", scenes[0])
+    with pytest.raises(StoreError, match=r"'c' refused: the store holds 2 stations") as info:
+        store.save("c", scenes[0])
+    assert str(tmp_path) not in str(info.value)  # the text goes over the wire: no paths
+    assert store.stations() == ["a", "b"]
+    store.save("a", scenes[1])  # capturing a station again is always allowed
+    assert store.stations() == ["a", "b"]
+
+
+def test_a_save_that_would_fill_the_disk_is_refused(tmp_path, scenes):
+    import shutil
+
+    free_mb = shutil.disk_usage(tmp_path).free / 1e6
+    store = ReferenceStore(tmp_path, min_free_mb=int(free_mb) + 10)
+    with pytest.raises(StoreError, match="MB free on the module's disk") as info:
+        store.save("dock", scenes[0])
+    assert str(tmp_path) not in str(info.value)
+    assert store.stations() == []
+    ReferenceStore(tmp_path, min_free_mb=0).save("dock", scenes[0])
+
+
+def test_the_store_limits_come_from_the_configuration():
+    from robot_change.service.config import config_from_dict
+
+    config = config_from_dict({"store": {"max_stations": 5, "min_free_mb": 7}}, "x.toml")
+    assert (config.store.max_stations, config.store.min_free_mb) == (5, 7)
+    with pytest.raises(ConfigError, match="store.max_stations = 0"):
+        config_from_dict({"store": {"max_stations": 0}}, "x.toml")

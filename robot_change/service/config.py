@@ -35,6 +35,11 @@ from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import BadValue, ConfigError
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
+from robot_change.service.store import (
+    DEFAULT_MAX_STATIONS,
+    DEFAULT_MIN_FREE_MB,
+    MAX_STATIONS_LIMIT,
+)
 
 #: The library's own defaults: the config file's defaults are these, not copies of them.
 _CLOUD = CloudParams()
@@ -240,6 +245,11 @@ class StoreConfig(_Section):
     state_dir: str = _key("/var/lib/robot-change", _text,
                           "folder of the station references (systemd's StateDirectory); a "
                           "relative path is taken from the config file's folder")
+    max_stations: int = _key(DEFAULT_MAX_STATIONS, _int(1, MAX_STATIONS_LIMIT),
+                             "a new station beyond this many is refused (FAULT STORAGE_ERROR)")
+    min_free_mb: int = _key(DEFAULT_MIN_FREE_MB, _int(0, 10**7, " MB"),
+                            "a capture that would leave less free on the disk is refused (FAULT "
+                            "STORAGE_ERROR)")
 
     @property
     def references(self) -> Path:
@@ -436,6 +446,15 @@ class Config:
             section = getattr(self, _ALL_KEYS[p.name])
             values[p.name] = int(getattr(section, p.name))
         return values
+
+    def as_toml(self) -> str:
+        """The effective settings as a TOML file would spell them (every key, defaults too)."""
+        lines = []
+        for section, table in self.as_dict().items():
+            lines.append(f"[{section}]")
+            lines.extend(f"{key} = {_show(value)}" for key, value in table.items())
+            lines.append("")
+        return "\n".join(lines)
 
     def as_dict(self) -> dict[str, dict[str, Any]]:
         """Section -> key -> value (optional keys left out when unset), e.g. to print."""

@@ -169,7 +169,10 @@ class ServiceOptions:
     ``link_max_wait``: the link thread's longest sleep (s), bounding the added send latency.
     ``stall_after_s``: a part that makes no progress for this long (a check, a capture or a
     WATCH check that does not end, a thread that does not turn) is a stall (module docstring);
-    the daemon sets it to half of systemd's WatchdogSec.
+    the daemon sets it to half of systemd's WatchdogSec.  ``command_allowance_s``: what a
+    CAPTURE_REFERENCE or CHECK (frames, fusion, the fit) may take beyond ``stall_after_s``
+    before it is a stall (docs/protocol.md 7.10): ~0.5 s on a quiet 2-core machine, several
+    on a busy or slow one.
     """
 
     queue_frames: int = 4
@@ -181,6 +184,7 @@ class ServiceOptions:
     link_max_wait: float = 0.005
     command_queue: int = 16
     stall_after_s: float = 5.0
+    command_allowance_s: float = 8.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -742,7 +746,9 @@ class Service:
         self._end_watch()
         with self._lock:
             self.station = m.station
-        work = self.progress.begin("control", f"{m.TYPE.name} {m.station}")
+        # a capture or check reads frames and fits: it has more time than a thread turn
+        work = self.progress.begin("control", f"{m.TYPE.name} {m.station}",
+                                   self.progress.bound_s + self.options.command_allowance_s)
         try:
             if isinstance(m, CaptureReference):
                 self._capture(m.station)

@@ -27,7 +27,7 @@ from robot_change.service.config import Config
 from robot_change.service.core import Service
 from robot_change.service.warmup import warm_up
 
-__all__ = ["EXIT_STALLED", "STALL_GRACE_S", "run_service", "stall_bound"]
+__all__ = ["EXIT_STALLED", "STALL_GRACE_S", "run_service", "set_log_level", "stall_bound"]
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,13 @@ STALL_GRACE_S = 1.5
 MIN_STALL_S = 2.0
 #: The stall bound without a systemd watchdog, seconds (half of the unit's WatchdogSec=10).
 DEFAULT_STALL_S = 5.0
+
+
+def set_log_level(level: str) -> None:
+    """Log ``level`` ("debug" ... "error") and worse from robot_change and hw (the command
+    line's -v / -q / --log-level, the configuration's [service] log_level, a reload)."""
+    for name in ("robot_change", "hw"):
+        logging.getLogger(name).setLevel(level.upper())
 
 
 def stall_bound(watchdog_interval: float | None) -> float:
@@ -179,7 +186,7 @@ def _reload(service: Service, load: Callable[[], Config] | None,
             log.error("SIGHUP: the new configuration is refused, the old one stays: %s", exc)
             outcome = f"configuration refused, the old one stays: {exc}"
             return
-        logging.getLogger().setLevel(config.service.log_level.upper())
+        set_log_level(config.service.log_level)
         camera = None
         if config.camera.source != service.config.camera.source and make_camera is not None:
             camera = make_camera(config)

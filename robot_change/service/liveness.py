@@ -43,7 +43,7 @@ class Progress:
         self._clock = clock
         self._lock = threading.Lock()
         self._seen: dict[str, float] = {}
-        self._work: dict[int, tuple[str, str, float]] = {}
+        self._work: dict[int, tuple[str, str, float, float | None]] = {}
         self._ids = itertools.count(1)
 
     def bound(self, part: str) -> float:
@@ -72,13 +72,13 @@ class Progress:
         with self._lock:
             self._seen.pop(part, None)
 
-    def begin(self, part: str, what: str) -> int:
-        """A unit of work of ``part`` starts; it must :meth:`end` within the bound.  Returns
-        its token."""
+    def begin(self, part: str, what: str, bound_s: float | None = None) -> int:
+        """A unit of work of ``part`` starts; it must :meth:`end` within ``bound_s`` (default:
+        the part's bound).  Returns its token."""
         now = self._clock()
         with self._lock:
             token = next(self._ids)
-            self._work[token] = (part, what, now)
+            self._work[token] = (part, what, now, bound_s)
             return token
 
     def end(self, token: int) -> None:
@@ -96,10 +96,11 @@ class Progress:
         (a part with work in flight is judged by its work)."""
         now = self._clock()
         with self._lock:
-            work = [(now - t0 - self._bounds.get(part, self.bound_s),
+            work = [(now - t0 - (bound if bound is not None else
+                                 self._bounds.get(part, self.bound_s)),
                      f"{part}: {what} has not finished after {now - t0:.1f} s")
-                    for part, what, t0 in self._work.values()]
-            busy = {part for part, _what, _t0 in self._work.values()}
+                    for part, what, t0, bound in self._work.values()]
+            busy = {part for part, _what, _t0, _bound in self._work.values()}
             silent = [(now - seen - self._bounds.get(part, self.bound_s),
                        f"{part}: no progress for {now - seen:.1f} s")
                       for part, seen in self._seen.items() if part not in busy]

@@ -44,6 +44,14 @@ CURRENT = ".scene.npz"
 PREVIOUS = ".prev.scene.npz"
 QUARANTINE = "quarantine"
 MAX_STATION = validate.MAX_STATION
+#: Stations a store holds at most unless configured ([store] max_stations), and the ceiling.
+DEFAULT_MAX_STATIONS = 64
+MAX_STATIONS_LIMIT = 10_000
+#: Megabytes a save leaves free on the store's file system at least ([store] min_free_mb).
+DEFAULT_MIN_FREE_MB = 100
+#: What one reference (and its previous version) may take, for the free-space check (a VGA
+#: reference is ~0.4 MB).
+_RESERVE_MB = 4
 
 
 def check_station(station: Any) -> str:
@@ -100,12 +108,20 @@ class ReferenceStore:
 
     ``scene_type`` is the class whose ``save(path)`` / ``load(path)`` (raising
     :class:`SceneFileError`) read and write one reference: :class:`robot_change.change.scene.SceneModel`
-    unless given.
+    unless given.  ``max_stations``: a new station beyond this many is refused (names come from
+    the serial line: noise or a confused base must not fill the disk); ``min_free_mb``: a save
+    is refused when less than this much would be left free on the store's file system.
     """
 
-    def __init__(self, root: str | os.PathLike, scene_type: type | None = None) -> None:
+    def __init__(self, root: str | os.PathLike, scene_type: type | None = None, *,
+                 max_stations: int = DEFAULT_MAX_STATIONS,
+                 min_free_mb: int = DEFAULT_MIN_FREE_MB) -> None:
         self.root = Path(root)
         self.scene_type = scene_type if scene_type is not None else _default_scene_type()
+        self.max_stations = validate.whole("ReferenceStore", "max_stations", max_stations, 1,
+                                           MAX_STATIONS_LIMIT)
+        self.min_free_mb = validate.whole("ReferenceStore", "min_free_mb", min_free_mb, 0,
+                                          10**7)
 
     def __repr__(self) -> str:
         return f"ReferenceStore({str(self.root)!r})"
@@ -136,6 +152,7 @@ class ReferenceStore:
         """
         current = self.path(station)
         try:
+            self._check_room(station, current)
             self.root.mkdir(parents=True, exist_ok=True)
             if current.exists():
                 try:
@@ -153,6 +170,27 @@ class ReferenceStore:
                 "the folder") from exc
         log.info("station %s: reference saved to %s", station, current)
         return current
+
+    def _check_room(self, station: str, current: Path) -> None:
+        """Refuse a new station beyond ``max_stations`` and a save that would leave less than
+        ``min_free_mb`` free (:class:`StoreError`; its text names no path: it goes to the base)."""
+        if not current.exists():
+            held = len(self.stations())
+            if held >= self.max_stations:
+                raise StoreError(
+                    f"station {station!r} refused: the store holds {held} stations, the limit "
+                    f"([store] max_stations); capture an existing station again, or delete "
+                    "stations or raise the limit on the module")
+        folder = next((p for p in (self.root, *self.root.parents) if p.exists()), Path("."))
+        try:
+            free_mb = shutil.disk_usage(folder).free / 1e6
+        except OSError:
+            return  # the write itself will say what is wrong
+        if free_mb < self.min_free_mb + _RESERVE_MB:
+            raise StoreError(
+                f"station {station!r} refused: {free_mb:.0f} MB free on the module's disk, "
+                f"a reference needs {_RESERVE_MB} MB and {self.min_free_mb} MB are kept free "
+                "([store] min_free_mb); free some space on the module")
 
     def delete(self, station: str) -> list[Path]:
         """Remove ``station``'s reference and its previous version; returns the files removed

@@ -134,14 +134,35 @@ APPEARED_COLOUR = (0.90, 0.15, 0.15)
 DISAPPEARED_COLOUR = (0.15, 0.40, 0.95)
 
 
+def _depth_range(depth: np.ndarray) -> tuple[float, float]:
+    """The (1st, 99th) percentile of the readings of (H, W) uint16 mm, in metres: the range
+    the grey scale (and its colour bar) spans."""
+    valid = depth > 0
+    if not valid.any():
+        return 0.0, 1.0
+    low, high = np.percentile(depth[valid].astype(np.float64) / 1000.0, [1, 99])
+    return float(low), float(max(high, low + 1e-3))
+
+
 def _grey(depth: np.ndarray) -> np.ndarray:
     """(H, W) uint16 mm -> (H, W, 3) float grey image, near = bright, no reading = black."""
     metres = depth.astype(np.float64) / 1000.0
-    valid = depth > 0
-    low, high = (np.percentile(metres[valid], [1, 99]) if valid.any() else (0.0, 1.0))
-    shade = 1.0 - 0.75 * np.clip((metres - low) / max(high - low, 1e-6), 0.0, 1.0)
-    picture = np.repeat(np.where(valid, shade, 0.0)[..., None], 3, axis=2)
+    low, high = _depth_range(depth)
+    shade = 1.0 - 0.75 * np.clip((metres - low) / (high - low), 0.0, 1.0)
+    picture = np.repeat(np.where(depth > 0, shade, 0.0)[..., None], 3, axis=2)
     return picture
+
+
+def _depth_bar(figure, axis, depth: np.ndarray) -> None:
+    """A colour bar of the grey scale in metres (near = bright; black: no reading)."""
+    import matplotlib.colors as colors
+    from matplotlib.cm import ScalarMappable
+
+    low, high = _depth_range(depth)
+    scale = colors.LinearSegmentedColormap.from_list("depth", [(1, 1, 1), (0.25, 0.25, 0.25)])
+    bar = figure.colorbar(ScalarMappable(colors.Normalize(low, high), scale), ax=axis,
+                          fraction=0.035, pad=0.01)
+    bar.set_label("depth (m); black: no reading", fontsize=8)
 
 
 def _region_box(axis, region, intrinsics: Intrinsics, colour, label: str) -> None:
@@ -155,7 +176,13 @@ def _region_box(axis, region, intrinsics: Intrinsics, colour, label: str) -> Non
         return
     (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
     axis.plot([u0, u1, u1, u0, u0], [v0, v0, v1, v1, v0], color=colour, linewidth=1.5)
-    axis.text(u0, v0 - 4, label, color="white", fontsize=8, va="bottom",
+    width = intrinsics.width
+    # inside the picture: above the box, or below it at the top edge; right-aligned at the right
+    above = v0 > 0.08 * intrinsics.height
+    right = u0 > 0.6 * width
+    axis.text(min(max(u1, 0.0), width - 2.0) if right else max(u0, 2.0),
+              v0 - 4 if above else min(v1 + 4, intrinsics.height - 2.0), label, color="white",
+              fontsize=8, va="bottom" if above else "top", ha="right" if right else "left",
               bbox=dict(facecolor=colour, edgecolor="none", alpha=0.85, pad=1.5))
 
 
@@ -184,7 +211,10 @@ def draw_change(
     :class:`robot_change.change.results.ChangeSet`.  Returns the PNG's path.
     """
     plt = _pyplot()
-    figure, axes = plt.subplots(1, 2, figsize=(14, 5.6), constrained_layout=True)
+    from matplotlib.lines import Line2D  # (matplotlib is the optional viz extra)
+    from matplotlib.patches import Patch
+
+    figure, axes = plt.subplots(1, 2, figsize=(15, 5.8), constrained_layout=True)
     panels = (
         (axes[0], reference_depth, changes.disappeared_mask, changes.disappeared,
          changes.disappeared_mixture, DISAPPEARED_COLOUR, "reference: what disappeared"),
@@ -201,10 +231,18 @@ def draw_change(
         for number, region in enumerate(regions, 1):
             size = max(region.extent) * 100.0
             _region_box(axis, region, intrinsics, colour,
-                        f"{region.kind[:3]} {number}: {region.n_points} pts, {size:.0f} cm, "
-                        f"z {region.centroid[2]:.2f} m")
+                        f"{region.kind} {number}: {region.n_points} points, {size:.0f} cm, "
+                        f"{region.centroid[2]:.2f} m away")
         k = mixture.n_components if mixture is not None else 0
-        axis.set_title(f"{caption} ({len(regions)} region(s); K = {k})")
+        axis.set_title(f"{caption}: {len(regions)} region(s)\nits mixture: {k} Gaussians, "
+                       f"{len(highlight)} of them change components (bold)", fontsize=10)
+        _depth_bar(figure, axis, depth)
+        legend = [Line2D([], [], color=(1.0, 0.85, 0.2), linewidth=0.8,
+                         label="a Gaussian of the mixture (2-sigma outline)"),
+                  Line2D([], [], color=colour, linewidth=2.0,
+                         label="a change component / the box of a region"),
+                  Patch(color=colour, alpha=0.65, label="its changed pixels")]
+        axis.legend(handles=legend, loc="lower left", fontsize=7, framealpha=0.8)
         axis.set_xlim(0, depth.shape[1] - 1)
         axis.set_ylim(depth.shape[0] - 1, 0)
         axis.set_xticks([])
