@@ -661,8 +661,9 @@ def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
 
     Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
     normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
-    max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6) = J^T W J, b (6,) = J^T W r, the sum of
-    the weights, radius: the root of the median squared depth, m)."""
+    max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6)
+    = J^T W J, b (6,) = J^T W r, the sum of the weights, radius: the root of the median squared
+    depth, m)."""
     e = np.empty(n)
     inv_var = np.empty(n)
     z2 = np.empty(n)
