@@ -19,6 +19,10 @@ a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
 * **degeneracy**: the 6x6 normal matrix, rotations scaled by the cloud's radius to metres, is
   decomposed; directions with little information (a bare wall leaves translations along it
   free) are not moved along and are reported (Zhang, Kaess & Singh 2016);
+* **table-plane starts** (a table top only: a dominant plane of at most 2 m): top-down
+  occupancy grids of the two views on their planes, cross-correlated by FFT over in-plane
+  shifts for a few yaws, give starts for (x, y, yaw) in the plane that ICP from the main
+  estimate cannot reach when moved objects drag it (docs/algorithm.md, step 6b);
 * **fitness**: the fraction of current cells with an inlier correspondence at the end, and the
   RMSE of those.  Low fitness, or an offset beyond the station tolerance, is "not at the
   station", a different answer from "changed" (decided in :mod:`robot_change.change.detect`).
@@ -98,13 +102,14 @@ class RegistrationParams:
     # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
     wide_cut_m: float = 0.2
     # Table-plane starts (0: none): when the dominant plane of the coarsest level holds at
-    # least table_plane_fraction of its cells (a table top; room views: <= 0.63 measured), the
+    # least table_plane_fraction of its cells and spans at most table_max_extent_m (a table
+    # top: 0.63-0.91 of the cells, 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
     # two views are drawn top-down on that plane (table_cell_m cells: +1 above it by more than
     # table_object_m, -1 on it, 0 unseen) and cross-correlated over in-plane shifts (FFT) for
     # yaws about its normal out to table_yaw_deg in table_yaw_step_deg steps; the
-    # table_starts best distinct peaks are run through the coarsest level's ICP and compete
-    # with its own end on the search's score.  A table top's moved objects drag ICP into a
-    # compromise; its outline and the objects that stayed fix (x, y, yaw) in the plane.
+    # table_starts best distinct peaks are run through ICP down to search_level and compete
+    # there with the main estimate on the search's score.  A table top's moved objects drag
+    # ICP into a compromise; its outline and the objects that stayed fix (x, y, yaw).
     table_starts: int = 3
     table_plane_fraction: float = 0.6
     table_max_extent_m: float = 2.0
@@ -1018,14 +1023,23 @@ def _plane_grid(vertex, rot, trans, cell_m, lo_x, lo_y, rows, cols, object_m, be
     return out
 
 
+def _parabola_peak(before: float, after: float, at: float) -> float:
+    """Offset (cells, within +-0.5 for a peak) of the vertex of the parabola through three
+    equally spaced samples with ``at`` in the middle; 0 unless it opens downwards."""
+    den = before - 2.0 * at + after
+    return 0.5 * (before - after) / den if den < 0 else 0.0
+
+
 def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
                   params: RegistrationParams) -> list[np.ndarray]:
     """Up to ``params.table_starts`` (4, 4) starting estimates of ``T_ref_from_cur`` for a
     table top, [] unless each view's dominant plane (:func:`_dominant_plane`, coarsest level)
-    holds ``table_plane_fraction`` of its cells.  Each start puts the current plane on the
-    reference's and moves it in the plane by a yaw about its normal and a shift: the peaks of
-    the cross-correlation (FFT, cyclic with 0.3 m margins) of the two views' top-down grids
-    (:func:`_plane_grid`, finest level), one grid of the current per yaw, the best distinct
+    holds ``table_plane_fraction`` of its cells and its supporters (2-98 %) span no more than
+    ``table_max_extent_m`` in either plane direction (a room's floor is larger).  Each start
+    puts the current plane on the reference's and moves it in the plane by a yaw about its
+    normal and a shift: the peaks of the cross-correlation (FFT, cyclic, with a 0.25 m guard
+    band round the reference's plane) of the two views' top-down grids (:func:`_plane_grid`,
+    finest level, ``table_cell_m`` cells), one grid of the current per yaw, the best distinct
     (apart by > 2.5 table_yaw_step_deg or > 3 cells) of all yaws, best first."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
@@ -1064,11 +1078,8 @@ def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
         for f in np.argpartition(flat, -k)[-k:]:
             r, c = divmod(int(f), cols)
             # sub-cell peak: a parabola through the neighbours along each axis
-            def vertex_offset(a, b, m):
-                den = a - 2.0 * m + b
-                return 0.5 * (a - b) / den if den < 0 else 0.0
-            dr_ = vertex_offset(cc[(r - 1) % rows, c], cc[(r + 1) % rows, c], cc[r, c])
-            dc_ = vertex_offset(cc[r, (c - 1) % cols], cc[r, (c + 1) % cols], cc[r, c])
+            dr_ = _parabola_peak(cc[(r - 1) % rows, c], cc[(r + 1) % rows, c], cc[r, c])
+            dc_ = _parabola_peak(cc[r, (c - 1) % cols], cc[r, (c + 1) % cols], cc[r, c])
             sr = r - rows if r > rows // 2 else r
             sc = c - cols if c > cols // 2 else c
             peaks.append((float(flat[f]), float(yaw), (sr + dr_) * cell, (sc + dc_) * cell))
