@@ -342,3 +342,109 @@ def test_bad_input_is_refused_with_typed_errors(office_pair):
         RegistrationParams(iterations=(1, 2))
     with pytest.raises(InputError, match="RegistrationParams"):
         ChangeParams(registration="yes")
+
+
+# --------------------------------------------------------------------------- table-plane starts
+
+
+def _plane_grid_twin(vertex, rot, trans, cell_m, lo_x, lo_y, rows, cols, object_m, below_m):
+    p = vertex.reshape(-1, 3)
+    p = p[p[:, 2] > 0]
+    q = p @ rot.T + trans
+    q = q[q[:, 2] > -below_m]
+    r = np.floor((q[:, 0] - lo_x) / cell_m).astype(np.int64)
+    c = np.floor((q[:, 1] - lo_y) / cell_m).astype(np.int64)
+    ok = (r >= 0) & (c >= 0) & (r < rows) & (c < cols)
+    out = np.zeros((rows, cols))
+    out[r[ok], c[ok]] = -1.0
+    obj = ok & (q[:, 2] > object_m)
+    out[r[obj], c[obj]] = 1.0
+    return out
+
+
+def _table_scene(T_world_from_cam):
+    """(480, 640) uint16 mm: a 1.0 x 0.8 m table top (z = 0 in the world, centred at the
+    origin) with three boxes on it, seen by a camera at ``T_world_from_cam`` (4, 4); points
+    sampled every 2 mm, splatted into a z-buffer; nothing beyond the table."""
+    g = np.arange(-0.5, 0.5, 0.002)
+    h = np.arange(-0.4, 0.4, 0.002)
+    X, Y = np.meshgrid(g, h)
+    pts = [np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)]
+    for (cx, cy, sx, sy, sz) in ((-0.2, 0.1, 0.12, 0.08, 0.10), (0.15, -0.15, 0.08, 0.08, 0.2),
+                                 (0.25, 0.2, 0.2, 0.1, 0.05)):
+        a = np.arange(-sx / 2, sx / 2, 0.002)
+        b = np.arange(-sy / 2, sy / 2, 0.002)
+        c = np.arange(0, sz, 0.002)
+        A, B = np.meshgrid(a, b)
+        pts.append(np.stack([cx + A.ravel(), cy + B.ravel(), np.full(A.size, sz)], axis=1))
+        for fixed, (u, w) in ((0, (b, c)), (1, (a, c))):
+            U, W = np.meshgrid(u, w)
+            for side in (-1, 1):
+                q = np.empty((U.size, 3))
+                q[:, fixed] = (cx, cy)[fixed] + side * (sx, sy)[fixed] / 2
+                q[:, 1 - fixed] = (cx, cy)[1 - fixed] + U.ravel()
+                q[:, 2] = W.ravel()
+                pts.append(q)
+    p = np.concatenate(pts)
+    T = invert(T_world_from_cam)
+    p = p @ T[:3, :3].T + T[:3, 3]
+    p = p[p[:, 2] > 0.1]
+    u = np.floor(INTR.fx * p[:, 0] / p[:, 2] + INTR.cx + 0.5).astype(np.int64)
+    v = np.floor(INTR.fy * p[:, 1] / p[:, 2] + INTR.cy + 0.5).astype(np.int64)
+    inside = (u >= 0) & (v >= 0) & (u < 640) & (v < 480)
+    out = np.full((480, 640), np.iinfo(np.int64).max)
+    np.minimum.at(out, (v[inside], u[inside]), np.round(p[inside, 2] * 1000).astype(np.int64))
+    out[out == np.iinfo(np.int64).max] = 0
+    return out.astype(np.uint16)
+
+
+def _camera_over_table(x, y, yaw_deg):
+    """(4, 4) world-from-camera: 0.6 m above the table, 0.6 m back from its centre, looking
+    down at 45 degrees, turned by ``yaw_deg`` about the table's normal, moved by (x, y) m."""
+    down = rpy_deg_to_rotation(-135.0, 0.0, 0.0)  # optical z forward-down, y down the view
+    T = np.eye(4)
+    T[:3, :3] = rpy_deg_to_rotation(0.0, 0.0, yaw_deg) @ down
+    T[:3, 3] = (x, y - 0.6, 0.6)
+    return T
+
+
+def test_plane_grid_matches_numpy(office_pair):
+    ref, _, _ = office_pair
+    lv = reg_mod._levels(ref, INTR, RegistrationParams())[2]
+    n, d, frac = reg_mod._dominant_plane(reg_mod._levels(ref, INTR, RegistrationParams())[0])
+    to_plane = invert(reg_mod._plane_frame(n, d))
+    args = (0.05, -3.0, -1.0, 96, 120, 0.015, 0.03)
+    got = reg_mod._plane_grid(lv.vertex, to_plane[:3, :3].copy(), to_plane[:3, 3].copy(), *args)
+    want = _plane_grid_twin(lv.vertex, to_plane[:3, :3], to_plane[:3, 3], *args)
+    np.testing.assert_array_equal(got, want)
+    assert (got == 1).sum() > 100 and (got == -1).sum() > 100  # floor and things on it
+    assert abs(n @ np.array([0.0, -1.0, 0.0])) > 0.9 and 0.3 < frac < 0.8  # the floor
+
+
+def test_table_top_starts_put_one_start_near_the_truth():
+    W_ref = _camera_over_table(0.0, 0.0, 0.0)
+    W_cur = _camera_over_table(0.06, -0.05, 4.0)
+    ref, cur = _table_scene(W_ref), _table_scene(W_cur)
+    truth = invert(W_ref) @ W_cur  # T_ref_from_cur
+    params = RegistrationParams()
+    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
+    n, d, frac = reg_mod._dominant_plane(rl[0])
+    assert frac > params.table_plane_fraction and d == pytest.approx(0.6, abs=0.01)
+    starts = reg_mod._table_starts(rl, cl, params)
+    assert 1 <= len(starts) <= params.table_starts
+    errs = [(np.linalg.norm(e[:3, 3]), rotation_angle_deg(e[:3, :3]))
+            for e in (invert(truth) @ s for s in starts)]
+    assert any(e_t < 0.03 and e_r < 2.0 for e_t, e_r in errs), errs
+    got = register_depth(ref, cur, INTR)
+    err = invert(truth) @ got.T_ref_from_cur
+    assert np.linalg.norm(err[:3, 3]) < 0.01 and rotation_angle_deg(err[:3, :3]) < 0.5
+
+
+def test_room_views_get_no_table_starts(office_pair):
+    """A room's floor is larger than a table top (table_max_extent_m): no starts."""
+    ref, cur, _ = office_pair
+    params = RegistrationParams()
+    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
+    assert reg_mod._table_starts(rl, cl, params) == []
+    assert reg_mod._table_starts(rl, cl, params.replace(table_plane_fraction=0.0,
+                                                        table_max_extent_m=100.0)) != []

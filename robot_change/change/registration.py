@@ -19,6 +19,10 @@ a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
 * **degeneracy**: the 6x6 normal matrix, rotations scaled by the cloud's radius to metres, is
   decomposed; directions with little information (a bare wall leaves translations along it
   free) are not moved along and are reported (Zhang, Kaess & Singh 2016);
+* **table-plane starts** (a table top only: a dominant plane of at most 2 m): top-down
+  occupancy grids of the two views on their planes, cross-correlated by FFT over in-plane
+  shifts for a few yaws, give starts for (x, y, yaw) in the plane that ICP from the main
+  estimate cannot reach when moved objects drag it (docs/algorithm.md, step 6b);
 * **fitness**: the fraction of current cells with an inlier correspondence at the end, and the
   RMSE of those.  Low fitness, or an offset beyond the station tolerance, is "not at the
   station", a different answer from "changed" (decided in :mod:`robot_change.change.detect`).
@@ -97,6 +101,22 @@ class RegistrationParams:
     # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
     # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
     wide_cut_m: float = 0.2
+    # Table-plane starts (0: none): when the dominant plane of the coarsest level holds at
+    # least table_plane_fraction of its cells and spans at most table_max_extent_m (a table
+    # top: 0.63-0.91 of the cells, 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
+    # two views are drawn top-down on that plane (table_cell_m cells: +1 above it by more than
+    # table_object_m, -1 on it, 0 unseen) and cross-correlated over in-plane shifts (FFT) for
+    # yaws about its normal out to table_yaw_deg in table_yaw_step_deg steps; the
+    # table_starts best distinct peaks are run through ICP down to search_level and compete
+    # there with the main estimate on the search's score.  A table top's moved objects drag
+    # ICP into a compromise; its outline and the objects that stayed fix (x, y, yaw).
+    table_starts: int = 3
+    table_plane_fraction: float = 0.6
+    table_max_extent_m: float = 2.0
+    table_cell_m: float = 0.02
+    table_object_m: float = 0.015
+    table_yaw_deg: float = 10.0
+    table_yaw_step_deg: float = 2.0
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -149,6 +169,13 @@ class RegistrationParams:
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
         _int("search_screw_steps", self.search_screw_steps, 0, 20)
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
+        _int("table_starts", self.table_starts, 0, 20)
+        _num("table_plane_fraction", self.table_plane_fraction, 0.0, 1.0)
+        _num("table_max_extent_m", self.table_max_extent_m, 0.0, 100.0, unit=" metres")
+        _num("table_cell_m", self.table_cell_m, 0.002, 0.2, unit=" metres")
+        _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")
+        _num("table_yaw_deg", self.table_yaw_deg, 0.0, 45.0)
+        _num("table_yaw_step_deg", self.table_yaw_step_deg, 0.0, 45.0, low_open=True)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -765,6 +792,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     converged = False
     lam_n = np.zeros(6)
     vec = np.eye(6)
+    tracks: list[np.ndarray] = []  # estimates from the table-plane starts, to search_level
     for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
         pairs = _Pairs(cl)
         start = T
@@ -776,12 +804,25 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             scores = _score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
             if scores[1] > scores[0]:  # the narrow cut wins ties
                 T, n_it, converged, lam_n, vec, A = wide
+        if li == 0 and params.table_starts > 0:
+            tracks = [st for st in _table_starts(ref_levels, cur_levels, params)]
+        if tracks and li <= params.search_level:
+            ends = [_icp_level(rl, cl, st, params, li, min_cos, pairs) for st in tracks]
+            iterations += sum(e[1] for e in ends)
+            tracks = [e[0] for e in ends]
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
             moved = _weak_search(rl, cl, T, A, params, min_cos, pairs)
             if moved is not None:
                 T, n_it, converged, lam_n, vec, _ = _icp_level(rl, cl, moved, params, li,
                                                                min_cos, pairs)
                 iterations += n_it
+        if tracks and li == params.search_level:
+            # the table-plane tracks against the main one, on the search's score
+            scores = _score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs)
+            best = int(np.argmax(scores))  # the first of equal scores: the main track
+            if best > 0:
+                T, n_it, converged, lam_n, vec, _ = ends[best - 1]
+            tracks = []
     fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
                                                min_cos, pairs)
     through = _contradiction(ref_levels[-1], cur_levels[-1], T, params)
@@ -902,6 +943,162 @@ def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
                 poses.append(inc @ T)
     best = int(np.argmax(_score_poses(rl, cl, poses, params, min_cos, pairs)))
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
+
+
+# --------------------------------------------------------------------------- table-plane starts
+
+
+def _dominant_plane(level: _Level, max_dist_m: float = 0.01, min_cos: float = 0.95,
+                    n_seeds: int = 64) -> tuple[np.ndarray, float, float]:
+    """The plane holding most cells of ``level``: each of ``n_seeds`` cells with a normal,
+    evenly spaced in image order, proposes the plane through it along its normal; a cell
+    supports a plane within ``max_dist_m`` metres of it with a normal within acos(min_cos).
+    The winner is refitted to its supporters (least squares).  Returns (n (3,) unit normal,
+    d m, fraction of the cells with a normal supporting it), n . p + d = 0 on the plane and
+    d >= 0 (the camera on the positive side); fraction 0 when there are too few cells."""
+    v = level.vertex.reshape(-1, 3)
+    nm = level.normal.reshape(-1, 3)
+    ok = (nm[:, 0] != 0) | (nm[:, 1] != 0) | (nm[:, 2] != 0)
+    p, q = v[ok], nm[ok]
+    if len(p) < 3 * n_seeds:
+        return np.array([0.0, 0.0, 1.0]), 0.0, 0.0
+    seeds = np.linspace(0, len(p) - 1, n_seeds).astype(np.int64)
+    sn = q[seeds]                                          # (S, 3)
+    sd = -np.einsum("ij,ij->i", sn, p[seeds])              # (S,)
+    support = (np.abs(p @ sn.T + sd) < max_dist_m) & (np.abs(q @ sn.T) > min_cos)  # (N, S)
+    counts = support.sum(axis=0)
+    best = int(np.argmax(counts))
+    inl = p[support[:, best]]
+    c = inl.mean(axis=0)
+    _u, _s, vt = np.linalg.svd(inl - c, full_matrices=False)
+    n = vt[2]
+    d = -float(n @ c)
+    if d < 0:
+        n, d = -n, -d
+    return n, d, float(counts[best]) / len(p)
+
+
+def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
+    """(4, 4) camera-from-plane transform of the plane n . p + d = 0 (``n`` (3,) unit, ``d``
+    m >= 0): origin the camera's foot on the plane, z along ``n`` (towards the camera), x the
+    camera's x projected onto the plane (n must not be along the camera's x)."""
+    ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    ex /= np.linalg.norm(ex)
+    F = np.eye(4)
+    F[:3, 0] = ex
+    F[:3, 1] = np.cross(n, ex)
+    F[:3, 2] = n
+    F[:3, 3] = -d * n
+    return F
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_grid(vertex, rot, trans, cell_m, lo_x, lo_y, rows, cols, object_m, below_m):
+    """Top-down occupancy of a vertex map ``vertex`` (h, w, 3) m on a plane: each cell with a
+    reading (z > 0) is moved to plane coordinates q = rot @ p + trans (``rot`` (3, 3),
+    ``trans`` (3,): plane-from-camera, q_z the height above the plane, m) and binned by
+    (q_x - lo_x, q_y - lo_y) / cell_m into a (rows, cols) grid.  A grid cell is +1 when a
+    reading in it stands more than ``object_m`` above the plane, else -1 when one lies within
+    (-below_m, object_m] of it, else 0 (nothing seen there).  Returns (rows, cols) float64."""
+    out = np.zeros((rows, cols))
+    h, w = vertex.shape[0], vertex.shape[1]
+    for i in range(h):
+        for j in range(w):
+            z = vertex[i, j, 2]
+            if z <= 0.0:
+                continue
+            x, y = vertex[i, j, 0], vertex[i, j, 1]
+            qx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            qy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            qz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if qz <= -below_m:
+                continue
+            r = int(math.floor((qx - lo_x) / cell_m))
+            c = int(math.floor((qy - lo_y) / cell_m))
+            if r < 0 or c < 0 or r >= rows or c >= cols:
+                continue
+            if qz > object_m:
+                out[r, c] = 1.0
+            elif out[r, c] == 0.0:
+                out[r, c] = -1.0
+    return out
+
+
+def _parabola_peak(before: float, after: float, at: float) -> float:
+    """Offset (cells, within +-0.5 for a peak) of the vertex of the parabola through three
+    equally spaced samples with ``at`` in the middle; 0 unless it opens downwards."""
+    den = before - 2.0 * at + after
+    return 0.5 * (before - after) / den if den < 0 else 0.0
+
+
+def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
+                  params: RegistrationParams) -> list[np.ndarray]:
+    """Up to ``params.table_starts`` (4, 4) starting estimates of ``T_ref_from_cur`` for a
+    table top, [] unless each view's dominant plane (:func:`_dominant_plane`, coarsest level)
+    holds ``table_plane_fraction`` of its cells and its supporters (2-98 %) span no more than
+    ``table_max_extent_m`` in either plane direction (a room's floor is larger).  Each start
+    puts the current plane on the reference's and moves it in the plane by a yaw about its
+    normal and a shift: the peaks of the cross-correlation (FFT, cyclic, with a 0.25 m guard
+    band round the reference's plane) of the two views' top-down grids (:func:`_plane_grid`,
+    finest level, ``table_cell_m`` cells), one grid of the current per yaw, the best distinct
+    (apart by > 2.5 table_yaw_step_deg or > 3 cells) of all yaws, best first."""
+    planes = []
+    for level in (ref_levels[0], cur_levels[0]):
+        n, d, frac = _dominant_plane(level)
+        if frac < params.table_plane_fraction:
+            return []
+        F = _plane_frame(n, d)
+        v = level.vertex.reshape(-1, 3)
+        q = (v[v[:, 2] > 0] - F[:3, 3]) @ F[:3, :3]
+        on = q[np.abs(q[:, 2]) < 0.01, :2]
+        lo, hi = np.percentile(on, 2, axis=0), np.percentile(on, 98, axis=0)
+        if float((hi - lo).max()) > params.table_max_extent_m:
+            return []  # a floor, not a table top
+        planes.append((F, lo, hi))
+    (Fr, lo, hi), (Fc, _lo, _hi) = planes
+    rl, cl = ref_levels[-1], cur_levels[-1]
+    cell = params.table_cell_m
+    to_r = invert(Fr)
+    margin = 0.25  # the cyclic correlation's guard band: more than any shift looked for
+    lo = lo - margin
+    rows, cols = (8 * int(math.ceil(e / cell / 8)) for e in hi + margin - lo)
+    args = (cell, float(lo[0]), float(lo[1]), rows, cols, params.table_object_m, 0.03)
+    G = np.fft.rfft2(_plane_grid(rl.vertex, to_r[:3, :3].copy(), to_r[:3, 3].copy(), *args))
+    to_c = invert(Fc)
+    n_yaw = int(math.floor(params.table_yaw_deg / params.table_yaw_step_deg + 1e-9))
+    yaws = np.radians(params.table_yaw_step_deg * np.arange(-n_yaw, n_yaw + 1))
+    k = params.table_starts
+    peaks = []  # (score, yaw, shift_x, shift_y)
+    for yaw in yaws:
+        Rz = np.eye(4)
+        Rz[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+        M = Rz @ to_c
+        cc = np.fft.irfft2(G * np.conj(np.fft.rfft2(_plane_grid(
+            cl.vertex, M[:3, :3].copy(), M[:3, 3].copy(), *args))), s=(rows, cols))
+        flat = cc.ravel()
+        for f in np.argpartition(flat, -k)[-k:]:
+            r, c = divmod(int(f), cols)
+            # sub-cell peak: a parabola through the neighbours along each axis
+            dr_ = _parabola_peak(cc[(r - 1) % rows, c], cc[(r + 1) % rows, c], cc[r, c])
+            dc_ = _parabola_peak(cc[r, (c - 1) % cols], cc[r, (c + 1) % cols], cc[r, c])
+            sr = r - rows if r > rows // 2 else r
+            sc = c - cols if c > cols // 2 else c
+            peaks.append((float(flat[f]), float(yaw), (sr + dr_) * cell, (sc + dc_) * cell))
+    peaks.sort(key=lambda t: -t[0])
+    chosen: list[tuple[float, float, float, float]] = []
+    for pk in peaks:
+        if all(abs(pk[1] - o[1]) > math.radians(2.5 * params.table_yaw_step_deg)
+               or math.hypot(pk[2] - o[2], pk[3] - o[3]) > 3 * cell for o in chosen):
+            chosen.append(pk)
+            if len(chosen) == k:
+                break
+    out = []
+    for _score, yaw, sx, sy in chosen:
+        M = np.eye(4)
+        M[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+        M[0, 3], M[1, 3] = sx, sy
+        out.append(Fr @ M @ to_c)
+    return out
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
