@@ -448,3 +448,16 @@ def test_room_views_get_no_table_starts(office_pair):
     assert reg_mod._table_starts(rl, cl, params) == []
     assert reg_mod._table_starts(rl, cl, params.replace(table_plane_fraction=0.0,
                                                         table_max_extent_m=100.0)) != []
+
+
+def test_the_plane_frame_is_a_rotation_for_any_plane_normal():
+    """A plane facing the camera's x axis (a camera rolled by 90 degrees over a table) too."""
+    from robot_change.change.registration import _plane_frame
+
+    for n in ([0.0, -0.8, -0.6], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]):
+        n = np.array(n) / np.linalg.norm(n)
+        F = _plane_frame(n, 1.2)
+        R = F[:3, :3]
+        assert np.all(np.isfinite(F))
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R[:, 2], n) and np.isclose(n @ F[:3, 3] + 1.2, 0.0)

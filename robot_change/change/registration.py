@@ -981,8 +981,10 @@ def _dominant_plane(level: _Level, max_dist_m: float = 0.01, min_cos: float = 0.
 def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
     """(4, 4) camera-from-plane transform of the plane n . p + d = 0 (``n`` (3,) unit, ``d``
     m >= 0): origin the camera's foot on the plane, z along ``n`` (towards the camera), x the
-    camera's x projected onto the plane (n must not be along the camera's x)."""
+    camera's x projected onto the plane (its y when ``n`` is along x)."""
     ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(ex) < 1e-6:  # a plane facing the camera's x: use its y instead
+        ex = np.array([0.0, 1.0, 0.0]) - n[1] * n
     ex /= np.linalg.norm(ex)
     F = np.eye(4)
     F[:3, 0] = ex
