@@ -117,6 +117,9 @@ class RegistrationParams:
     table_object_m: float = 0.015
     table_yaw_deg: float = 10.0
     table_yaw_step_deg: float = 2.0
+    # ... and a start replaces the main estimate only when its score is higher by this share
+    # of the main estimate's.
+    table_start_margin: float = 0.1
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -176,6 +179,7 @@ class RegistrationParams:
         _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")
         _num("table_yaw_deg", self.table_yaw_deg, 0.0, 45.0)
         _num("table_yaw_step_deg", self.table_yaw_step_deg, 0.0, 45.0, low_open=True)
+        _num("table_start_margin", self.table_start_margin, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -819,6 +823,9 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         if tracks and li == params.search_level:
             # the table-plane tracks against the main one, on the search's score
             scores = _score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs)
+            # a start must beat the main track clearly: where little stayed put (most objects
+            # moved) a wrong start can score a little better than the right main estimate
+            scores[1:] -= params.table_start_margin * abs(scores[0])
             best = int(np.argmax(scores))  # the first of equal scores: the main track
             if best > 0:
                 T, n_it, converged, lam_n, vec, _ = ends[best - 1]
