@@ -636,3 +636,29 @@ def test_coalesced_answers_replace_the_one_still_waiting():
     wire.run(0.6)
     (status,) = received(wire.base_events, p.Status)
     assert status.frame_index == 49  # the newest content
+
+
+def test_the_module_acts_on_no_command_from_a_base_that_sent_no_hello():
+    module = Link(p.Role.MODULE, clock=Clock())
+    module.outgoing()
+    module.receive(p.encode(p.Check("kitchen"), 7))
+    (nak,) = frames(module.outgoing())
+    assert nak.message.TYPE == p.MsgType.NAK and nak.seq == 7
+    assert nak.message.reason == p.NakReason.BAD_VERSION  # no version agreed: HELLO first
+    assert not received(module.events(), p.Check)
+    module.receive(p.encode(p.Hello(p.Role.BASE, 5), 1))
+    module.receive(p.encode(p.Check("kitchen"), 7))  # the same seq, now accepted
+    assert received(module.events(), p.Check) == [p.Check("kitchen")]
+
+
+def test_ack_holdoff_counts_from_the_burst_that_answered():
+    wire = Wire().connect()
+    copy = p.encode(p.Pause(p.PauseCause.CHANGE_CHECK), 40, p.FLAG_URGENT, version=p.VERSION)
+    wire.base.receive(copy)
+    assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES
+    wire.clock.t += wire.base.config.ack_holdoff * 0.9
+    wire.base.receive(copy)
+    assert frames(wire.base.outgoing()) == []  # within the holdoff of the burst
+    wire.clock.t += wire.base.config.ack_holdoff * 0.2
+    wire.base.receive(copy)
+    assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES

@@ -180,6 +180,7 @@ class LinkStats:
     carried: int = 0  # carried messages joined (each once)
     carried_bad: int = 0  # joined bodies that did not decode (a false CRC match): started again
     assemblies_dropped: int = 0
+    before_hello: int = 0  # sequenced messages refused because the peer had sent no HELLO
 
 
 @dataclass
@@ -428,6 +429,12 @@ class Link:
         if seq in self._seen:
             self._ack(frame, now)
             self.stats.duplicates += 1
+            return
+        if self.role == Role.MODULE and self.peer is None and not isinstance(message, Hello):
+            # docs/protocol.md 7.5: no command is acted on before the base's HELLO (no version
+            # agreed, its duplicate memory not cleared): refused, not remembered
+            self._nak(seq, NakReason.BAD_VERSION, message.TYPE)
+            self.stats.before_hello += 1
             return
         if self.admit is not None and not isinstance(message, Hello):
             refusal = self.admit(message)
@@ -690,10 +697,10 @@ class LinkRunner:
         self._lock = threading.Lock()
         self._port_up = True
 
-    def send(self, message: Message) -> int:
+    def send(self, message: Message, *, coalesce: Any = None) -> int:
         """Thread-safe :meth:`Link.send`."""
         with self._lock:
-            return self.link.send(message)
+            return self.link.send(message, coalesce=coalesce)
 
     def set_heartbeat(self, message: Message) -> None:
         """Thread-safe :meth:`Link.set_heartbeat`."""
