@@ -624,9 +624,9 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
                           "too); exit 1 when one fails")
     base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
-    base_sim.add_argument("--protocol", type=int, choices=(1, 2), default=2,
+    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3), default=3,
                           help="the highest protocol version the simulated base speaks "
-                          "(1: an older base firmware; default 2)")
+                          "(1, 2: an older base firmware, whole frames; default 3: PARTs)")
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)
