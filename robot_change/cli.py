@@ -494,11 +494,17 @@ def cmd_base_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_link_bench(args: argparse.Namespace) -> int:
-    """PAUSE round trips over a pty pair through a noisy, baud-paced relay."""
+    """PAUSE round trips, reports, STATUS or a flood over a pty pair through a noisy relay."""
     from robot_change.tools.linkbench import run_link_bench
 
-    result = run_link_bench(args.corrupt, args.count, args.baud, args.json, seed=args.seed)
-    return 0 if result["delivered"] == result["sent"] else 1
+    result = run_link_bench(args.corrupt, args.count, args.baud, args.json, seed=args.seed,
+                            mode=args.mode, noise=args.noise, proto=args.proto,
+                            regions=args.regions)
+    ok = {"pause": result.get("delivered"), "report": result.get("reports_complete"),
+          "status": result.get("answered")}.get(args.mode)
+    if args.mode == "flood":
+        return 0 if result["answers_dropped"] == 0 else 1
+    return 0 if ok == result["sent"] else 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -663,15 +669,28 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
                           "too); exit 1 when one fails")
     base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
-    base_sim.add_argument("--protocol", type=int, choices=(1, 2), default=2,
+    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3), default=3,
                           help="the highest protocol version the simulated base speaks "
-                          "(1: an older base firmware; default 2)")
+                          "(1, 2: an older base firmware, whole frames; default 3: PARTs)")
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)
 
-    link_bench = commands.add_parser("link-bench", help="PAUSE round trips over a pty pair "
-                                     "through a noisy, baud-paced relay")
+    link_bench = commands.add_parser("link-bench", help="PAUSE round trips, change reports, "
+                                     "STATUS or a flood over a pty pair through a noisy, "
+                                     "baud-paced relay")
+    link_bench.add_argument("--mode", choices=("pause", "report", "status", "flood"),
+                            default="pause", help="what to measure (default pause): report = "
+                            "PAUSE + CHECK_RESULT + CHANGE_REPORT then RESUME; flood = --count "
+                            "STATUS_QUERYs at once")
+    link_bench.add_argument("--noise", choices=("mixed", "flip"), default="mixed",
+                            help="mixed: bit flips, drops and insertions in equal shares "
+                            "(default); flip: bit flips only")
+    link_bench.add_argument("--proto", type=int, choices=(1, 2, 3), default=3,
+                            help="highest protocol version both ends offer (2: whole frames, "
+                            "as before version 3; default 3)")
+    link_bench.add_argument("--regions", type=int, default=3,
+                            help="regions per change report in --mode report (default 3)")
     link_bench.add_argument("--corrupt", type=float, default=0.1,
                             help="probability that a byte is corrupted (default 0.1)")
     link_bench.add_argument("--count", type=_count, default=200, help="round trips (default 200)")

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from hw.serial_port import FdPort
+from hw.serial_port import FdPort, open_port
 from robot_change.errors import InputError
 from robot_change.link import protocol as p
 from robot_change.link.session import Link, LinkRunner, Received
-from robot_change.tools.basesim import parse_command, run_base_sim
+from robot_change.tools.basesim import BaseSim, parse_command, run_base_sim
 
 
 class FakeModule:
@@ -228,3 +228,27 @@ def test_expect_after_a_programmatic_command_ignores_what_came_before_it():
     assert sim.expect("HEARTBEAT", {"paused": "0"}, 0.0) is None
     sim._record("HEARTBEAT", p.Heartbeat(p.ModuleState.IDLE, paused=False))
     assert sim.expect("HEARTBEAT", {"paused": "0"}, 0.0) is sim.log[-1]
+
+
+def test_the_base_may_not_move_before_the_module_was_heard(pty_line):
+    master, path = pty_line
+    port = open_port(path, timeout=0.01)
+    try:
+        out = io.StringIO()
+        sim = BaseSim(port, out=out)
+        sim.pump(0.8)  # nobody on the other end
+        assert sim.paused and "may move" not in out.getvalue()
+        # a module frame that is not a HEARTBEAT with paused = 0 is not enough either (7.6)
+        os.write(master, p.encode(p.Hello(p.Role.MODULE, 3), 1))
+        sim.pump(0.2)
+        assert sim.paused and "may move" not in out.getvalue()
+        os.write(master, p.encode(p.Heartbeat(p.ModuleState.IDLE), version=1))
+        sim.pump(0.1)
+        assert not sim.paused and "may move" in out.getvalue()
+    finally:
+        port.close()
+
+
+def test_loop_port_is_refused_with_what_to_give_instead():
+    with pytest.raises(InputError, match="loop://.*own frames"):
+        run_base_sim("loop://")

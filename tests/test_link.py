@@ -42,10 +42,11 @@ def frames(data: bytes) -> list[p.Frame]:
 class Wire:
     """Two links joined by an in-memory line; ``noise`` corrupts each byte with that probability."""
 
-    def __init__(self, noise: float = 0.0, seed: int = 1) -> None:
+    def __init__(self, noise: float = 0.0, seed: int = 1, proto_max: int = p.VERSION) -> None:
+        """``proto_max``: what the base offers (2: the module sends whole frames, 3: PARTs)."""
         self.clock = Clock()
         self.module = Link(p.Role.MODULE, clock=self.clock, boot_id=0xAAAA)
-        self.base = Link(p.Role.BASE, clock=self.clock, boot_id=0xBBBB)
+        self.base = Link(p.Role.BASE, clock=self.clock, boot_id=0xBBBB, proto_max=proto_max)
         self.noise = noise
         self.rng = random.Random(seed)
         self.cut = False  # True: the base hears nothing and says nothing
@@ -98,8 +99,8 @@ def test_hello_exchange_brings_both_ends_up():
     wire.step()
     assert wire.module.state == wire.base.state == LinkState.UP
     (hello,) = received(wire.base_events, p.Hello)
-    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, 2)
-    assert wire.module.version == wire.base.version == 2
+    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, p.VERSION)
+    assert wire.module.version == wire.base.version == p.VERSION
     assert wire.module.peer.boot_id == 0xBBBB
     assert any(isinstance(e, StateChanged) and e.new == LinkState.UP for e in wire.module_events)
 
@@ -144,7 +145,7 @@ def test_message_is_delivered_once_and_acked():
 
 
 def test_five_unanswered_tries_100ms_apart_then_faulty():
-    wire = Wire().connect()
+    wire = Wire(proto_max=2).connect()  # whole frames (version 3 carries them in PARTs)
     wire.cut = True
     seq = wire.module.send(p.Clear("kitchen"))
     tries = []
@@ -162,7 +163,7 @@ def test_five_unanswered_tries_100ms_apart_then_faulty():
 
 
 def test_retransmissions_carry_the_retry_flag_and_recovery_goes_back_up():
-    wire = Wire().connect()
+    wire = Wire(proto_max=2).connect()  # whole frames (version 3 carries them in PARTs)
     wire.cut = True
     wire.module.send(p.Clear("kitchen"))
     flags = []
@@ -193,7 +194,7 @@ def test_peer_silence_makes_the_link_faulty():
 
 
 def test_window_limits_messages_in_flight():
-    wire = Wire().connect()
+    wire = Wire(proto_max=2).connect()  # whole frames (version 3 carries them in PARTs)
     wire.cut = True
     for i in range(10):
         wire.module.send(p.Clear(f"s{i}"))
@@ -219,7 +220,7 @@ def test_queue_is_bounded():
 
 
 def test_duplicates_are_acked_again_but_delivered_once():
-    wire = Wire().connect()
+    wire = Wire(proto_max=2).connect()  # whole frames (version 3 carries them in PARTs)
     wire.module.send(p.Clear("kitchen"))
     data = wire.module.outgoing()
     for _ in range(3):
@@ -276,7 +277,7 @@ def test_urgent_messages_skip_the_window():
     (raw_frame(1, p.MsgType.CHECK, 33, payload=b"\x03../"), p.NakReason.BAD_PAYLOAD),
     (raw_frame(1, p.MsgType.SET_PARAM, 33, payload=b"\x01" + (99).to_bytes(4, "little")), p.NakReason.OUT_OF_RANGE),
     (raw_frame(1, p.MsgType.GET_PARAM, 33, payload=b"\xee"), p.NakReason.UNKNOWN_PARAM),
-    (raw_frame(3, p.MsgType.CHECK, 33, payload=b"\x01k"), p.NakReason.BAD_VERSION),
+    (raw_frame(p.VERSION + 1, p.MsgType.CHECK, 33, payload=b"\x01k"), p.NakReason.BAD_VERSION),
     (p.encode(p.Pause(p.PauseCause.CHANGE_CHECK), 33), p.NakReason.WRONG_DIRECTION),
     (p.encode(p.Hello(p.Role.MODULE, 5), 33), p.NakReason.WRONG_DIRECTION),
 ])
@@ -318,9 +319,10 @@ def test_a_nak_fails_the_message_without_faulting_the_link():
 
 def test_incompatible_versions_are_reported():
     module = Link(p.Role.MODULE, clock=Clock())
-    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", proto_min=3, proto_max=4), 1))
+    low, high = p.VERSION + 1, p.VERSION + 2
+    module.receive(p.encode(p.Hello(p.Role.BASE, 9, "fw", proto_min=low, proto_max=high), 1))
     (change,) = [e for e in module.events() if isinstance(e, StateChanged)]
-    assert change.new == LinkState.INCOMPATIBLE and "3..4" in change.why
+    assert change.new == LinkState.INCOMPATIBLE and f"{low}..{high}" in change.why
 
 
 @pytest.mark.parametrize("header_version", [1, 2])
@@ -511,3 +513,152 @@ def test_every_port_the_module_is_handed_is_a_byte_port(tmp_path):
     finally:
         os.close(master)
         os.close(slave)
+
+
+# -- version 3: messages carried in PARTs (docs/protocol.md 7.11) -------------------------------
+
+
+REGIONS = tuple(p.Region(p.RegionKind.APPEARED, (100 * i, 20, 3), (400, 300, 250), 700)
+                for i in range(p.REGIONS_PER_PART))
+
+
+def test_version_3_carries_module_messages_in_short_parts_and_acks_them_with_a_burst():
+    wire = Wire().connect()
+    report = p.ChangeReport(12, 0, 1, "kitchen", REGIONS)
+    seq = wire.module.send(report)
+    wire.module.poll()
+    out = frames(wire.module.outgoing())
+    assert out and all(f.message.TYPE == p.MsgType.PART and f.seq == seq for f in out)
+    assert max(len(p.encode(f.message, f.seq, version=3)) for f in out) <= 19
+    wire.base.receive(b"".join(p.encode(f.message, f.seq, version=3) for f in out))
+    wire.run(0.5)
+    assert received(wire.base_events, p.ChangeReport) == [report]  # once
+    (done,) = [e for e in wire.module_events if isinstance(e, Delivered)]
+    assert done.seq == seq and wire.module.in_flight == 0
+    assert wire.base.stats.carried == 1
+
+
+def test_parts_join_into_exactly_the_body_the_message_would_have_had():
+    body = p.encode_body(p.ChangeReport(3, 0, 1, "hall", REGIONS[:4]), 9, 0, 3)
+    parts = p.split_body(body)
+    assert len(parts) == -(-len(body) // p.PART_DATA) and all(x.count == len(parts) for x in parts)
+    assert b"".join(x.data for x in parts) == body
+
+
+def test_the_base_asks_for_the_missing_parts_and_only_those_are_sent_again():
+    wire = Wire().connect()
+    seq = wire.module.send(p.Fault(p.FaultCode.CAMERA_LOST, "x" * 60))
+    sent: list[p.Frame] = []
+    for _ in range(10):  # 50 ms of the carousel, nothing reaches the base
+        wire.clock.t += 0.005
+        wire.module.poll()
+        sent += frames(wire.module.outgoing())
+    count = sent[0].message.count
+    assert {f.message.index for f in sent} == set(range(count))
+    keep = [f for f in sent if f.message.index not in (1, 4)]
+    wire.base.receive(b"".join(p.encode(f.message, f.seq, version=3) for f in keep))
+    wire.base.outgoing()  # its first NEED, sent at the first PART (at most one per 50 ms)
+    wire.clock.t += wire.base.config.need_interval + 0.001
+    wire.base.receive(p.encode(keep[0].message, keep[0].seq, version=3))  # a repeat
+    (need,) = [f for f in frames(wire.base.outgoing()) if f.message.TYPE == p.MsgType.NEED]
+    assert need.seq == seq and need.message.missing == (1, 4)
+    wire.module.receive(p.encode(need.message, need.seq, version=3))
+    again = []
+    for _ in range(10):
+        wire.clock.t += 0.005
+        wire.module.poll()
+        again += frames(wire.module.outgoing())
+    assert again and {f.message.index for f in again} == {1, 4}
+
+
+def test_a_parted_message_is_retried_until_the_carry_timeout_then_the_link_is_faulty():
+    wire = Wire().connect()
+    wire.cut = True
+    seq = wire.module.send(p.Clear("kitchen"))
+    wire.run(wire.module.config.carry_timeout - 0.05)
+    assert not [e for e in wire.module_events if isinstance(e, SendFailed)]
+    assert wire.module.stats.parts_sent > 100  # the carousel kept going
+    wire.run(0.1)
+    (failed,) = [e for e in wire.module_events if isinstance(e, SendFailed)]
+    assert failed.seq == seq and "PARTs" in failed.reason
+    assert wire.module.state == LinkState.FAULTY
+
+
+def test_a_new_boot_of_the_module_drops_half_joined_messages():
+    wire = Wire().connect()
+    wire.module.send(p.ChangeReport(1, 0, 1, "kitchen", REGIONS))
+    wire.module.poll()
+    first = frames(wire.module.outgoing())[:3]
+    wire.base.receive(b"".join(p.encode(f.message, f.seq, version=3) for f in first))
+    assert wire.base._assemblies
+    wire.module = Link(p.Role.MODULE, clock=wire.clock, boot_id=0xCCCC)  # restarted
+    wire.step()
+    assert not wire.base._assemblies
+
+
+@pytest.mark.parametrize("noise", [0.01, 0.10])
+def test_reports_get_through_byte_corruption_in_parts(noise):
+    wire = Wire(seed=7).connect()
+    wire.noise = noise
+    for k in range(1, 11):
+        wire.module.send(p.ChangeReport(k, 0, 1, "kitchen", REGIONS[:k]))
+    wire.run(10.0, dt=0.005)  # simulated seconds: 10 reports of 1..10 regions, 4 at a time
+    got = received(wire.base_events, p.ChangeReport)
+    assert sorted(r.report_id for r in got) == list(range(1, 11))  # each once, all complete
+    assert wire.base.decoder.errors > 0 and not [e for e in wire.module_events if isinstance(e, SendFailed)]
+
+
+def test_admit_refuses_with_a_nak_and_the_message_is_not_remembered():
+    busy = [True]
+    wire = Wire()
+    wire.module.admit = lambda m: p.NakReason.BUSY if busy[0] and isinstance(m, p.Check) else None
+    wire.connect()
+    seq = wire.base.send(p.Check("kitchen"))
+    wire.step()
+    (failed,) = [e for e in wire.base_events if isinstance(e, SendFailed)]
+    assert failed.seq == seq and failed.nak == p.NakReason.BUSY
+    assert not received(wire.module_events, p.Check)
+    busy[0] = False
+    wire.base.send(p.Check("kitchen"))
+    wire.step()
+    assert received(wire.module_events, p.Check) == [p.Check("kitchen")]
+
+
+def test_coalesced_answers_replace_the_one_still_waiting():
+    wire = Wire(proto_max=2).connect()
+    wire.cut = True
+    for i in range(4):  # fill the window
+        wire.module.send(p.Clear(f"s{i}"))
+    seqs = {wire.module.send(p.Status(p.ModuleState.IDLE, frame_index=i), coalesce="status")
+            for i in range(50)}
+    assert len(seqs) == 1 and wire.module.queued == 1
+    wire.cut = False
+    wire.run(0.6)
+    (status,) = received(wire.base_events, p.Status)
+    assert status.frame_index == 49  # the newest content
+
+
+def test_the_module_acts_on_no_command_from_a_base_that_sent_no_hello():
+    module = Link(p.Role.MODULE, clock=Clock())
+    module.outgoing()
+    module.receive(p.encode(p.Check("kitchen"), 7))
+    (nak,) = frames(module.outgoing())
+    assert nak.message.TYPE == p.MsgType.NAK and nak.seq == 7
+    assert nak.message.reason == p.NakReason.BAD_VERSION  # no version agreed: HELLO first
+    assert not received(module.events(), p.Check)
+    module.receive(p.encode(p.Hello(p.Role.BASE, 5), 1))
+    module.receive(p.encode(p.Check("kitchen"), 7))  # the same seq, now accepted
+    assert received(module.events(), p.Check) == [p.Check("kitchen")]
+
+
+def test_ack_holdoff_counts_from_the_burst_that_answered():
+    wire = Wire().connect()
+    copy = p.encode(p.Pause(p.PauseCause.CHANGE_CHECK), 40, p.FLAG_URGENT, version=p.VERSION)
+    wire.base.receive(copy)
+    assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES
+    wire.clock.t += wire.base.config.ack_holdoff * 0.9
+    wire.base.receive(copy)
+    assert frames(wire.base.outgoing()) == []  # within the holdoff of the burst
+    wire.clock.t += wire.base.config.ack_holdoff * 0.2
+    wire.base.receive(copy)
+    assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES

@@ -53,6 +53,9 @@ STRATEGIES = {
     p.Hello: st.builds(p.Hello, st.sampled_from(p.Role), u32,
                        st.text(string.printable, max_size=32), st.just(1), st.integers(1, 255)),
     p.Ack: st.just(p.Ack()),
+    p.Part: st.integers(1, p.MAX_PARTS).flatmap(lambda n: st.builds(
+        p.Part, st.integers(0, n - 1), st.just(n), st.binary(min_size=1, max_size=p.PART_DATA))),
+    p.Need: st.builds(p.Need, st.lists(st.integers(0, p.MAX_PARTS - 1), min_size=1).map(tuple)),
     p.Nak: st.builds(p.Nak, st.sampled_from(p.NakReason), u8),
     p.Heartbeat: st.builds(p.Heartbeat, st.sampled_from(p.ModuleState), bools, bools, bools, u16, u32),
     p.Pause: st.builds(p.Pause, st.sampled_from(p.PauseCause)),
@@ -212,7 +215,7 @@ def test_a_version_2_message_cannot_be_sent_in_version_1():
     result = p.CheckResult("kitchen", p.CheckOutcome.NO_CHANGE)
     with pytest.raises(MessageError, match="version 2"):
         p.encode(result, 3, version=1)
-    assert p.decode(p.encode(result, 3)) == p.Frame(result, 3, 0, 2)
+    assert p.decode(p.encode(result, 3, version=2)) == p.Frame(result, 3, 0, 2)
 
 
 def test_param_errors_carry_their_nak_reason():
@@ -241,7 +244,7 @@ def good(seq: int = 1) -> bytes:
     (b"\x05\x01\x00", p.DecodeReason.BAD_COBS, None),
     (p.cobs_encode(b"\x01\x02\x03") + b"\x00", p.DecodeReason.TOO_SHORT, None),
     (good()[:-3] + bytes([good()[-3] ^ 0x40]) + good()[-2:], p.DecodeReason.BAD_CRC, None),
-    (raw_frame(3, p.MsgType.CHECK, 7, payload=b"\x01k"), p.DecodeReason.BAD_VERSION,
+    (raw_frame(p.VERSION + 1, p.MsgType.CHECK, 7, payload=b"\x01k"), p.DecodeReason.BAD_VERSION,
      p.NakReason.BAD_VERSION),
     (raw_frame(1, p.MsgType.CHECK_RESULT, 7, payload=bytes(20) + b"\x01k"), p.DecodeReason.UNKNOWN_TYPE,
      p.NakReason.UNKNOWN_TYPE),

@@ -26,6 +26,7 @@ from hw.depth import open_depth
 from hw.serial_port import FdPort, open_port
 from robot_change.errors import ConfigError
 from robot_change.link import protocol as p
+from robot_change.link.session import LinkState
 from robot_change.service.camera import FrameQueue
 from robot_change.service.config import Config, config_from_dict
 from robot_change.service.core import Service, ServiceOptions
@@ -691,3 +692,68 @@ def test_a_capture_beyond_the_station_limit_is_a_storage_fault_on_the_wire(
         """)
     assert rig.store.stations() == ["dock"]
     assert "max_stations" in rig.out.getvalue()
+
+
+# -- floods, BUSY, the wire's FAULT texts, the latch after a link fault (issue 16) -----------------
+
+
+def test_a_status_flood_is_answered_coalesced_and_nothing_is_dropped(rig: Rig, caplog) -> None:
+    rig.run("expect HEARTBEAT 1")
+    sim = rig.sim
+    for _ in range(250):
+        sim.runner.send(p.StatusQuery())
+    sim.pump(20.0, until=lambda: sim.link.in_flight == 0 and sim.link.queued == 0)
+    sim.pump(1.0, until=lambda: rig.service.link.in_flight == 0 and rig.service.link.queued == 0)
+    assert not sim.failed  # every query acknowledged
+    statuses = [e for e in sim.log if e.name == "STATUS"]
+    assert 1 <= len(statuses) <= 250
+    assert rig.service.counters["send_failed"] == 0  # no answer dropped
+    assert rig.service.link.stats.failed == 0
+    assert not [r for r in caplog.records if "not delivered" in r.getMessage()]
+
+
+def test_commands_beyond_the_queue_are_refused_with_nak_busy(rig: Rig) -> None:
+    rig.run("expect HEARTBEAT 1")
+    sim = rig.sim
+    for _ in range(40):
+        sim.runner.send(p.CaptureReference("office"))
+    sim.pump(10.0, until=lambda: sim.link.in_flight == 0 and sim.link.queued == 0)
+    busy = [f for f in sim.failed if f.nak == p.NakReason.BUSY]
+    assert busy and len(busy) == len(sim.failed), [f.reason for f in sim.failed]
+    assert rig.service.counters["commands_refused"] == len(busy)
+    assert not [e for e in sim.log if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
+
+
+def test_a_version_2_base_gets_one_coalesced_fault_for_refused_commands(tmp_path: Path,
+                                                                         scene_frames) -> None:
+    with Rig(tmp_path, scene_frames, proto_max=2) as rig:
+        rig.run("expect HEARTBEAT 1")
+        sim = rig.sim
+        for _ in range(40):
+            sim.runner.send(p.CaptureReference("office"))
+        sim.pump(10.0, until=lambda: sim.link.in_flight == 0 and sim.link.queued == 0)
+        assert not sim.failed  # version 2 knows no BUSY: acknowledged ...
+        refused = rig.service.counters["commands_refused"]
+        faults = [e for e in sim.log if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
+        assert refused > 0 and 1 <= len(faults) <= refused  # ... and told, coalesced
+        assert all("busy" in e.obj.text for e in faults)
+
+
+def test_fault_texts_carry_no_path_of_the_machine(rig: Rig) -> None:
+    rig.run("""
+        check nowhere
+        expect FAULT code=REFERENCE_MISSING 3
+    """)
+    (fault,) = [e.obj for e in rig.sim.log if e.name == "FAULT"]
+    assert "nowhere" in fault.text and "/" not in fault.text, fault.text
+    assert str(rig.tmp) not in fault.text
+
+
+def test_the_module_sends_pause_again_when_the_link_comes_back_with_the_latch_set(rig: Rig) -> None:
+    rig.run("capture office\nexpect CAPTURED 5")
+    rig.show("current")
+    rig.run("check office\nexpect PAUSE cause=CHANGE_CHECK 5\nexpect REPORT 5")
+    time.sleep(1.6)  # the base says nothing: the module's link goes FAULTY after 1 s
+    assert rig.service.link.state == LinkState.FAULTY
+    rig.run("expect PAUSE cause=CHANGE_CHECK 4")
+    assert rig.service.latched

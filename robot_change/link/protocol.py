@@ -25,7 +25,7 @@ from robot_change import validate
 from robot_change.errors import BadValue, MessageError
 
 #: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
-VERSION = 2
+VERSION = 3
 MIN_VERSION = 1
 MAX_PAYLOAD = 240
 HEADER = struct.Struct("<BBHB")
@@ -43,6 +43,11 @@ FLAG_RETRY = 0x02
 MAX_STATION = validate.MAX_STATION
 #: Regions per CHANGE_REPORT part (fits any station name within the payload limit).
 REGIONS_PER_PART = 11
+#: Version 3: bytes of a carried body per PART frame (docs/protocol.md 7.11); a PART frame is
+#: then 19 bytes on the wire, short enough to get through 10 % byte corruption often.
+PART_DATA = 8
+#: PARTs of one carried body at most: ceil(MAX_BODY / PART_DATA).
+MAX_PARTS = -(-MAX_BODY // PART_DATA)  # 31
 
 
 # ---------------------------------------------------------------------------------------------
@@ -64,6 +69,7 @@ class MsgType(IntEnum):
     PARAM_VALUE = 0x16
     CAPTURED = 0x17
     CHECK_RESULT = 0x18
+    PART = 0x19
     BASE_HEARTBEAT = 0x40
     STATUS_QUERY = 0x41
     CAPTURE_REFERENCE = 0x42
@@ -75,6 +81,7 @@ class MsgType(IntEnum):
     RESUME = 0x48
     SET_PARAM = 0x49
     GET_PARAM = 0x4A
+    NEED = 0x4B
 
 
 class Role(IntEnum):
@@ -93,6 +100,7 @@ class NakReason(IntEnum):
     UNKNOWN_PARAM = 4
     OUT_OF_RANGE = 5
     WRONG_DIRECTION = 6
+    BUSY = 7  # version 3: the module's queue for this kind of command is full; try later
 
 
 class DecodeReason(str, Enum):
@@ -872,10 +880,86 @@ class GetParam(Message):
         return cls(payload[0])
 
 
+@dataclass(frozen=True, slots=True)
+class Part(Message):
+    """Module -> base (version 3): part ``index`` of ``count`` of the body of a sequenced
+    message, whose seq is this frame's header seq (docs/protocol.md 7.11).  Not acknowledged
+    itself: the carried message is, once the base has joined every part."""
+
+    TYPE: ClassVar[MsgType] = MsgType.PART
+    SEQUENCED: ClassVar[bool] = False
+    SENDER: ClassVar[Role | None] = Role.MODULE
+    SINCE: ClassVar[int] = 3
+    index: int
+    count: int
+    data: bytes
+
+    def __post_init__(self) -> None:
+        _int("PART", "count", self.count, 1, MAX_PARTS, NakReason.BAD_PAYLOAD)
+        _int("PART", "index", self.index, 0, self.count - 1, NakReason.BAD_PAYLOAD)
+        if not isinstance(self.data, (bytes, bytearray)) or not 1 <= len(self.data) <= PART_DATA:
+            raise MessageError(f"PART.data must be 1..{PART_DATA} bytes", NakReason.BAD_PAYLOAD)
+        _set(self, "data", bytes(self.data))
+
+    def pack(self) -> bytes:
+        return bytes((self.index, self.count)) + self.data
+
+    @classmethod
+    def unpack(cls, payload: bytes) -> Message:
+        if not 3 <= len(payload) <= 2 + PART_DATA:
+            raise MessageError(f"PART payload is {len(payload)} bytes, must be 3..{2 + PART_DATA}",
+                               NakReason.BAD_PAYLOAD)
+        return cls(payload[0], payload[1], payload[2:])
+
+
+@dataclass(frozen=True, slots=True)
+class Need(Message):
+    """Base -> module (version 3): of the message whose seq is this frame's header seq, the
+    parts ``missing`` have not arrived yet (a bitmap on the wire, bit i of byte i // 8 for
+    part i, least significant bit first; the last byte non-zero)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.NEED
+    SEQUENCED: ClassVar[bool] = False
+    SENDER: ClassVar[Role | None] = Role.BASE
+    SINCE: ClassVar[int] = 3
+    missing: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        missing = tuple(sorted(set(self.missing))) if isinstance(self.missing, (tuple, list, set, frozenset)) else None
+        if not missing or not all(isinstance(i, int) and not isinstance(i, bool)
+                                  and 0 <= i < MAX_PARTS for i in missing):
+            raise MessageError(f"NEED.missing = {self.missing!r}: give 1..{MAX_PARTS} part "
+                               f"indices 0..{MAX_PARTS - 1}", NakReason.BAD_PAYLOAD)
+        _set(self, "missing", missing)
+
+    def pack(self) -> bytes:
+        bitmap = bytearray(self.missing[-1] // 8 + 1)
+        for i in self.missing:
+            bitmap[i // 8] |= 1 << (i % 8)
+        return bytes(bitmap)
+
+    @classmethod
+    def unpack(cls, payload: bytes) -> Message:
+        if not 1 <= len(payload) <= -(-MAX_PARTS // 8) or not payload[-1]:
+            raise MessageError(f"NEED payload is {len(payload)} bytes ending in "
+                               f"0x{payload[-1] if payload else 0:02X}: want 1..{-(-MAX_PARTS // 8)} "
+                               "bytes, the last non-zero", NakReason.BAD_PAYLOAD)
+        missing = tuple(i for i in range(8 * len(payload)) if payload[i // 8] >> (i % 8) & 1)
+        return cls(missing)
+
+
+def split_body(body: bytes) -> list[Part]:
+    """The PARTs that carry ``body`` (a whole frame body, header and CRC included)."""
+    if not MIN_BODY <= len(body) <= MAX_BODY:
+        raise MessageError(f"a carried body is {MIN_BODY}..{MAX_BODY} bytes, got {len(body)}")
+    chunks = [body[i:i + PART_DATA] for i in range(0, len(body), PART_DATA)]
+    return [Part(i, len(chunks), chunk) for i, chunk in enumerate(chunks)]
+
+
 MESSAGE_CLASSES: tuple[type[Message], ...] = (
     Hello, Ack, Nak, Heartbeat, Pause, ChangeReport, Clear, Fault, Status, ParamValue, Captured,
     CheckResult, BaseHeartbeat, StatusQuery, CaptureReference, Check, Watch, Stop, Arm, Disarm, Resume,
-    SetParam, GetParam,
+    SetParam, GetParam, Part, Need,
 )
 CLASS_BY_TYPE: dict[int, type[Message]] = {cls.TYPE: cls for cls in MESSAGE_CLASSES}
 CLASS_BY_NAME: dict[str, type[Message]] = {cls.TYPE.name: cls for cls in MESSAGE_CLASSES}
@@ -1164,6 +1248,10 @@ def describe(message: Message) -> str:
             value = f"0x{value:08X}"
         elif f.name == "regions":
             value = len(value)
+        elif isinstance(value, bytes):
+            value = value.hex()
+        elif f.name == "missing":
+            value = ",".join(map(str, value))
         elif isinstance(value, str):
             value = repr(value) if (not value or " " in value) else value
         parts.append(f"{f.name}={value}")

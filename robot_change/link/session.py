@@ -43,9 +43,14 @@ from robot_change.link.protocol import (
     MsgType,
     Nak,
     NakReason,
+    Need,
+    Part,
     Role,
+    decode_body,
     encode,
+    encode_body,
     may_send,
+    split_body,
 )
 
 
@@ -72,6 +77,17 @@ class LinkConfig:
     ack_holdoff: float = 0.05
     dedup_memory: int = 128
     max_queue: int = 256
+    #: Line speed (bytes per second = baud / 10): paces the PART carousel (version 3).
+    baud: int = 115200
+    #: Share of the line the PARTs of carried messages may take (the rest stays free for
+    #: urgent bursts, ACKs and heartbeats).
+    part_share: float = 0.75
+    #: A carried message not acknowledged this long after its first PART has failed.
+    carry_timeout: float = 10.0
+    #: The base's NEED for one message at most this often.
+    need_interval: float = 0.05
+    #: Half-joined carried messages a receiver keeps (the oldest is dropped beyond).
+    max_assemblies: int = 8
 
     @classmethod
     def for_baud(cls, baud: int, **overrides: Any) -> "LinkConfig":
@@ -83,7 +99,8 @@ class LinkConfig:
         burst = cls.urgent_copies * 10 * byte_time  # PAUSE / RESUME copies, 10 bytes each
         acks = cls.urgent_copies * 9 * byte_time  # the ACK burst, 9 bytes a copy
         values: dict[str, Any] = {"retry_interval": max(cls.retry_interval, 2.5 * (burst + acks)),
-                                  "ack_holdoff": max(cls.ack_holdoff, 1.5 * burst)}
+                                  "ack_holdoff": max(cls.ack_holdoff, 1.5 * burst),
+                                  "baud": baud}
         values.update(overrides)
         return cls(**values)
 
@@ -156,6 +173,14 @@ class LinkStats:
     stray_acks: int = 0  # ACKs for nothing in flight: extra copies of an urgent ACK burst
     heartbeats_sent: int = 0
     heartbeats_received: int = 0
+    parts_sent: int = 0  # version 3: PART frames written
+    parts_received: int = 0
+    needs_sent: int = 0
+    needs_received: int = 0
+    carried: int = 0  # carried messages joined (each once)
+    carried_bad: int = 0  # joined bodies that did not decode (a false CRC match): started again
+    assemblies_dropped: int = 0
+    before_hello: int = 0  # sequenced messages refused because the peer had sent no HELLO
 
 
 @dataclass
@@ -166,6 +191,20 @@ class _Pending:
     tries: int = 0
     first_at: float = 0.0
     next_at: float = 0.0
+    #: version 3: the encoded PART frames carrying the message, the indices still to send
+    #: (from the base's last NEED; all at first) and the next one's position in them.
+    parts: list[bytes] | None = None
+    wanted: list[int] | None = None
+    cursor: int = 0
+    coalesce: Any = None
+
+
+@dataclass
+class _Assembly:
+    count: int
+    got: dict[int, bytes]
+    started: float
+    need_at: float = -1.0
 
 
 _HEARTBEAT_OF = {Role.MODULE: Heartbeat, Role.BASE: BaseHeartbeat}
@@ -181,7 +220,8 @@ class Link:
 
     def __init__(self, role: Role, *, clock: Callable[[], float] = time.monotonic,
                  config: LinkConfig | None = None, boot_id: int | None = None,
-                 software: str = "robot-change", proto_max: int = VERSION) -> None:
+                 software: str = "robot-change", proto_max: int = VERSION,
+                 admit: Callable[[Message], NakReason | None] | None = None) -> None:
         if not MIN_VERSION <= proto_max <= VERSION:
             raise LinkError(f"proto_max {proto_max}: this code speaks {MIN_VERSION}..{VERSION}")
         self.proto_max = proto_max
@@ -194,6 +234,9 @@ class Link:
         self.config = config or LinkConfig()
         self.boot_id = random.getrandbits(32) if boot_id is None else boot_id
         self.software = software
+        #: Called with every new sequenced message from the peer before it is acknowledged; a
+        #: NakReason refuses it (NAK, not remembered as received), None accepts it.
+        self.admit = admit
         self.decoder = FrameDecoder()
         self.stats = LinkStats()
         self.state = LinkState.CONNECTING
@@ -211,14 +254,22 @@ class Link:
         self._events: list[Event] = []
         self._heartbeat: Message | None = None
         self._next_heartbeat = 0.0
+        self._assemblies: dict[int, _Assembly] = {}
+        self._part_credit = 0.0
+        self._part_clock: float | None = None
+        self._carousel = 0
         now = clock()
         self._last_rx = now
         self._next_hello = now
 
     # -- the application's side ---------------------------------------------------------------
 
-    def send(self, message: Message, now: float | None = None) -> int:
-        """Queue a sequenced message; return its seq.  Urgent ones go out at once, ahead of all."""
+    def send(self, message: Message, now: float | None = None, *, coalesce: Any = None) -> int:
+        """Queue a sequenced message; return its seq.  Urgent ones go out at once, ahead of all.
+
+        ``coalesce``: a key (e.g. "status"); when a message sent with the same key still waits
+        in the queue (not yet transmitted), it is replaced by this one, which takes its seq
+        and place: a flood of queries is answered by one up-to-date answer waiting at most."""
         if not isinstance(message, Message):
             raise LinkError(f"send() wants a protocol message, got {type(message).__name__}")
         name = message.TYPE.name
@@ -231,7 +282,12 @@ class Link:
         if message.SINCE > self.version:
             raise LinkError(f"{name} needs protocol version {message.SINCE}; this session "
                             f"speaks {self.version} (check link.version first)")
-        pending = _Pending(self._take_seq(), message, message.URGENT)
+        if coalesce is not None and not message.URGENT:
+            for waiting in self._normal_q:
+                if waiting.coalesce == coalesce:
+                    waiting.message = message
+                    return waiting.seq
+        pending = _Pending(self._take_seq(), message, message.URGENT, coalesce=coalesce)
         queue = self._urgent_q if pending.urgent else self._normal_q
         queue.append(pending)
         if len(queue) > self.config.max_queue:
@@ -281,6 +337,8 @@ class Link:
     def next_deadline(self) -> float:
         """When :meth:`poll` next has something to do (clock seconds)."""
         times = [p.next_at for p in self._inflight.values()]
+        if any(p.parts is not None for p in self._inflight.values()):
+            times.append((self._part_clock or 0.0) + 0.002)  # the PART carousel runs
         if self._heartbeat is not None:
             times.append(self._next_heartbeat)
         if self.state == LinkState.UP:
@@ -307,10 +365,11 @@ class Link:
             self._start_hello(now)
         self._promote(now)
         for pending in [p for p in self._inflight.values() if p.next_at <= now]:
-            if pending.tries >= cfg.max_tries:
+            if pending.tries >= cfg.max_tries or pending.parts is not None:
                 self._give_up(pending, now)
             else:
                 self._transmit(pending, now)
+        self._run_carousel(now)
         if self._heartbeat is not None and now >= self._next_heartbeat:
             self._out += encode(self._heartbeat, version=self.version)
             self.stats.heartbeats_sent += 1
@@ -348,6 +407,10 @@ class Link:
         elif not may_send(self.peer_role, type(message)) or (
                 isinstance(message, Hello) and message.role != self.peer_role):
             self._nak(seq, NakReason.WRONG_DIRECTION, kind)
+        elif kind == MsgType.PART:
+            self._on_part(frame, now)
+        elif kind == MsgType.NEED:
+            self._on_need(seq, message)  # type: ignore[arg-type]
         elif not message.SEQUENCED:
             self.stats.heartbeats_received += 1
             self._events.append(Received(message, seq))
@@ -362,10 +425,23 @@ class Link:
             self._seen.clear()
             self._seen_order.clear()
             self._ack_burst_at.clear()
-        self._ack(frame, now)
+            self._assemblies.clear()  # half-joined messages of the old boot
         if seq in self._seen:
+            self._ack(frame, now)
             self.stats.duplicates += 1
             return
+        if self.role == Role.MODULE and self.peer is None and not isinstance(message, Hello):
+            # docs/protocol.md 7.5: no command is acted on before the base's HELLO (no version
+            # agreed, its duplicate memory not cleared): refused, not remembered
+            self._nak(seq, NakReason.BAD_VERSION, message.TYPE)
+            self.stats.before_hello += 1
+            return
+        if self.admit is not None and not isinstance(message, Hello):
+            refusal = self.admit(message)
+            if refusal is not None:
+                self._nak(seq, refusal, message.TYPE)
+                return
+        self._ack(frame, now)
         self._seen.add(seq)
         self._seen_order.append(seq)
         if len(self._seen_order) > self.config.dedup_memory:
@@ -373,6 +449,51 @@ class Link:
         if isinstance(message, Hello):
             self._on_hello(message, new_peer, now)
         self._events.append(Received(message, seq))
+
+    def _on_part(self, frame: Frame, now: float) -> None:
+        """Version 3: one PART of a carried message; join, NEED what is missing, and hand the
+        whole message on as if it had arrived in one frame (its ACK goes out as a burst)."""
+        part: Part = frame.message  # type: ignore[assignment]
+        seq = frame.seq
+        self.stats.parts_received += 1
+        if seq in self._seen:  # joined already: our ACK burst was lost; another one
+            self._ack(Frame(part, seq, FLAG_URGENT, frame.version), now)
+            return
+        assembly = self._assemblies.get(seq)
+        if assembly is None or assembly.count != part.count:
+            assembly = self._assemblies[seq] = _Assembly(part.count, {}, now)
+            while len(self._assemblies) > self.config.max_assemblies:
+                del self._assemblies[next(iter(self._assemblies))]
+                self.stats.assemblies_dropped += 1
+        assembly.got[part.index] = part.data
+        if len(assembly.got) < assembly.count:
+            if now - assembly.need_at >= self.config.need_interval:
+                assembly.need_at = now
+                missing = tuple(i for i in range(assembly.count) if i not in assembly.got)
+                self._out += encode(Need(missing), seq, version=self.version)
+                self.stats.needs_sent += 1
+            return
+        del self._assemblies[seq]
+        inner = decode_body(b"".join(assembly.got[i] for i in range(assembly.count)))
+        if type(inner) is DecodeError and inner.nak is not None and inner.seq == seq:
+            self._nak(seq, inner.nak, inner.msg_type or 0)  # intact, but not acceptable
+            return
+        if (type(inner) is not Frame or inner.seq != seq or not inner.message.SEQUENCED
+                or inner.message.URGENT or isinstance(inner.message, Hello)
+                or not may_send(self.peer_role, type(inner.message))):
+            self.stats.carried_bad += 1  # a part with a falsely matching CRC: start again
+            return
+        self.stats.carried += 1
+        self._on_sequenced(Frame(inner.message, seq, inner.flags | FLAG_URGENT, inner.version), now)
+
+    def _on_need(self, seq: int, need: Need) -> None:
+        self.stats.needs_received += 1
+        pending = self._inflight.get(seq)
+        if pending is None or pending.parts is None:
+            return  # already acknowledged (or never carried): a stale NEED
+        wanted = [i for i in need.missing if i < len(pending.parts)]
+        if wanted:
+            pending.wanted, pending.cursor = wanted, 0
 
     def _on_hello(self, hello: Hello, new_peer: bool, now: float) -> None:
         self.peer = hello
@@ -469,6 +590,15 @@ class Link:
                        f"{pending.message.SINCE}; the {self.peer_role.name.lower()} now speaks "
                        f"{version}")
             return
+        if self._carries(pending, version):
+            body = encode_body(pending.message, pending.seq, 0, version)
+            pending.parts = [encode(part, pending.seq, 0, version) for part in split_body(body)]
+            pending.wanted, pending.cursor = list(range(len(pending.parts))), 0
+            pending.first_at = now
+            pending.tries = 1
+            pending.next_at = now + self.config.carry_timeout
+            self.stats.sent += 1
+            return  # the carousel writes the PARTs
         frame = encode(pending.message, pending.seq, flags, version)
         self._out += frame * self.config.urgent_copies if pending.urgent else frame
         if pending.tries:
@@ -479,10 +609,48 @@ class Link:
         pending.tries += 1
         pending.next_at = now + self.config.retry_interval
 
+    def _carries(self, pending: _Pending, version: int) -> bool:
+        """Version 3: the module sends every sequenced message but HELLO and the urgent ones
+        as PARTs (docs/protocol.md 7.11)."""
+        return (version >= 3 and self.role == Role.MODULE and not pending.urgent
+                and not isinstance(pending.message, Hello))
+
+    def _run_carousel(self, now: float) -> None:
+        """Write PARTs of the carried messages in flight, round robin over the messages and
+        over each one's wanted parts, at ``part_share`` of the line's bytes per second."""
+        carried = [p for p in self._inflight.values() if p.parts is not None]
+        if not carried:
+            self._part_clock = None
+            return
+        if self.version < 3:  # the peer came back older: send them whole
+            for pending in carried:
+                pending.parts = pending.wanted = None
+                pending.tries, pending.next_at = 0, now
+            return
+        rate = self.config.baud / 10 * self.config.part_share
+        if self._part_clock is None:
+            self._part_credit = 24.0  # one PART at once
+        else:
+            self._part_credit = min(64.0, self._part_credit + (now - self._part_clock) * rate)
+        self._part_clock = now
+        while self._part_credit > 0:
+            self._carousel = (self._carousel + 1) % len(carried)
+            pending = carried[self._carousel]
+            wanted = pending.wanted or list(range(len(pending.parts)))  # type: ignore[arg-type]
+            index = wanted[pending.cursor % len(wanted)]
+            pending.cursor = (pending.cursor + 1) % len(wanted)
+            frame = pending.parts[index]  # type: ignore[index]
+            self._out += frame
+            self._part_credit -= len(frame)
+            self.stats.parts_sent += 1
+
     def _give_up(self, pending: _Pending, now: float) -> None:
         del self._inflight[pending.seq]
         why = (f"no ACK from the {self.peer_role.name.lower()} after {pending.tries} tries "
                f"{self.config.retry_interval * 1000:.0f} ms apart")
+        if pending.parts is not None:
+            why = (f"no ACK from the {self.peer_role.name.lower()} {self.config.carry_timeout:g} s "
+                   f"after the first of its {len(pending.parts)} PARTs")
         if pending.seq == self._hello_seq:
             self._hello_seq = None
             self._next_hello = now + self.config.hello_interval
@@ -529,10 +697,10 @@ class LinkRunner:
         self._lock = threading.Lock()
         self._port_up = True
 
-    def send(self, message: Message) -> int:
+    def send(self, message: Message, *, coalesce: Any = None) -> int:
         """Thread-safe :meth:`Link.send`."""
         with self._lock:
-            return self.link.send(message)
+            return self.link.send(message, coalesce=coalesce)
 
     def set_heartbeat(self, message: Message) -> None:
         """Thread-safe :meth:`Link.set_heartbeat`."""

@@ -63,6 +63,7 @@ import dataclasses
 import json
 import logging
 import queue
+import re
 import threading
 import time
 from pathlib import Path
@@ -106,8 +107,10 @@ from robot_change.link.protocol import (
     FaultCode,
     GetParam,
     Heartbeat,
+    Message,
     ModuleState,
     Motion,
+    NakReason,
     ParamValue,
     Pause,
     PauseCause,
@@ -234,6 +237,38 @@ def check_result(station: str, changes: ChangeSet, mount: CameraMount, report_id
         _clip(changes.unobserved_fraction * 1000.0, 0, 1000), weak)
 
 
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.~-])/[^\s'\"(),;:]+")
+
+
+def wire_text(text: str) -> str:
+    """A FAULT text for the wire: every absolute path of this machine replaced by its last
+    component (the log keeps the whole text; docs/protocol.md, FAULT)."""
+    def name(match: re.Match) -> str:
+        last = match.group(0).rstrip("/").rsplit("/", 1)[-1]
+        return last if "." in last else "the module's state folder"
+    return _ABSOLUTE_PATH.sub(name, text)
+
+
+class _Throttled:
+    """A log line that repeats at most once per ``every`` seconds, saying how many were held."""
+
+    def __init__(self, every: float = 10.0) -> None:
+        self.every = every
+        self._last: dict[str, float] = {}
+        self._held: collections.Counter = collections.Counter()
+
+    def __call__(self, key: str, level: int, fmt: str, *args: Any) -> None:
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last < self.every:
+            self._held[key] += 1
+            return
+        held, self._held[key] = self._held[key], 0
+        self._last[key] = now
+        log.log(level, fmt + (f" ({held} more like it in the last {now - last:.0f} s)"
+                              if held and last is not None else ""), *args)
+
+
 def _short(text: str) -> str:
     text = " ".join(str(text).split())
     return text if len(text.encode()) <= _FAULT_TEXT else text.encode()[:_FAULT_TEXT - 3].decode(
@@ -263,7 +298,9 @@ class Service:
         self.port = port
         self.params: dict[str, int] = dict(config.parameters())
         self.link = Link(Role.MODULE, config=link_config or LinkConfig.for_baud(config.serial.baud),
-                         software=f"robot-change {robot_change.__version__}")
+                         software=f"robot-change {robot_change.__version__}", admit=self._admit)
+        self._throttled = _Throttled()
+        self._admitted = 0  # commands admitted by the link, not yet in self._commands
         self.runner = LinkRunner(self.link, port, max_wait=self.options.link_max_wait)
         self._lock = threading.RLock()
         self._wake = threading.Event()
@@ -513,15 +550,16 @@ class Service:
             elif isinstance(event.message, Fault) and self.stalled:
                 self.stall_told.set()
         elif isinstance(event, SendFailed):
-            log.warning("%s seq %d not delivered: %s", event.message.TYPE.name, event.seq,
-                        event.reason)
+            self._throttled(f"failed-{event.message.TYPE.name}", logging.WARNING,
+                            "%s seq %d not delivered: %s", event.message.TYPE.name, event.seq,
+                            event.reason)
             self.counters["send_failed"] += 1
             if isinstance(event.message, Pause):
                 self._pause_undelivered = True
         elif isinstance(event, StateChanged):
             log.log(logging.WARNING if event.new != LinkState.UP else logging.INFO,
                     "link %s: %s", event.new.value, event.why)
-            if event.new == LinkState.UP and self.latched and self._pause_undelivered:
+            if event.new == LinkState.UP and event.old != LinkState.CONNECTING and self.latched:
                 log.info("link back up with the pause latch set: sending PAUSE again")
                 self._send(Pause(self._last_pause_cause))
         elif isinstance(event, PortProblem):
@@ -533,18 +571,22 @@ class Service:
             self.motion = m.motion
             return
         if isinstance(m, (CaptureReference, Check, Watch)):
+            self._admitted = max(0, self._admitted - 1)
             try:
                 self._commands.put_nowait(m)
-            except queue.Full:
+            except queue.Full:  # version 1/2 (version 3 NAKs BUSY before the ACK: _admit)
+                self.counters["commands_refused"] += 1
                 self.send_fault(FaultCode.COMMAND_REFUSED, f"{m.TYPE.name} {m.station} refused: "
-                            f"{self.options.command_queue} commands already waiting")
+                                f"busy, {self.options.command_queue} commands already waiting "
+                                f"({self.counters['commands_refused']} refused so far)",
+                                coalesce="busy")
                 return
             if self._watch is not None:  # a new command ends the watch at once
                 self._cancel.set()
             self._wake.set()
             return
         if isinstance(m, StatusQuery):
-            self._send(self.status())
+            self._send(self.status(), coalesce="status")
         elif isinstance(m, Arm):
             with self._lock:
                 self.armed = True
@@ -565,7 +607,7 @@ class Service:
             log.info("STOP")
         elif isinstance(m, GetParam):
             name = PARAM_BY_ID[m.param].name
-            self._send(ParamValue(m.param, self.params[name]))
+            self._send(ParamValue(m.param, self.params[name]), coalesce=("param", m.param))
         elif isinstance(m, SetParam):
             self._set_param(m.param, m.value)
         self._refresh_heartbeat(force=True)
@@ -578,29 +620,48 @@ class Service:
                 self.send_fault(FaultCode.COMMAND_REFUSED,
                             f"SET_PARAM {name}={value} refused: watch_m ({trial['watch_m']}) "
                             f"must be <= watch_n ({trial['watch_n']})")
-                self._send(ParamValue(pid, self.params[name]))
+                self._send(ParamValue(pid, self.params[name]), coalesce=("param", pid))
                 return
             self.params = trial
             if self._watch is not None:
                 self._watch.configure(self.params, change_params(self.config, self.params))
         log.info("parameter %s = %d", name, value)
-        self._send(ParamValue(pid, value))
+        self._send(ParamValue(pid, value), coalesce=("param", pid))
 
     # -- sending (send_fault, send_pause, send_report and send_no_change are also what a
     # -- watch calls: robot_change.service.watch.WatchHost) -------------------------------------
 
-    def _send(self, message: Any) -> None:
+    def _admit(self, m: Message) -> NakReason | None:
+        """Version 3: refuse a command the module cannot take now with NAK BUSY, before it is
+        acknowledged (docs/protocol.md 7.12).  Answers to queries are coalesced instead."""
+        if not isinstance(m, (CaptureReference, Check, Watch)):
+            return None
+        # commands admitted in this turn of the link thread are queued after it (_on_message)
+        if self.link.version < 3 or self._commands.qsize() + self._admitted < self.options.command_queue:
+            self._admitted += 1
+            return None
+        self.counters["commands_refused"] += 1
+        self._throttled("busy", logging.WARNING, "%s %s refused (NAK BUSY): %d commands "
+                        "already waiting", m.TYPE.name, m.station, self.options.command_queue)
+        return NakReason.BUSY
+
+    def _send(self, message: Any, coalesce: Any = None) -> None:
         try:
-            self.runner.send(message)
+            self.runner.send(message, coalesce=coalesce)
         except Exception:  # noqa: BLE001 -- e.g. a message field out of range: log, go on
             log.exception("cannot send %s", type(message).__name__)
 
-    def send_fault(self, code: FaultCode, text: str) -> None:
-        (log.info if code == FaultCode.CLEARED else log.error)("FAULT %s: %s", code.name, text)
+    def send_fault(self, code: FaultCode, text: str, coalesce: Any = None) -> None:
+        """FAULT to the base; the log has ``text`` whole, the wire without this machine's
+        paths (wire_text)."""
+        if coalesce is None:
+            (log.info if code == FaultCode.CLEARED else log.error)("FAULT %s: %s", code.name, text)
+        else:
+            self._throttled(f"fault-{coalesce}", logging.ERROR, "FAULT %s: %s", code.name, text)
         self.counters[f"fault_{code.name.lower()}"] += 1
         if self.link.version < 2:
             code = V1_FAULT_CODE.get(code, code)
-        self._send(Fault(code, _short(text)))
+        self._send(Fault(code, _short(wire_text(text))), coalesce=coalesce)
 
     def send_pause(self, cause: PauseCause) -> None:
         with self._lock:

@@ -259,6 +259,7 @@ class BaseSim:
         self.pause_why = "module not heard yet"
         self._latched = False
         self._resume_acked = False
+        self._clear_beat = False  # a HEARTBEAT with paused = 0 was heard (7.6)
         self._last_beat: tuple | None = None
         self.failed: list[SendFailed] = []
         self.runner.set_heartbeat(BaseHeartbeat(self.motion))
@@ -308,6 +309,7 @@ class BaseSim:
     def _on_message(self, message: Message, seq: int) -> None:
         self._record(message.TYPE.name, message)
         if isinstance(message, Heartbeat):
+            self._clear_beat = not message.paused
             if message.paused:
                 self._latched = True
             elif self._latched and self._resume_acked:
@@ -351,6 +353,10 @@ class BaseSim:
         """docs/protocol.md 7.6 as the base applies them: latch, silence, faulty link."""
         silent = self.clock() - self.link.last_heard
         reasons = []
+        if self.link.stats.frames_in == 0:
+            reasons.append("module not heard yet")
+        elif not self._clear_beat and not self._latched:
+            reasons.append("no HEARTBEAT with paused = 0 yet")
         if self._latched:
             reasons.append("the module's pause latch is set")
         if silent > PAUSE_SILENCE:
@@ -525,6 +531,11 @@ def run_base_sim(port_url: Any, script_path: str | Path | None = None, *, baudra
     the port cannot be opened.
     """
     lines = check_script(script_path) if script_path is not None else None
+    if isinstance(port_url, str) and port_url.strip().lower().startswith("loop://"):
+        raise InputError("--port loop:// would send the base's own frames back to it (a HELLO "
+                         "with the base's role, refused as WRONG_DIRECTION): give the port the "
+                         "module is on, e.g. /dev/ttyUSB0 or socket://HOST:PORT, or test both "
+                         "ends together with `robot-change link-bench`")
     port, owned = port_url, False
     if isinstance(port_url, str):
         port, owned = open_port(port_url, baudrate=baudrate, timeout=0.01), True
