@@ -372,3 +372,22 @@ def test_voxel_components_match_ndimage_label(radius):
 def test_voxel_components_reject_duplicates():
     with pytest.raises(InputError, match="unique"):
         label_voxel_components(np.array([5, 5], dtype=np.int64))
+
+
+def test_posteriors_over_a_background_match_the_full_mixture():
+    from robot_change.change.greedy import posteriors
+    from robot_change.mixture.model import Mixture
+
+    rng = np.random.default_rng(5)
+    means = rng.normal(size=(5, 3))
+    covs = np.stack([np.eye(3) * s for s in (0.2, 0.3, 0.25, 0.1, 0.4)])
+    weights = np.array([0.3, 0.2, 0.1, 0.25, 0.15])
+    mix = Mixture(weights, means, covs)
+    background = Mixture(weights[:3] / weights[:3].sum(), means[:3], covs[:3])
+    points = rng.normal(size=(200, 3))
+    rows = np.flatnonzero(rng.random(200) < 0.6)
+    full = posteriors(mix, points, rows)
+    fast = posteriors(mix, points, rows, (3, background.score_samples(points)))
+    np.testing.assert_allclose(fast[:, 3:], full[:, 3:], rtol=1e-10, atol=1e-14)
+    assert not fast[:, :3].any()
+    assert not fast[np.setdiff1d(np.arange(200), rows)].any()

@@ -38,6 +38,12 @@ class Epoch:
     ``depth`` (H, W) uint16 mm (fused for a reference), ``intrinsics``, the clean cloud
     ``points`` (M, 3) float32 with its voxel ``keys`` (M,) int64 and ``pixel_voxel`` (H, W)
     int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``.
+
+    ``derived``: results computed from this epoch that a rigid move of it does not change
+    (functions of its depth image, or of its mixture on its own points), kept so that a
+    station's reference pays for them once: an epoch of a SceneModel shares the model's dict,
+    and a moved copy (``dataclasses.replace``) shares it too.  Keys are tuples naming the
+    result and its parameters.
     """
 
     depth: np.ndarray
@@ -48,6 +54,7 @@ class Epoch:
     leaf_m: float
     mixture: Mixture | None
     cloud_params: CloudParams | None = None
+    derived: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_points(self) -> int:
@@ -80,12 +87,14 @@ def as_epoch(obj: Any, name: str) -> Epoch:
             cloud_params = getattr(src, "params", None)
         leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
         mixture = getattr(obj, "mixture", None)
+        derived = obj.derived if isinstance(obj, SceneModel) else {}
     except AttributeError as exc:
         raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
                          f"{type(obj).__name__} ({exc})") from None
     return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
                  np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
-                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None)
+                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None,
+                 derived)
 
 
 def check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
