@@ -76,8 +76,11 @@ def _current_mixture(cur: Epoch, ref_mix: Mixture, params: ChangeParams) -> Mixt
         return fit_own(cur, params)
     # EM from the reference mixture, every component free, no splits: the reference's
     # components follow the current cloud (a removed object's component moves or dies)
-    return fit_mixture(cur.points, init=ref_mix, leaf=cur.leaf_m, seed=params.seed, split=False,
-                       tol=params.novelty_tol)
+    step = 1
+    if params.current_fit_points and cur.n_points > params.current_fit_points:
+        step = -(-cur.n_points // params.current_fit_points)
+    return fit_mixture(cur.points[::step], init=ref_mix, leaf=cur.leaf_m, seed=params.seed,
+                       split=False, tol=params.novelty_tol)
 
 
 def _novelty_seeds(other: Epoch, novel: np.ndarray, params: ChangeParams

@@ -775,7 +775,9 @@ def fit_over_background(points, background: Mixture, log_background, weights, me
     Mixture
         The background's components first (weights scaled by its fitted total), then the
         free components that kept their points (a free component that loses them is removed
-        and EM goes on, as :func:`fit_mixture` does); ``.record`` with one ``"start"`` step.
+        and EM goes on, as :func:`fit_mixture` does); ``.record`` with one ``"start"`` step,
+        whose log-likelihood is that of the last E-step (within ``tol`` x N of the returned
+        parameters': no extra pass over the points).
     """
     t_start = time.perf_counter()
     x = _check_points(points)
@@ -795,22 +797,22 @@ def fit_over_background(points, background: Mixture, log_background, weights, me
         reg_covar = reg_covar_for_leaf(leaf)
     total_iter = 0
     status = em.STATUS_CONVERGED
+    log_l = float(log_bg.sum())  # with no free component left: the background alone
     while len(mu):
-        w2, mu2, cov2, _, n_it, status, empty = em.em_loop_background(
+        w2, mu2, cov2, lp, n_it, status, empty = em.em_loop_background(
             x, log_bg, w, mu, cov, float(reg_covar), float(tol), max(max_iter - total_iter, 1))
         total_iter += n_it
         if status != em.STATUS_EMPTY:
-            w, mu, cov = w2, mu2, cov2
+            w, mu, cov, log_l = w2, mu2, cov2, float(lp) * n
             break
         keep = np.arange(len(mu)) != empty
         w = np.concatenate([w2[:1], w2[1:][keep]])
         w, mu, cov = w / w.sum(), mu2[keep], cov2[keep]
+    if not len(mu):
+        w = np.ones(1)
     k0 = background.n_components
     weights_all = np.concatenate([background.weights * w[0], w[1:]])
     fixed = np.arange(k0 + len(mu)) < k0
-    prec, log_det, _ = em.precision_cholesky(cov)
-    _, log_prob = em.responsibilities_background(x, log_bg, w, mu, prec, log_det)
-    log_l = float(log_prob.sum())
     seconds = time.perf_counter() - t_start
     step = FitStep("start", len(weights_all), criterion_value(criterion, log_l, n, weights_all,
                                                               fixed, True),
