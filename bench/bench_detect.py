@@ -18,8 +18,8 @@ checkout (e.g. a ``git worktree`` of the commit before a change): both workers' 
 printed side by side, so they share the machine's load.  Each worker is a subprocess running
 this file with ``--worker`` on its checkout.
 
-``--threads 2``: ChangeParams(threads=2) (the two directions on two threads) where the
-checkout has it.  OMP / BLAS threads are pinned to 1.  A benchmark, never a test.
+``--threads N``: ChangeParams(threads=N) (2: registration beside cleaning, the two
+directions on two threads) where the checkout has the field (before it, one thread only).  OMP / BLAS threads are pinned to 1.  A benchmark, never a test.
 """
 
 from __future__ import annotations
@@ -59,10 +59,10 @@ def worker(scenes: list[str], threads: int) -> None:
     from sim_fixtures import load_scene
 
     params = ChangeParams()
-    if threads > 1:
-        if "threads" not in {f.name for f in dataclasses.fields(ChangeParams)}:
-            raise SystemExit("this checkout has no ChangeParams.threads")
+    if "threads" in {f.name for f in dataclasses.fields(ChangeParams)}:
         params = params.replace(threads=threads)
+    elif threads > 1:
+        raise SystemExit("this checkout has no ChangeParams.threads")
     cases = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in scenes:

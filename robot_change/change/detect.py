@@ -47,6 +47,7 @@ from robot_change.change.compare import (
     Direction,
     Reference,
     align,
+    direction_free,
     finish,
     fit_own,
     geometric_filters,
@@ -55,6 +56,7 @@ from robot_change.change.compare import (
 from robot_change.change.epoch import Epoch
 from robot_change.change.greedy import greedy_trace, posteriors
 from robot_change.change.params import ChangeParams
+from robot_change.change.parallel import both
 from robot_change.change.regions import label_voxel_components
 from robot_change.change.results import ChangeSet
 from robot_change.errors import InputError
@@ -233,7 +235,8 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         return detect_plain(reference, current, params, intrinsics=intrinsics)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    aligned = align(reference, current, params, intrinsics, timings, initial_pose)
+    aligned = align(reference, current, params, intrinsics, timings, initial_pose,
+                    free_space=False)
     if not aligned.at_station:
         return not_at_station_result("novelty", params, aligned, timings, t_start)
     ref, cur = aligned.ref, aligned.cur
@@ -242,25 +245,30 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         t0 = time.perf_counter()
         ref_mix = fit_own(ref, params)
         timings["reference_fit_ms"] = (time.perf_counter() - t0) * 1e3
-    free_a, obs_a = aligned.free_cur, aligned.observed_cur
-    cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params, timings,
-                                                "appeared_", free_a, obs_a)
-    cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free_a, obs_a)
-    app = Direction(cand, post, mix, trace, obs_a)
-    dis = None
-    k_cur = 0
-    if params.disappeared:
+
+    def appeared() -> Direction:
+        free, observed = direction_free(aligned, "appeared", params, timings)
+        cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params,
+                                                    timings, "appeared_", free, observed)
+        cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free, observed)
+        return Direction(cand, post, mix, trace, observed)
+
+    def disappeared() -> tuple[Direction | None, int]:
+        if not params.disappeared:
+            return None, 0
+        free, observed = direction_free(aligned, "disappeared", params, timings)
         cur_mix = cur.mixture
         if cur_mix is None:
             t0 = time.perf_counter()
             cur_mix = _current_mixture(cur, ref_mix, params)
             timings["current_fit_ms"] = (time.perf_counter() - t0) * 1e3
-        k_cur = cur_mix.n_components
-        free_d, obs_d = aligned.free_ref, aligned.observed_ref
         cand, mix, post, trace = _novelty_direction("disappeared", cur, ref, cur_mix, params,
-                                                    timings, "disappeared_", free_d, obs_d)
-        cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free_d,
-                                  obs_d)
-        dis = Direction(cand, post, mix, trace, obs_d)
+                                                    timings, "disappeared_", free, observed)
+        cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free,
+                                 observed)
+        return Direction(cand, post, mix, trace, observed), cur_mix.n_components
+
+    app, (dis, k_cur) = both(appeared, disappeared,
+                             params.threads if params.disappeared else 1)
     return finish("novelty", params, aligned, app, dis, ref_mix.n_components, k_cur, timings,
                    t_start)

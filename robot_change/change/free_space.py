@@ -20,6 +20,7 @@ from robot_change.errors import InputError
 
 __all__ = [
     "free_and_observed",
+    "free_space_views",
     "free_space_votes",
     "other_views",
     "sensing_window",
@@ -253,23 +254,30 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                               float(margin_m), float(margin_per_m2), bool(no_reading_is_free))
 
 
+def free_space_views(base: Epoch, params: ChangeParams
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`other_views` of ``base``'s depth image with the check's radii, made once and
+    kept in ``base.derived`` (a station's reference: once for all its checks)."""
+    radii = (params.free_space_pose_radius_px, params.free_space_hole_radius_px)
+    key = ("free_space_views", *radii)
+    views = base.derived.get(key)
+    if views is None:
+        views = base.derived[key] = other_views(base.depth, *radii)
+    return views
+
+
 def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from_other: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
     """(free, observed), (M,) bool each over ``other``'s points: the points ``base``'s depth
     image sees through, and those ``base``'s camera could see at all (the majority of their
     pixels land inside its image and depth range)."""
     cp = base.cloud_params or CloudParams()
-    radii = (params.free_space_pose_radius_px, params.free_space_hole_radius_px)
-    key = ("free_space_views", *radii)
-    views = base.derived.get(key)
-    if views is None:
-        views = base.derived[key] = other_views(base.depth, *radii)
     votes, total, unseen = free_space_votes(
         other.pixel_voxel, other.depth, base.depth, other.n_points, params.free_space_margin_m,
         params.free_space_margin_per_m2, params.free_space_pose_radius_px,
         params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
         intrinsics=other.intrinsics, other_from_own=base_from_other,
-        depth_range_m=(cp.min_depth_m, cp.max_depth_m), views=views)
+        depth_range_m=(cp.min_depth_m, cp.max_depth_m), views=free_space_views(base, params))
     observed = (total > 0) & (2 * unseen < total)
     seen = total - unseen
     free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))

@@ -137,6 +137,11 @@ class ChangeParams:
     min_cloud_points: int = 50
     # Seed of the mixture fits (subsets); same seed, same result.
     seed: int = 0
+    # Threads of one check: 2 runs the registration beside the current's cleaning, and what
+    # appeared beside what disappeared (the kernels release the GIL), on two cores; 1 runs
+    # all in the caller's thread.  The same result either way; the same CPU time, about 0.6x
+    # the wall time on two cores (docs/benchmarks.md).
+    threads: int = 2
     # --- registration -----------------------------------------------------------------------
     # How the current view is registered to the reference before comparing (and the station
     # tolerance); RegistrationParams(enabled=False) compares in the shared pixel grid.
@@ -171,6 +176,7 @@ class ChangeParams:
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
+        _int("threads", self.threads, 1, 2)
 
     def replace(self, **changes: Any) -> ChangeParams:
         """A copy with some fields changed (validated)."""
