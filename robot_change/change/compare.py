@@ -43,6 +43,7 @@ __all__ = [
     "Reference",
     "align",
     "direction_free",
+    "direction_regions",
     "finish",
     "fit_own",
     "geometric_filters",
@@ -59,14 +60,24 @@ Current: TypeAlias = "SceneModel | Epoch | np.ndarray"
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Direction:
-    """One direction's result before regions: candidate mask (M,) bool, posteriors (M, K) of
-    the searched mixture (or None), that mixture, its greedy trace, and the observed mask."""
+    """One direction's result: candidate mask (M,) bool, posteriors (M, K) of the searched
+    mixture (or None), that mixture, its greedy trace, the observed mask, and its regions
+    when the direction grouped them itself (None: :func:`finish` groups them)."""
 
     changed: np.ndarray
     posterior: np.ndarray | None
     mixture: Mixture | None
     trace: GreedyTrace | None
     observed: np.ndarray
+    regions: tuple | None = None
+
+
+def direction_regions(kind: str, epoch: Epoch, direction: Direction, params: ChangeParams
+                      ) -> tuple:
+    """The direction's changed points of ``epoch`` grouped into regions
+    (:func:`robot_change.change.regions.group_regions`)."""
+    return group_regions(kind, epoch, direction.changed, params, direction.posterior,
+                         direction.trace.change if direction.trace is not None else None)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -207,12 +218,10 @@ def finish(method: str, params: ChangeParams, aligned: Aligned, app: Direction |
             ) -> ChangeSet:
     ref, cur = aligned.ref, aligned.cur
     t0 = time.perf_counter()
-    regions_a = group_regions("appeared", cur, app.changed, params, app.posterior,
-                              app.trace.change if app.trace is not None else None) \
-        if app is not None else ()
-    regions_d = group_regions("disappeared", ref, dis.changed, params, dis.posterior,
-                              dis.trace.change if dis.trace is not None else None) \
-        if dis is not None else ()
+    regions_a = () if app is None else app.regions if app.regions is not None else \
+        direction_regions("appeared", cur, app, params)
+    regions_d = () if dis is None else dis.regions if dis.regions is not None else \
+        direction_regions("disappeared", ref, dis, params)
     rows_a = (np.sort(np.concatenate([r.point_index for r in regions_a]))
               if regions_a else np.zeros(0, np.int64))
     rows_d = (np.sort(np.concatenate([r.point_index for r in regions_d]))

@@ -36,6 +36,7 @@ Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  Ker
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -48,6 +49,7 @@ from robot_change.change.compare import (
     Reference,
     align,
     direction_free,
+    direction_regions,
     finish,
     fit_own,
     geometric_filters,
@@ -251,7 +253,12 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params,
                                                     timings, "appeared_", free, observed)
         cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free, observed)
-        return Direction(cand, post, mix, trace, observed)
+        t0 = time.perf_counter()
+        direction = Direction(cand, post, mix, trace, observed)
+        direction = dataclasses.replace(
+            direction, regions=direction_regions("appeared", cur, direction, params))
+        timings["appeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
+        return direction
 
     def disappeared() -> tuple[Direction | None, int]:
         if not params.disappeared:
@@ -266,7 +273,12 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
                                                     timings, "disappeared_", free, observed)
         cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free,
                                  observed)
-        return Direction(cand, post, mix, trace, observed), cur_mix.n_components
+        t0 = time.perf_counter()
+        direction = Direction(cand, post, mix, trace, observed)
+        direction = dataclasses.replace(
+            direction, regions=direction_regions("disappeared", ref, direction, params))
+        timings["disappeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
+        return direction, cur_mix.n_components
 
     app, (dis, k_cur) = both(appeared, disappeared,
                              params.threads if params.disappeared else 1)
