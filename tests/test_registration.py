@@ -105,6 +105,19 @@ def _normal_twin(vertex, max_step):
     return out
 
 
+def _project_twin(point, R, t, fx, fy, cx, cy, shape):
+    """(p, u, v): ``point`` moved by (R, t) and the pixel it lands on, or None when it lands
+    behind the camera or outside an image of ``shape`` (h, w)."""
+    p = R @ point.astype(np.float64) + t
+    if p[2] <= 0:
+        return None
+    u = int(math.floor(fx * p[0] / p[2] + cx + 0.5))
+    v = int(math.floor(fy * p[1] / p[2] + cy + 0.5))
+    if not (0 <= u < shape[1] and 0 <= v < shape[0]):
+        return None
+    return p, u, v
+
+
 def _associate_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist, min_cos):
     res, jac, zs = [], [], []
     for i in range(cur_v.shape[0]):
@@ -112,13 +125,10 @@ def _associate_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist, 
             n0 = cur_n[i, j].astype(np.float64)
             if not n0.any():
                 continue
-            p = R @ cur_v[i, j].astype(np.float64) + t
-            if p[2] <= 0:
+            hit = _project_twin(cur_v[i, j], R, t, fx, fy, cx, cy, ref_v.shape)
+            if hit is None:
                 continue
-            u = int(math.floor(fx * p[0] / p[2] + cx + 0.5))
-            v = int(math.floor(fy * p[1] / p[2] + cy + 0.5))
-            if not (0 <= u < ref_v.shape[1] and 0 <= v < ref_v.shape[0]):
-                continue
+            p, u, v = hit
             m = ref_n[v, u].astype(np.float64)
             if not m.any():
                 continue
@@ -278,15 +288,10 @@ def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist
     out = np.zeros(cur_v.shape[:2], np.int8)
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
-            if cur_v[i, j, 2] <= 0:
+            hit = _project_twin(cur_v[i, j], R, t, fx, fy, cx, cy, ref_v.shape)
+            if cur_v[i, j, 2] <= 0 or hit is None or ref_v[hit[2], hit[1], 2] <= 0:
                 continue
-            p = R @ cur_v[i, j].astype(np.float64) + t
-            if p[2] <= 0:
-                continue
-            u = int(math.floor(fx * p[0] / p[2] + cx + 0.5))
-            v = int(math.floor(fy * p[1] / p[2] + cy + 0.5))
-            if not (0 <= u < ref_v.shape[1] and 0 <= v < ref_v.shape[0]) or ref_v[v, u, 2] <= 0:
-                continue
+            p, u, v = hit
             gap = float(ref_v[v, u, 2]) - p[2]
             margin_z = margin + per_m2 * p[2] ** 2
             if gap > margin_z:

@@ -1017,7 +1017,7 @@ def _score_poses(rl: _Level, cl: _Level, poses: list[np.ndarray], params: Regist
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
                         params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                        both_ways, hole_weight, pairs.res, pairs.jac, pairs.zs)
+                        bool(both_ways), float(hole_weight), pairs.res, pairs.jac, pairs.zs)
 
 
 def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
