@@ -421,20 +421,16 @@ def _plane_grid_twin(vertex, rot, trans, cell_m, lo_x, lo_y, rows, cols, object_
     return out
 
 
-TABLE_BOXES = ((-0.2, 0.1, 0.12, 0.08, 0.10), (0.15, -0.15, 0.08, 0.08, 0.2),
-               (0.25, 0.2, 0.2, 0.1, 0.05))
-
-
-def _table_scene(T_world_from_cam, boxes=TABLE_BOXES):
+def _table_scene(T_world_from_cam):
     """(480, 640) uint16 mm: a 1.0 x 0.8 m table top (z = 0 in the world, centred at the
-    origin) with boxes on it (``boxes``: centre x, y, size x, y, z, m; three by default), seen
-    by a camera at ``T_world_from_cam`` (4, 4); points sampled every 2 mm, splatted into a
-    z-buffer; nothing beyond the table."""
+    origin) with three boxes on it, seen by a camera at ``T_world_from_cam`` (4, 4); points
+    sampled every 2 mm, splatted into a z-buffer; nothing beyond the table."""
     g = np.arange(-0.5, 0.5, 0.002)
     h = np.arange(-0.4, 0.4, 0.002)
     X, Y = np.meshgrid(g, h)
     pts = [np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)]
-    for (cx, cy, sx, sy, sz) in boxes:
+    for (cx, cy, sx, sy, sz) in ((-0.2, 0.1, 0.12, 0.08, 0.10), (0.15, -0.15, 0.08, 0.08, 0.2),
+                                 (0.25, 0.2, 0.2, 0.1, 0.05)):
         a = np.arange(-sx / 2, sx / 2, 0.002)
         b = np.arange(-sy / 2, sy / 2, 0.002)
         c = np.arange(0, sz, 0.002)

@@ -62,11 +62,8 @@ def warm_up(config: Config | None = None) -> float:
             detect_changes(reference, after, shifted, initial_pose=offset)
         except (EmptySceneError, InputError):
             pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
-    # the table-plane starts' and the trimming's kernels run on table tops only (not on the
-    # synthetic room); vertex and normal maps are float32, as in a check
+    # the table-plane starts' kernel runs on table tops only (not on the synthetic room)
     from robot_change.change import registration
-    vertex = np.zeros((2, 2, 3), dtype=np.float32)
-    registration._plane_grid(vertex, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
-    registration._cell_states(vertex, vertex, vertex, vertex, np.eye(3), np.zeros(3), 1.0, 1.0,
-                              0.0, 0.0, 0.06, 0.8, 3.0, 0.03, 0.004)
+    registration._plane_grid(np.zeros((2, 2, 3)), np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8,
+                             0.015, 0.03)
     return time.perf_counter() - t0
