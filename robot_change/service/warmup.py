@@ -73,8 +73,7 @@ def _helper_share() -> None:
         reference = before.copy()
         reference.setflags(write=False)
         registration.register_depth(reference, after.copy(), cam)
-    registration._plane_grid(np.zeros((2, 2, 3)), np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8,
-                             8, 0.015, 0.03)
+    _table_top_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -177,7 +176,7 @@ def warm_up(config: Config | None = None, helper: bool = True) -> float:
 
 def _whole_path(config: Config) -> None:
     """Every kernel a capture and a check use, on the tiny scene: both directions, through a
-    registration and through a given transform, and the table-plane starts' kernel."""
+    registration and through a given transform, and the table-top registration kernels."""
     cam, rooms = _tiny_scene()
     params = config.scene_params()
     # regions of any size, and any registration taken as at the station, so that every stage
@@ -198,10 +197,19 @@ def _whole_path(config: Config) -> None:
             detect_changes(reference, after, shifted, initial_pose=offset)
         except (EmptySceneError, InputError):
             pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
-    # the table-plane starts' kernel runs on table tops only (not on the synthetic room)
+    _table_top_kernels()
+
+
+def _table_top_kernels() -> None:
+    """The registration kernels only a table-top view reaches (the table-plane starts' grid,
+    the trimming's cell states; the synthetic room never passes their gate), with the
+    argument types a check gives them: float32 vertex and normal maps, float64 transforms."""
     from robot_change.change import registration
-    registration._plane_grid(np.zeros((2, 2, 3)), np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8,
-                             0.015, 0.03)
+
+    v = np.zeros((2, 2, 3), np.float32)
+    registration._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
+    registration._cell_states(v, v, v, v, np.eye(3), np.zeros(3), 1.0, 1.0, 0.0, 0.0, 0.06,
+                              0.8, 3.0, 0.03, 0.004)
 
 
 def _exit_with_parent(parent: int) -> None:
