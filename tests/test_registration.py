@@ -389,6 +389,22 @@ def test_registration_switched_off_is_the_identity(office_pair):
     np.testing.assert_array_equal(taken.T_ref_from_cur, given)
 
 
+def test_a_kept_reference_pyramid_gives_the_same_registration(office_pair):
+    """keep=: the reference's pyramid is built once and reused; the estimate is the same."""
+    ref, cur, _ = office_pair
+    fresh = register_depth(ref, cur, INTR)
+    kept: dict = {}
+    first = register_depth(ref, cur, INTR, keep=kept)
+    assert len(kept) == 1
+    second = register_depth(ref, cur, INTR, keep=kept, initial=np.eye(4))
+    for got in (first, second):
+        np.testing.assert_array_equal(got.T_ref_from_cur, fresh.T_ref_from_cur)
+        assert (got.fitness, got.rmse_m, got.weak) == (fresh.fitness, fresh.rmse_m, fresh.weak)
+    coarse = RegistrationParams(levels=(32, 16, 8))
+    register_depth(ref, cur, INTR, coarse, keep=kept)
+    assert len(kept) == 2  # other pyramid parameters: another entry
+
+
 def test_bad_input_is_refused_with_typed_errors(office_pair):
     ref, cur, _ = office_pair
     with pytest.raises(InputError, match="uint16"):

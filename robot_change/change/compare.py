@@ -135,7 +135,7 @@ def align(reference: Reference, current: Current, params: ChangeParams, intrinsi
     def register() -> Registration | Exception:
         try:
             return register_depth(ref.depth, current_depth, ref.intrinsics, params.registration,
-                                  initial=initial_pose)
+                                  initial=initial_pose, keep=ref.derived)
         except Exception as exc:  # raised after the pair's own checks, which come first
             return exc
 

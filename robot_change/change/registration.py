@@ -846,7 +846,7 @@ def _weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> t
 
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
-                   initial: np.ndarray | None = None) -> Registration:
+                   initial: np.ndarray | None = None, keep: dict | None = None) -> Registration:
     """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
     into the reference camera frame, from the two depth images.
 
@@ -858,6 +858,10 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     params : RegistrationParams
     initial : (4, 4) float64, optional
         Starting estimate (identity by default: the robot believes it is at its station).
+    keep : dict, optional
+        Where the reference's pyramid is kept between calls (a station's reference, checked
+        against many frames, builds it once): an epoch's ``derived``
+        (robot_change.change.epoch.Epoch), which belongs to ``reference`` alone.
 
     Returns
     -------
@@ -878,7 +882,13 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if not params.enabled:
         return identity_registration(T)
     t0 = time.perf_counter()
-    ref_levels = _levels(ref, intrinsics, params)
+    key = ("registration_levels", intrinsics, params.levels, params.min_depth_m,
+           params.max_depth_m, params.band_m, params.band_slope)
+    ref_levels = keep.get(key) if keep is not None else None
+    if ref_levels is None:
+        ref_levels = _levels(ref, intrinsics, params)
+        if keep is not None:
+            keep[key] = ref_levels
     cur_levels = _levels(cur, intrinsics, params)
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     iterations = 0
