@@ -246,8 +246,9 @@ def test_window_filter_matches_numpy(radius):
                                       _window_twin(depth, radius, take_min))
 
 
-def _warp_twin(own, T, intr, depth_range, window=None):
-    """NumPy twin of change._warp_kernel: (target (P,), z_other (P,))."""
+def _warp_twin(own, T, intr, depth_range, window=None, pv=None):
+    """NumPy twin of free_space._warp_kernel: (target (P,), z_other (P,)); pixels without a
+    point (``pv`` < 0) are not warped."""
     h, w = own.shape
     rows, cols = np.mgrid[0:h, 0:w]
     z = own.astype(np.float64).ravel() * 0.001
@@ -261,7 +262,11 @@ def _warp_twin(own, T, intr, depth_range, window=None):
     v = np.floor(intr.fy * p[:, 1] / zsafe + intr.cy + 0.5).astype(np.int64)
     r0, r1, c0, c1 = window if window is not None else (0, h - 1, 0, w - 1)
     ok &= (u >= c0) & (v >= r0) & (u <= c1) & (v <= r1)
-    target = np.where(own.ravel() > 0, -2, -1)
+    has = own.ravel() > 0
+    if pv is not None:
+        has &= pv.ravel() >= 0
+    ok &= has
+    target = np.where(has, -2, -1)
     target[ok] = v[ok] * w + u[ok]
     return target, np.where(ok, pz, 0.0)
 
@@ -321,9 +326,11 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     T[:3, 3] = shift
     window = free_space.sensing_window(other)
     assert window == (0, h - 1, 0, w - 4)
-    got_t, got_z = free_space._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
-                                   intr.cx, intr.cy, w, np.array(window), 0.4, 2.9)
-    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window)
+    got_t, got_z = free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx,
+                                           intr.fy, intr.cx, intr.cy, w, np.array(window), 0.4,
+                                           2.9)
+    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window, pv)
+    assert (got_t[pv.ravel() < 0] == -1).all()  # pixels without a point are not warped
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,

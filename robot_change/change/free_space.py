@@ -106,15 +106,19 @@ def sensing_window(depth: np.ndarray, min_fraction: float = 0.05) -> tuple[int, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, max_m):
-    """Where each pixel of this epoch's depth image lands in the other epoch's image.
+def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, window, min_m,
+                 max_m):
+    """Where each pixel of this epoch's depth image that belongs to a point lands in the other
+    epoch's image.
 
-    ``own_depth`` (H, W) uint16 mm; (``rot`` (3, 3), ``trans`` (3,)) maps this camera's frame
-    into the other's (same intrinsics, image ``width`` pixels wide).  Returns ``target`` (P,)
-    int64, the flat index of the other image's pixel the reading projects to (-1 for no reading
-    here; -2 when the other camera could not have seen it: behind it, outside its sensing
-    ``window`` (row0, row1, col0, col1, inclusive), or outside its depth range
-    ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other frame (m).
+    ``own_depth`` (H, W) uint16 mm; ``pixel_voxel`` (H, W) int32, the point of each pixel (-1:
+    none, e.g. the removed floor: not warped); (``rot`` (3, 3), ``trans`` (3,)) maps this
+    camera's frame into the other's (same intrinsics, image ``width`` pixels wide).  Returns
+    ``target`` (P,) int64, the flat index of the other image's pixel the reading projects to
+    (-1 for no reading or no point here; -2 when the other camera could not have seen it:
+    behind it, outside its sensing ``window`` (row0, row1, col0, col1, inclusive), or outside
+    its depth range ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other
+    frame (m).
     """
     h, w = own_depth.shape
     target = np.full(h * w, -1, dtype=np.int64)
@@ -122,7 +126,7 @@ def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, ma
     for r in range(h):
         for c in range(w):
             d = own_depth[r, c]
-            if d == 0:
+            if d == 0 or pixel_voxel[r, c] < 0:
                 continue
             p = r * w + c
             z = d * 0.001
@@ -241,17 +245,18 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     near, far, window = views if views is not None else other_views(other_depth, pose_radius,
                                                                     hole_radius)
     own = np.ascontiguousarray(own_depth)
+    pv = np.ascontiguousarray(pixel_voxel, dtype=np.int32)
     if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
         target = np.where(own.ravel() > 0, np.arange(own.size), -1)
         z_other = own.ravel() * 0.001
     else:
-        target, z_other = _warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx,
-                                       intrinsics.fy, intrinsics.cx, intrinsics.cy, width,
-                                       window, float(depth_range_m[0]),
-                                       float(depth_range_m[1]))
-    return _free_space_kernel(np.ascontiguousarray(pixel_voxel, dtype=np.int32).ravel(),
-                              target, z_other, near.ravel(), far.ravel(), int(n_points),
-                              float(margin_m), float(margin_per_m2), bool(no_reading_is_free))
+        target, z_other = _warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
+                                       intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                       intrinsics.cy, width, window,
+                                       float(depth_range_m[0]), float(depth_range_m[1]))
+    return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
+                              int(n_points), float(margin_m), float(margin_per_m2),
+                              bool(no_reading_is_free))
 
 
 def free_space_views(base: Epoch, params: ChangeParams
