@@ -80,8 +80,8 @@ class ChangeParams:
     # stride subsample of the current cloud (0 = every point).  The mixture is only the
     # background the reference's points are held against; measured (bench/eval_change.py
     # --as-daemon, dev + real): 4000, 6000, 8000 and 12000 give the same changed points as
-    # every point on every scene, and a room view's fit 12 -> 3.4 ms at 8000.
-    current_fit_points: int = 8000
+    # every point on every scene; a room view's fit (31k points) 9.0 ms -> 1.7 ms at 6000.
+    current_fit_points: int = 6000
     # Most novelty components on top of the fixed ones (bounds K = K_ref + this).
     max_novelty_components: int = 8
     # Ground distance between components for the EMD: "euclidean" (between means) or
