@@ -181,7 +181,7 @@ def test_list_devices_without_a_camera_says_so():
           "--out", "/dev/null/x"], "/dev/null/x: Not a directory"),
         (["bench", "--runs", "0"], "--runs: 0: must be at least 1"),
         (["link-bench", "--count", "zero"], "'zero' is not a whole number"),
-        (["cloud", "--source", "{pcd}"], "a .pcd file is not a depth source"),
+        (["cloud", "--source", "{pcd}"], "cloud.pcd: not a PCD file"),
         (["detect", "--reference", "/nonexistent/dock.scene.npz", "--current",
           "sim_fixtures/frames/room_vga.png"], "/nonexistent/dock.scene.npz: No such file"),
         (["detect", "--reference", "{text}", "--current", "sim_fixtures/frames/room_vga.png"],
