@@ -1,8 +1,8 @@
 """Depth frames, the DepthSource interface, and ``open_depth(uri)``.
 
-Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images)
-delivers the same thing: :class:`DepthFrame` objects through the :class:`DepthSource` interface.
-The rest of the project never knows which backend it is reading from.
+Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images, a
+ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
+objects through the :class:`DepthSource` interface.  The rest of the project never knows which backend it is reading from.
 
 URIs (python-can / pyserial style; the backend module is imported only when used)::
 

@@ -208,7 +208,7 @@ def read_pcd(path: str | os.PathLike) -> PcdCloud:
         raise DepthFileError(f"{where}: no such file" if not where.exists() else
                              f"{where}: is a folder, expected a .pcd file")
     with open(where, "rb") as handle:
-        start = handle.read(256)
+        start = handle.read(4096)
     if b"FIELDS" not in start and b"VERSION" not in start:
         raise DepthFileError(f"{where}: not a PCD file (no PCD header at its start)")
     try:

@@ -130,9 +130,10 @@ class RosbagSource(DepthSource):
             self._choose_topic()
             self._intrinsics = self._find_intrinsics()
             self._restart()
-            self._peek()  # the first image: its encoding and size are checked now
+            self._peek()
             if self._pending is None:
                 raise DepthFileError(f"{self.path}: {self.topic} holds no message")
+            image_to_depth(self._pending[0], f"{self.path} {self.topic}")  # encoding, size
         except BaseException:
             self.close()
             raise

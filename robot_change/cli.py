@@ -22,7 +22,7 @@ import numpy as np
 import robot_change
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
-from hw.pointfile import POINT_FORMATS
+from hw.pointfile import POINT_FORMATS, write_points
 from robot_change.change.mount import CameraMount
 from robot_change.errors import ConfigError, InputError, RobotChangeError
 
@@ -127,8 +127,6 @@ def _write_point_files(files: dict[Path, tuple[np.ndarray, tuple[int, int, int] 
                        fmt: str, mount: CameraMount | None) -> tuple[list[str], str]:
     """Write each (M, 3) optical-frame point array to its path (ending in ``.fmt``) through
     :func:`hw.pointfile.write_points`, in :func:`_points_frame`; returns (paths, frame)."""
-    from hw.pointfile import write_points
-
     frame = _points_frame(fmt, mount)
     pose = mount.base_from_optical() if frame == "base_link" else None
     written = []
@@ -148,6 +146,7 @@ def cmd_cloud(args: argparse.Namespace) -> int:
     from robot_change.cloud.chain import clean_cloud
 
     started = time.perf_counter()
+    mount = CameraMount.parse(args.mount) if args.mount else None
     depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
     params = _cloud_params(args)
     cloud = clean_cloud(depth, camera, params)
@@ -165,7 +164,6 @@ def cmd_cloud(args: argparse.Namespace) -> int:
     out_dir = Path(args.out) if args.out else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        mount = CameraMount.parse(args.mount) if args.mount else None
         summary["files"], summary["frame"] = _write_point_files(
             {out_dir / f"cloud.{args.format}": (cloud.points, None)}, args.format, mount)
         if not args.no_picture:
