@@ -2,7 +2,8 @@
 
 Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images, a
 ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
-objects through the :class:`DepthSource` interface.  The rest of the project never knows which backend it is reading from.
+objects through the :class:`DepthSource` interface.  The rest of the project never knows which
+backend it is reading from.
 
 URIs (python-can / pyserial style; the backend module is imported only when used)::
 
@@ -249,7 +250,8 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
 
     A bare path is given the scheme its ending implies (``.oni`` -> ``oni``; ``.bag``,
     ``.db3``, ``.mcap`` or a folder holding ``metadata.yaml`` -> ``rosbag``; ``.pcd`` ->
-    ``pcd``; an image or another folder -> ``images``).  Raises :class:`UriError` for an unknown scheme or an empty target.
+    ``pcd``; an image or another folder -> ``images``).  Raises :class:`UriError` for an
+    unknown scheme or an empty target.
     """
     if not isinstance(uri, str) or not uri.strip():
         raise UriError(f"depth URI {uri!r}: expected e.g. 'openni2://', 'oni:file.oni' or "
