@@ -160,7 +160,7 @@ def test_a_bad_value_names_key_value_and_what_is_allowed(tmp_path, text, expecte
 
 @pytest.mark.parametrize("text, expected", [
     ("[camrea]\n", "unknown section [camrea] (known: camera, serial, store, cloud, mixture, "
-                   "change, watch, service); did you mean 'camera'?"),
+                   "change, watch, service, fleet); did you mean 'camera'?"),
     ("[cloud]\nleaf = 0.02\n", "cloud.leaf = 0.02: unknown key (known in [cloud]:"),
     ("[cloud]\nleaf = 0.02\n", "did you mean 'leaf_m'?"),
     ("[serial]\nbaudrate = 9600\n", "did you mean 'baud'?"),
