@@ -161,8 +161,8 @@ def refusal(settings: BrokerSettings, reason: Any) -> str:
     if "user name or password" in lowered or "bad username" in lowered:
         hint = "check fleet.username and the password in fleet.password_file"
     elif "not authori" in lowered:
-        hint = ("the broker does not let this client in: its user needs an account "
-                "(allow_anonymous false) and an ACL for its topics")
+        hint = ("check fleet.username and the password in fleet.password_file, and that the "
+                "broker has an account and an ACL for this robot")
     elif "identifier" in lowered:
         hint = "the broker refused the client id (robot-change-<robot_id>)"
     else:
