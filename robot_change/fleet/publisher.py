@@ -124,20 +124,7 @@ class Publisher:
         with self._lock:
             self._seq += 1
             seq = self._seq
-        item = (seq, station, origin, link_report_id, time.time(), document, changed)
-        while True:
-            try:
-                self._queue.put_nowait(item)
-                break
-            except queue.Full:
-                try:
-                    self._queue.get_nowait()
-                except queue.Empty:
-                    continue
-                with self._lock:
-                    self.queue_dropped += 1
-                self._throttled("queue-full", logging.WARNING, "fleet: the report queue is "
-                                "full; the oldest report was dropped")
+        self._put((seq, station, origin, link_report_id, time.time(), document, changed))
         return f"{self.boot_id}-{seq}"
 
     def counts(self) -> dict[str, Any]:
@@ -154,7 +141,7 @@ class Publisher:
         (retained status) when connected, disconnect.  Waits at most ``timeout`` seconds;
         what is unsent stays in the spool for the next start."""
         end = time.monotonic() + timeout
-        self._put_stop()
+        self._put(_STOP)
         for thread in self._threads:
             if thread.name.endswith("writer"):
                 thread.join(max(0.0, end - time.monotonic() - 0.1))
@@ -163,18 +150,21 @@ class Publisher:
         for thread in self._threads:
             thread.join(max(0.01, end - time.monotonic()))
 
-    def _put_stop(self) -> None:
+    def _put(self, item: Any) -> None:
+        """Queue ``item``; when the queue is full, the oldest item makes room (counted)."""
         while True:
             try:
-                self._queue.put_nowait(_STOP)
+                self._queue.put_nowait(item)
                 return
             except queue.Full:
                 try:
                     self._queue.get_nowait()
                 except queue.Empty:
-                    pass
+                    continue
                 with self._lock:
                     self.queue_dropped += 1
+                self._throttled("queue-full", logging.WARNING, "fleet: the report queue is "
+                                "full; the oldest report was dropped")
 
     def _guard(self, name: str, target: Callable[[], None]) -> Callable[[], None]:
         def run() -> None:
@@ -283,6 +273,9 @@ class Publisher:
             self._failed(self._refused, lasting=True)
         elif was_up:
             self._failed(f"{self.settings.url}: connection lost")
+        elif time.monotonic() < self._connect_deadline:
+            self._failed(f"{self.settings.url}: the broker closed the connection before "
+                         "accepting it (a TLS or protocol mismatch? see the broker's log)")
         else:
             self._failed(f"{self.settings.url}: no CONNACK from the broker within "
                          f"{self.settings.connect_timeout_s:g} s")

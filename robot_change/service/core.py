@@ -37,6 +37,9 @@ Threads and queues (nothing grows without bound)::
     control   commands (bounded queue), frames, capture / check / watch, heartbeat contents
     detector  (robot_change.service.watch) <= 2 threads running WATCH checks
     monitor   progress of every part (robot_change.service.liveness): a stall is told to the base
+    fleet     (robot_change.fleet.publisher; with [fleet]) a bounded report queue, its writer
+              (-> on-disk spool) and network (-> MQTT broker) threads; a check told to the
+              base is handed to it afterwards with a call that never blocks
 
 Liveness: the link, camera and control threads stamp every turn, a CHECK or capture and every
 WATCH check is a unit of work that must end, and while a watch runs (the base parked, the
