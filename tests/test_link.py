@@ -662,3 +662,29 @@ def test_ack_holdoff_counts_from_the_burst_that_answered():
     wire.clock.t += wire.base.config.ack_holdoff * 0.2
     wire.base.receive(copy)
     assert len(frames(wire.base.outgoing())) == p.URGENT_COPIES
+
+
+def test_a_base_that_has_not_heard_the_modules_hello_reads_parts_without_failing():
+    """A base restarted mid-report (or a second base on the line) is at version 1 until the
+    module's HELLO reaches it, but the module already speaks 3 (it heard the base's HELLO):
+    the base joins the PARTs, asks for missing ones in the PARTs' own version (NEED exists from
+    version 3), and hands the message on; it never fails on them (a crash of base-sim)."""
+    wire = Wire().connect()
+    seq = wire.module.send(p.Fault(p.FaultCode.CAMERA_LOST, "y" * 60))
+    sent: list[p.Frame] = []
+    for _ in range(10):  # 50 ms of the carousel, nothing reaches the base yet
+        wire.clock.t += 0.005
+        wire.module.poll()
+        sent += frames(wire.module.outgoing())
+    fresh = Link(p.Role.BASE, clock=wire.clock, boot_id=0xCCCC)
+    assert fresh.version == 1  # it has heard no HELLO of the module's
+    first = [f for f in sent if f.message.index != 2]
+    fresh.receive(b"".join(p.encode(f.message, f.seq, version=3) for f in first))
+    fresh.outgoing()  # its first NEED, at the first PART
+    wire.clock.t += fresh.config.need_interval + 0.001
+    fresh.receive(p.encode(first[0].message, first[0].seq, version=3))  # a repeat
+    (need,) = [f for f in frames(fresh.outgoing()) if f.message.TYPE == p.MsgType.NEED]
+    assert need.seq == seq and need.message.missing == (2,) and need.version == 3
+    rest = [f for f in sent if f.message.index == 2]
+    fresh.receive(p.encode(rest[0].message, rest[0].seq, version=3))
+    assert received(fresh.events(), p.Fault) == [p.Fault(p.FaultCode.CAMERA_LOST, "y" * 60)]

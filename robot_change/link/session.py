@@ -470,7 +470,9 @@ class Link:
             if now - assembly.need_at >= self.config.need_interval:
                 assembly.need_at = now
                 missing = tuple(i for i in range(assembly.count) if i not in assembly.got)
-                self._out += encode(Need(missing), seq, version=self.version)
+                # in the PART's version, as an ACK answers in its frame's (7.5): an end that
+                # has not heard the peer's HELLO yet is still at version 1, where NEED is not
+                self._out += encode(Need(missing), seq, version=frame.version)
                 self.stats.needs_sent += 1
             return
         del self._assemblies[seq]
