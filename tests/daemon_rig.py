@@ -48,17 +48,18 @@ def camera_folder() -> Path:
 class Daemon:
     """``robot-change run`` as a subprocess.  ``hang``: where to inject a hang (armed by
     :meth:`arm`); ``watchdog_usec``: systemd's WATCHDOG_USEC (the stall bound is half of it,
-    at least 2 s); ``env``: more environment (e.g. an empty NUMBA_CACHE_DIR)."""
+    at least 2 s); ``env``: more environment (e.g. an empty NUMBA_CACHE_DIR); ``config``: more
+    of the configuration file (TOML sections)."""
 
     def __init__(self, tmp: Path, hang: str | None = None, watchdog_usec: int = 4_000_000,
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, config: str = "") -> None:
         self.tmp = tmp
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
         tty.setraw(self.slave)
         self.arm_file = tmp / "hang.arm"
         self.config = tmp / "robot-change.toml"
-        self.write_config()
+        self.write_config(config)
         self.notes = Notes(tmp / "notify.sock")
         full = dict(os.environ, NOTIFY_SOCKET=str(tmp / "notify.sock"),
                     WATCHDOG_USEC=str(watchdog_usec), PYTHONPATH=str(REPO), **(env or {}))

@@ -565,10 +565,10 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
                 extra[key] = value
             else:
                 where = f"{cls.NAME}.{key} = {_show(value)}"
-                if key in _ALL_KEYS:
-                    hint = f"; it belongs in [{_ALL_KEYS[key]}]"
-                else:
-                    hint = _suggest(key, sorted(fields))
+                hint = _suggest(key, sorted(fields))
+                if key in _ALL_KEYS:  # e.g. [viz] port: live_port, or serial.port
+                    hint = (f"{hint} (or '{key}' of [{_ALL_KEYS[key]}])" if hint
+                            else f"; it belongs in [{_ALL_KEYS[key]}]")
                 raise ConfigError(f"{source}: {where}: unknown key (known in [{cls.NAME}]: "
                                   f"{', '.join(sorted(fields))}){hint}")
         if extra:
