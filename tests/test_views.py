@@ -108,10 +108,8 @@ def test_a_check_file_that_cannot_be_written_is_a_warning_and_the_check_goes_on(
         assert "view of the check of office not written" in caplog.text
 
 
-def test_a_folder_that_is_a_file_at_start_skips_the_files_with_a_warning(
-        tmp_path: Path, scene_frames, caplog) -> None:  # noqa: F811
-    (tmp_path / "reports").mkdir()
-    (tmp_path / "reports" / "checks").write_text("in the way")
+def check_without_views(tmp_path: Path, scene_frames, caplog) -> str:  # noqa: F811
+    """Capture and CHECK with a service whose views could not start; returns its warnings."""
     with caplog.at_level(logging.WARNING, logger="robot_change.service.views"):
         with Rig(tmp_path, scene_frames) as rig:
             assert not rig.service.views.enabled
@@ -121,7 +119,15 @@ def test_a_folder_that_is_a_file_at_start_skips_the_files_with_a_warning(
                 check office
                 expect CLEAR station=office 5
             """)
-    assert "check files skipped: cannot use the folder" in caplog.text
+    return caplog.text
+
+
+def test_a_folder_that_is_a_file_at_start_skips_the_files_with_a_warning(
+        tmp_path: Path, scene_frames, caplog) -> None:  # noqa: F811
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "checks").write_text("in the way")
+    assert "check files skipped: cannot use the folder" in check_without_views(
+        tmp_path, scene_frames, caplog)
 
 
 def test_without_foxglove_sdk_the_daemon_checks_and_says_the_views_are_skipped(
@@ -129,17 +135,8 @@ def test_without_foxglove_sdk_the_daemon_checks_and_says_the_views_are_skipped(
     import sys
 
     monkeypatch.setitem(sys.modules, "foxglove", None)  # as on a robot without the viz extra
-    with caplog.at_level(logging.WARNING, logger="robot_change.service.views"):
-        with Rig(tmp_path, scene_frames) as rig:
-            assert not rig.service.views.enabled
-            rig.run("""
-                capture office
-                expect CAPTURED 5
-                check office
-                expect CLEAR station=office 5
-            """)
     assert ("check views for Foxglove skipped: Foxglove views of a check need foxglove-sdk: "
-            "install the 'viz' extra") in caplog.text
+            "install the 'viz' extra") in check_without_views(tmp_path, scene_frames, caplog)
     assert not (tmp_path / "reports" / "checks").exists()
     assert (tmp_path / "reports" / "office.last-check.json").is_file()
 

@@ -40,12 +40,14 @@ from robot_change.mixture.model import Mixture
 
 __all__ = [
     "FRAMES",
+    "POINT_DTYPE",
     "REPORT_SCHEMA_NAME",
     "SIGMAS",
     "TOPICS",
     "CheckChannels",
     "check_messages",
     "ellipsoid_axes",
+    "region_label",
     "sdk",
 ]
 

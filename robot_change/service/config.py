@@ -66,9 +66,9 @@ __all__ = [
 #: unit lists it in RestartPreventExitStatus=: restarting cannot fix a configuration file.
 EXIT_CONFIG = 78
 
-#: Baud rates a USB serial adapter and the base controller commonly agree on.
 #: Per-check MCAP files kept by default (the newest; ~0.5 MB each for VGA depth).
 DEFAULT_KEEP_CHECKS = 20
+#: Baud rates a USB serial adapter and the base controller commonly agree on.
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000,
               2000000)
 LOG_LEVELS = ("debug", "info", "warning", "error")

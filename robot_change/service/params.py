@@ -42,7 +42,8 @@ def check_config(config: Config) -> None:
         try:
             sdk()
         except InputError as exc:
-            raise ConfigError(f"{where}: viz.live = true: {exc}; or set viz.live = false") from None
+            raise ConfigError(f"{where}: viz.live = true: {exc}; or set viz.live = "
+                              "false") from None
 
 
 def _check_state_dir(where: str, path: Path) -> None:

@@ -188,7 +188,12 @@ class CheckViews:
                                   report=view.report(), stamp_ns=view.stamp_ns)
         t1 = time.perf_counter()
         if self.live is not None:
-            self.live.publish(messages, view.stamp_ns)
+            try:
+                self.live.publish(messages, view.stamp_ns)
+            except Exception:  # noqa: BLE001 -- the file is still worth writing
+                self.counters["views_failed"] += 1
+                log.warning("check of %s not sent to the live view", view.station,
+                            exc_info=True)
         t2 = time.perf_counter()
         done: dict[str, Any] = {"messages_ms": (t1 - t0) * 1e3, "live_ms": (t2 - t1) * 1e3}
         if self.folder is not None:
