@@ -4,7 +4,7 @@ ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorit
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
         [--sweep SEEDS [--no-fixtures] [--sweep-levels 2,5,10,15] [--sweep-seed-base N]
          [--sweep-tag T]] [--tabletop SEEDS [--tabletop-seed-base N] [--tabletop-tag T]
-        [--tabletop-static]] [--methods ours,small_gicp,open3d_icp]
+        [--tabletop-static]] [--methods ours,small_gicp,open3d_icp] [--against REV]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -20,6 +20,9 @@ back-projected points moved and splatted into a z-buffer (disocclusions stay hol
 ``--tabletop-seed-base`` / ``--tabletop-tag`` draw other offsets (base 93000, tag "held": the
 held-out table-top set of issue 12, looked at once after the choice).
 One thread each; the methods alternate per pair and per run, so they share the machine's load.
+``--against REV`` adds method ``base``: registration.py as it is at git revision REV (loaded from
+``git show`` beside this one, in the same process), for an A/B of speed and accuracy; the
+median over pairs of the per-pair time ratio ours / base is printed per group.
 Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
 """
 
@@ -85,6 +88,29 @@ def small_gicp_align(ref, cur, intrinsics):
 
 
 METHODS = {"ours": ours, "small_gicp": small_gicp_align, "open3d_icp": open3d_icp}
+
+
+def at_revision(rev: str):
+    """``register_depth`` of robot_change/change/registration.py as it is at git revision
+    ``rev``, loaded as a module of its own (its numba caches under a temporary folder)."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    root = Path(__file__).resolve().parents[1]
+    source = subprocess.run(["git", "show", f"{rev}:robot_change/change/registration.py"],
+                            cwd=root, capture_output=True, text=True, check=True).stdout
+    path = Path(tempfile.mkdtemp(prefix="registration_at_")) / "registration_base.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location("registration_base", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["registration_base"] = module  # its dataclasses look themselves up there
+    spec.loader.exec_module(module)
+
+    def base(ref, cur, intrinsics):
+        return module.register_depth(ref, cur, intrinsics).T_ref_from_cur
+
+    return base
 
 
 def fixture_pairs():
@@ -187,6 +213,8 @@ def main(argv=None):
     ap.add_argument("--methods", default=",".join(METHODS),
                     help="comma-separated subset (ours alone: its speed without the peers' "
                          "threads and caches in between)")
+    ap.add_argument("--against", metavar="REV",
+                    help="add method base: registration.py at this git revision (A/B)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     methods = {}
@@ -194,6 +222,8 @@ def main(argv=None):
         if m not in METHODS:
             ap.error(f"unknown method {m!r}; known: {', '.join(METHODS)}")
         methods[m] = METHODS[m]
+    if args.against:
+        methods["base"] = at_revision(args.against)
     pairs = ([] if args.no_fixtures else list(fixture_pairs())) + \
         (list(sweep_pairs(args.sweep, tuple(int(v) for v in args.sweep_levels.split(",")),
                           args.sweep_seed_base, args.sweep_tag)) if args.sweep else []) + \
@@ -240,6 +270,10 @@ def main(argv=None):
             print(f"{group:8s} {m:11s} within 1 cm / 0.5 deg {ok}/{len(sel)}; median "
                   f"{s['median_err_mm']:.1f} mm {s['median_err_deg']:.3f} deg, max "
                   f"{s['max_err_mm']:.1f} mm {s['max_err_deg']:.2f} deg; {s['median_ms']:.1f} ms")
+        if "ours" in methods and "base" in methods:
+            ratio = statistics.median(r["ours"]["ms"] / r["base"]["ms"] for r in sel)
+            summary[group]["ratio_ours_to_base"] = ratio
+            print(f"{group:8s} time ours / base (median of per-pair ratios): {ratio:.3f}")
     groups = ([("sweep", tm) for tm in (int(v) for v in args.sweep_levels.split(","))]
               if args.sweep else []) + ([("tabletop", tm) for tm in (5, 10, 15)]
                                         if args.tabletop else [])

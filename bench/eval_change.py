@@ -2,7 +2,7 @@
 table-top pairs, for our method and the baselines.  docs/evaluation.md reports its output.
 
     .venv/bin/python bench/eval_change.py [--split dev|holdout|all] [--real] [--methods ...]
-        [--single-frame] [--json OUT] [--plots DIR] [--speed] [--set field=value ...]
+        [--single-frame] [--as-daemon] [--json OUT] [--plots DIR] [--speed] [--set field=value ...]
         [--scene-seed N]
 
 Truth and scoring (point level):
@@ -24,7 +24,10 @@ Truth and scoring (point level):
 
 Every method sees the same two SceneModels: the reference and the current, each fused from the
 scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with
-the same CloudParams.  A benchmark, never a test.
+the same CloudParams.  ``--as-daemon``: each method gets the current as its (fused) depth
+image instead, as the daemon's CHECK and WATCH do: the method cleans it (the same cloud) and
+fits the current's mixture from the reference's (``ChangeParams.current_mixture``) rather than
+using the current SceneModel's own split-EM fit.  A benchmark, never a test.
 """
 
 from __future__ import annotations
@@ -301,6 +304,10 @@ def main(argv=None):
                     "the 6 real hand-held no-change pairs")
     ap.add_argument("--methods", nargs="*", default=["ours", "plain", "nn", "geometric"])
     ap.add_argument("--single-frame", action="store_true")
+    ap.add_argument("--as-daemon", action="store_true",
+                    help="each method gets the current as its depth image, as the daemon's "
+                         "CHECK does: cleaned by the method, the current's mixture fitted from "
+                         "the reference (not the current SceneModel's own full fit)")
     ap.add_argument("--set", nargs="*", help="ChangeParams field=value (JSON values)")
     ap.add_argument("--scene-seed", type=int, default=0,
                     help="SceneParams.seed: the mixture fits' random subsets (default 0)")
@@ -314,9 +321,14 @@ def main(argv=None):
 
     params = ChangeParams(**parse_set(args.set))
     fns = {m: f for m, f in method_fns(params).items() if m in args.methods}
+    if args.as_daemon:
+        if "open3d_nn" in fns:
+            raise SystemExit("--as-daemon: open3d_nn needs the current SceneModel")
+        fns = {m: (lambda f: lambda r, c: f(r, np.array(c.depth)))(f) for m, f in fns.items()}
     report = {"machine": {"python": platform.python_version(), "cpu": platform.processor()
                           or platform.machine(), "platform": platform.platform()},
               "params": dataclasses.asdict(params), "single_frame": args.single_frame,
+              "as_daemon": args.as_daemon,
               "results": {}}
     groups = {}
     if args.scenes:

@@ -86,6 +86,25 @@ def write_atomically(path: str | os.PathLike, data: bytes) -> None:
         handle.write(data)
 
 
+def commit_folder(staged: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Move a folder written in full under a temporary name into place at ``path`` (which must
+    not exist): its files are fsynced, it is renamed (atomic on one file system), and the parent
+    folder is fsynced.  Readers see no folder or the whole one.  Raises ``OSError``."""
+    staged, path = Path(staged), Path(path)
+    for item in staged.iterdir():
+        if item.is_file():
+            fd = os.open(item, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    _fsync_folder(staged)
+    if path.exists():  # os.rename would replace an empty folder without a word
+        raise FileExistsError(errno.EEXIST, "exists already", str(path))
+    os.rename(staged, path)
+    _fsync_folder(path.parent)
+
+
 def _fsync_folder(folder: Path) -> None:
     try:
         fd = os.open(folder if str(folder) else ".", os.O_RDONLY)

@@ -1,8 +1,9 @@
 """Depth frames, the DepthSource interface, and ``open_depth(uri)``.
 
-Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images)
-delivers the same thing: :class:`DepthFrame` objects through the :class:`DepthSource` interface.
-The rest of the project never knows which backend it is reading from.
+Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images, a
+ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
+objects through the :class:`DepthSource` interface.  The rest of the project never knows which
+backend it is reading from.
 
 URIs (python-can / pyserial style; the backend module is imported only when used)::
 
@@ -11,6 +12,12 @@ URIs (python-can / pyserial style; the backend module is imported only when used
     oni:path/to/file.oni        an OpenNI2 recording; a bare path ending in .oni works too
     images:path/to/folder/      16-bit PNG/TIFF depth images in name order
     images:path/to/frame.png    a single image; a bare path to an image or a folder works too
+    rosbag:path/to/bag?topic=/camera/depth/image_raw
+                                a depth topic of a ROS 1 .bag or a ROS 2 bag (folder, .db3 or
+                                .mcap); a bare .bag / .db3 / .mcap path or a folder holding
+                                metadata.yaml works too
+    pcd:path/to/cloud.pcd       an organized PCD (or a folder of them): z -> depth; a bare
+                                .pcd path works too
 
 Options may follow a ``?`` as ``key=value`` pairs (``images:tum/depth?scale=5000``) or be
 passed as keyword arguments to :func:`open_depth`; keyword arguments win.
@@ -220,6 +227,8 @@ class DepthSource(abc.ABC):
 # scheme -> "module:factory"; the factory takes (target: str, **options) -> DepthSource
 _BACKENDS: dict[str, str] = {
     "images": "hw.images:open_images",
+    "pcd": "hw.pcd:open_pcd",
+    "rosbag": "hw.rosbag:open_rosbag",
     "oni": "hw.openni2:open_recording",
     "openni2": "hw.openni2:open_device",
 }
@@ -227,6 +236,8 @@ _BACKENDS: dict[str, str] = {
 # what to install when a backend's import fails
 _INSTALL_HINTS: dict[str, str] = {
     "images": "numpy (pip install numpy)",
+    "pcd": "pypcd4 (pip install pypcd4)",
+    "rosbag": "rosbags (pip install rosbags)",
     "oni": "Debian's libopenni2-0 (apt-get install libopenni2-0) and the 'openni' binding "
     "(pip install openni)",
     "openni2": "Debian's libopenni2-0 (apt-get install libopenni2-0) and the 'openni' binding "
@@ -237,8 +248,10 @@ _INSTALL_HINTS: dict[str, str] = {
 def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
     """Split a depth URI into ``(scheme, target, options)``.
 
-    A bare path is given the scheme its ending implies (``.oni`` -> ``oni``; an image or a
-    folder -> ``images``).  Raises :class:`UriError` for an unknown scheme or an empty target.
+    A bare path is given the scheme its ending implies (``.oni`` -> ``oni``; ``.bag``,
+    ``.db3``, ``.mcap`` or a folder holding ``metadata.yaml`` -> ``rosbag``; ``.pcd`` ->
+    ``pcd``; an image or another folder -> ``images``).  Raises :class:`UriError` for an
+    unknown scheme or an empty target.
     """
     if not isinstance(uri, str) or not uri.strip():
         raise UriError(f"depth URI {uri!r}: expected e.g. 'openni2://', 'oni:file.oni' or "
@@ -257,28 +270,34 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
         raise UriError(
             f"depth URI {uri!r}: unknown scheme {scheme!r}; known schemes are "
             + ", ".join(f"'{name}:'" for name in sorted(_BACKENDS))
-            + " (a bare path ending in .oni, .png or .tif, or a folder, works too)"
+            + " (a bare path ending in .oni, .bag, .db3, .mcap, .pcd, .png or .tif, or a "
+            "folder, works too)"
         )
     if scheme != "openni2" and not rest:
         raise UriError(f"depth URI {uri!r}: the {scheme!r} scheme needs a path after ':'")
     return scheme, rest, options
 
 
+#: Bare-path endings and the scheme they imply (images and folders aside).
+_SUFFIX_SCHEMES = {".oni": "oni", ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
+                   ".pcd": "pcd"}
+
+
 def _scheme_of_path(path: str) -> str:
     suffix = Path(path).suffix.lower()
-    if suffix == ".oni":
-        return "oni"
-    if suffix in IMAGE_SUFFIXES or Path(path).is_dir():
-        return "images"
-    if not Path(path).exists():
-        return "images"  # let the backend say the path is missing
-    if suffix in (".pcd", ".ply", ".bag", ".mcap", ".npz", ".npy", ".xyz"):
+    if suffix in _SUFFIX_SCHEMES:
+        return _SUFFIX_SCHEMES[suffix]
+    if Path(path).is_dir():
+        return "rosbag" if (Path(path) / "metadata.yaml").is_file() else "images"
+    if suffix in IMAGE_SUFFIXES or not Path(path).exists():
+        return "images"  # (a missing path: let the backend say so)
+    if suffix in (".ply", ".npz", ".npy", ".xyz"):
         raise UriError(f"{path}: a {suffix} file is not a depth source; depth sources are 16-bit "
-                       "depth images (PNG, TIFF), folders of them, .oni recordings and "
-                       "openni2:// cameras")
+                       "depth images (PNG, TIFF), folders of them, .oni recordings, ROS bags, "
+                       "organized .pcd clouds and openni2:// cameras")
     raise UriError(
-        f"depth URI {path!r}: cannot tell the backend from the file name; use 'oni:{path}' "
-        f"or 'images:{path}'"
+        f"depth URI {path!r}: cannot tell the backend from the file name; use 'oni:{path}', "
+        f"'rosbag:{path}', 'pcd:{path}' or 'images:{path}'"
     )
 
 

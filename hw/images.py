@@ -112,19 +112,20 @@ def stem_timestamp_us(stem: str) -> int | None:
     return None
 
 
-def list_images(folder: Path, pattern: str | None = None) -> list[Path]:
-    """The depth image files in ``folder`` (``*.png``, ``*.tif``, ``*.tiff``, any case, hidden
-    files skipped, optionally only names matching the glob ``pattern``), in natural name
-    order.  Raises :class:`DepthFileError` when there are none."""
+def list_images(folder: Path, pattern: str | None = None,
+                suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> list[Path]:
+    """The depth image files in ``folder`` (``*.png``, ``*.tif``, ``*.tiff``, or the given
+    ``suffixes``; any case, hidden files skipped, optionally only names matching the glob
+    ``pattern``), in natural name order.  Raises :class:`DepthFileError` when there are none."""
     try:
         entries = list(folder.iterdir())
     except OSError as exc:
         raise DepthFileError(f"{folder}: cannot list the folder ({exc.strerror or exc})") from None
     files = [path for path in entries
-             if path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+             if path.suffix.lower() in suffixes and not path.name.startswith(".")
              and (pattern is None or fnmatch.fnmatch(path.name, pattern)) and path.is_file()]
     if not files:
-        looked_for = ", ".join(f"*{suffix}" for suffix in IMAGE_SUFFIXES)
+        looked_for = ", ".join(f"*{suffix}" for suffix in suffixes)
         if pattern is not None:
             looked_for += f" matching {pattern!r}"
         raise DepthFileError(f"{folder}: no depth images in this folder (looked for "

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import itertools
 import logging
 import math
 import mmap
@@ -53,12 +52,11 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import weakref
 from multiprocessing import shared_memory
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import openni.openni2  # noqa: F401  -- the binding (pure Python; the native library loads in the reader)
@@ -76,7 +74,7 @@ from hw.errors import (
     HwError,
     UriError,
 )
-from hw.oni import intrinsics_from_fov, read_oni_header, write_oni
+from hw.oni import intrinsics_from_fov, read_oni_header
 from hw.options import Pacer, flag, positive
 
 log = logging.getLogger(__name__)
@@ -976,74 +974,4 @@ def list_devices(timeout: float = 10.0) -> list[dict[str, Any]]:
         proc.close()
 
 
-def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | None = None,
-           codec: str = "16zt", timeout: float = 5.0,
-           progress: Callable[[int, float, int], None] | None = None) -> int:
-    """Copy frames from any depth source into an ``.oni`` recording; returns how many.
-
-    Stops after ``frames`` (default: never), at the end of the source, or -- called from the
-    main thread -- at SIGINT or SIGTERM (Ctrl-C, ``kill``, ``systemctl stop``): the frames so
-    far become a finished, playable file either way, and the signal handlers are put back
-    afterwards.  Timestamps are kept, shifted to start at 0; ``codec`` ``"16zt"`` (lossless,
-    about 4x smaller than raw on Kinect depth), ``"16z"`` (lossless, for unquantised depth) or
-    ``"none"``.  ``progress(frames, seconds, bytes)`` is called after every frame.  Opens the
-    source if needed; the caller closes it.  The file appears only when complete (written
-    atomically); on an error nothing is left.
-    """
-    if frames is not None and frames < 1:
-        raise ArgumentError(f"frames={frames}: record at least one frame")
-    stop = threading.Event()
-    with _stopped_by_signals(stop):
-        source.open()
-        stream = _frames_until_done(source, frames, timeout, stop)
-        first = next(stream, None)
-        if first is None:
-            raise DepthFileError(f"{source.uri or 'the source'} delivered no frame; nothing "
-                                 "recorded")
-        fps = int(getattr(source, "info", {}).get("fps") or 30)
-        started = time.monotonic()
-        tell = None if progress is None else (
-            lambda count, size: progress(count, time.monotonic() - started, size))
-        return write_oni(out_path, itertools.chain([first], stream), fps=fps, codec=codec,
-                         on_frame=tell)
-
-
-@contextlib.contextmanager
-def _stopped_by_signals(stop: threading.Event) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` instead of ending the process, while inside (main
-    thread only: elsewhere signals cannot be caught, and Ctrl-C still ends the loop)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda _sig, _frame: stop.set())
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def _frames_until_done(source: DepthSource, frames: int | None, timeout: float,
-                       stop: threading.Event) -> Iterator[DepthFrame]:
-    """Frames of ``source`` until it ends, ``frames`` were read, or ``stop`` (or Ctrl-C).  A
-    source that fails after the first frame ends the recording, which keeps what it has."""
-    count = 0
-    while (frames is None or count < frames) and not stop.is_set():
-        try:
-            frame = source.read(timeout)
-        except KeyboardInterrupt:
-            return
-        except (DeviceError, DepthFileError) as exc:
-            if not count:
-                raise
-            log.warning("recording ends after %d frame(s): %s; the file keeps them", count, exc)
-            return
-        if frame is None:
-            return
-        count += 1
-        yield frame
-
-
-__all__ = ["OpenNI2Source", "library_dir", "list_devices", "open_device", "open_recording", "record"]
+__all__ = ["OpenNI2Source", "library_dir", "list_devices", "open_device", "open_recording"]

@@ -22,6 +22,7 @@ import numpy as np
 import robot_change
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
+from hw.pointfile import POINT_FORMATS, write_points
 from robot_change.change.mount import CameraMount
 from robot_change.errors import ConfigError, InputError, RobotChangeError
 
@@ -111,6 +112,31 @@ def _print_json(payload: dict[str, Any]) -> None:
     print(json.dumps(payload, indent=None, sort_keys=False))
 
 
+#: Colours of the changed points in .pcd / .ply files (r, g, b).
+APPEARED_COLOR, DISAPPEARED_COLOR = (0, 200, 0), (220, 0, 0)
+
+
+def _points_frame(fmt: str, mount: CameraMount | None) -> str:
+    """The frame point files are written in: base_link for .pcd / .ply when the camera's
+    mounting is known, else (and always for .npy, which cannot say it) the camera optical
+    frame."""
+    return "base_link" if mount is not None and fmt != "npy" else "camera_optical"
+
+
+def _write_point_files(files: dict[Path, tuple[np.ndarray, tuple[int, int, int] | None]],
+                       fmt: str, mount: CameraMount | None) -> tuple[list[str], str]:
+    """Write each (M, 3) optical-frame point array to its path (ending in ``.fmt``) through
+    :func:`hw.pointfile.write_points`, in :func:`_points_frame`; returns (paths, frame)."""
+    frame = _points_frame(fmt, mount)
+    pose = mount.base_from_optical() if frame == "base_link" else None
+    written = []
+    for path, (points, color) in files.items():
+        moved = mount.to_base(points) if frame == "base_link" else points
+        write_points(path, moved, frame=frame, pose=pose, color=color)
+        written.append(str(path))
+    return written, frame
+
+
 # ---------------------------------------------------------------------------------------------
 # commands
 
@@ -120,6 +146,7 @@ def cmd_cloud(args: argparse.Namespace) -> int:
     from robot_change.cloud.chain import clean_cloud
 
     started = time.perf_counter()
+    mount = CameraMount.parse(args.mount) if args.mount else None
     depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
     params = _cloud_params(args)
     cloud = clean_cloud(depth, camera, params)
@@ -137,8 +164,8 @@ def cmd_cloud(args: argparse.Namespace) -> int:
     out_dir = Path(args.out) if args.out else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        np.save(out_dir / "cloud.npy", cloud.points)
-        summary["files"] = [str(out_dir / "cloud.npy")]
+        summary["files"], summary["frame"] = _write_point_files(
+            {out_dir / f"cloud.{args.format}": (cloud.points, None)}, args.format, mount)
         if not args.no_picture:
             from robot_change.tools.report import draw_cloud
 
@@ -346,6 +373,10 @@ def cmd_capture(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
           f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s"
           + ("" if mount is None else f", mount {_mount_text(mount)}"))
+    if args.format:
+        cloud_path = Path(args.out).with_suffix(f".{args.format}")
+        _, frame = _write_point_files({cloud_path: (scene.points, None)}, args.format, mount)
+        print(f"wrote {cloud_path}: the clean cloud, {frame.replace('_', ' ')} frame")
     return 0
 
 
@@ -392,10 +423,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        np.save(out / "appeared.npy", np.asarray(changes.appeared_points, np.float32))
-        np.save(out / "disappeared.npy", np.asarray(changes.disappeared_points, np.float32))
-        summary["files"] = [str(out / name) for name in
-                            ("appeared.npy", "disappeared.npy", "report.json")]
+        known = mount if args.mount or getattr(reference, "mount", None) is not None else None
+        summary["files"], summary["points_frame"] = _write_point_files(
+            {out / f"appeared.{args.format}": (changes.appeared_points, APPEARED_COLOR),
+             out / f"disappeared.{args.format}": (changes.disappeared_points,
+                                                   DISAPPEARED_COLOR)}, args.format, known)
+        summary["files"].append(str(out / "report.json"))
         if not args.no_picture:
             from robot_change.tools.report import draw_change
 
@@ -457,9 +490,14 @@ def _print_change_summary(summary: dict[str, Any]) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    """Record any depth source (a live camera, images, another .oni) to an .oni file."""
-    from hw.openni2 import record
+    """Record any depth source (a live camera, images, a recording, a bag) to an .oni file or a
+    ROS 2 bag folder (MCAP storage)."""
+    from hw.record import record
 
+    out_format = args.format or ("oni" if args.out.lower().endswith(".oni") else "rosbag2")
+    if out_format == "rosbag2" and args.codec is not None:
+        raise InputError("--codec is for .oni recordings; a ROS 2 bag is written with "
+                         "zstd-compressed MCAP chunks (lossless)")
     shown = [0.0]
 
     def progress(frames: int, seconds: float, size: int) -> None:
@@ -469,12 +507,15 @@ def cmd_record(args: argparse.Namespace) -> int:
                   "(Ctrl-C stops and keeps them)", end="", file=sys.stderr, flush=True)
 
     with open_depth(args.source) as source:
-        written = record(source, args.out, frames=args.frames, codec=args.codec,
-                         progress=progress if sys.stderr.isatty() else None)
+        written = record(source, args.out, frames=args.frames, codec=args.codec or "16zt",
+                         progress=progress if sys.stderr.isatty() else None, format=out_format)
     if sys.stderr.isatty():
         print(file=sys.stderr)
-    size = Path(args.out).stat().st_size
-    print(f"wrote {written} frame(s), {size / 1e6:.1f} MB, to {args.out}")
+    out = Path(args.out)
+    size = sum(item.stat().st_size for item in out.iterdir()) if out.is_dir() else \
+        out.stat().st_size
+    what = "" if out_format == "oni" else " (a ROS 2 bag: ros2 bag info / play it)"
+    print(f"wrote {written} frame(s), {size / 1e6:.1f} MB, to {args.out}{what}")
     return 0
 
 
@@ -563,6 +604,15 @@ def _count(text: str) -> int:
     return value
 
 
+#: ``--format`` of cloud, capture and detect: hw.pointfile.POINT_FORMATS.
+FORMAT_HELP = ("npy (default: (M,3) float32, camera optical frame), pcd (binary) or ply; "
+               ".pcd / .ply are in base_link when the camera's --mount is known, else in the "
+               "camera optical frame, and say which (PCD VIEWPOINT, PLY comment)")
+MOUNT_HELP = ("the camera on the base: x,y,z,roll,pitch,yaw of its body frame (x forward, y "
+              "left, z up) in base_link, metres and degrees; .pcd / .ply points are then "
+              "written in base_link")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="robot-change",
@@ -596,7 +646,10 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--frames", type=_count, default=1, help="frames to fuse by per-pixel median (default 1)")
     cloud.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
     cloud.add_argument("--leaf", type=float, help="voxel size in metres (default from CloudParams)")
-    cloud.add_argument("--out", help="folder for cloud.npy ((M,3) float32, metres) and cloud.png")
+    cloud.add_argument("--out", help="folder for cloud.npy ((M,3) float32, metres; or .pcd / .ply, "
+                       "--format) and cloud.png")
+    cloud.add_argument("--format", choices=POINT_FORMATS, default="npy", help=FORMAT_HELP)
+    cloud.add_argument("--mount", help=MOUNT_HELP)
     cloud.add_argument("--no-picture", action="store_true", help="with --out: skip cloud.png")
     cloud.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     cloud.set_defaults(func=cmd_cloud)
@@ -632,6 +685,9 @@ def build_parser() -> argparse.ArgumentParser:
     capture.add_argument("--mount", help="the camera on the base, recorded with the reference: "
                          "x,y,z,roll,pitch,yaw of its body frame (x forward, y left, z up) in "
                          "base_link, metres and degrees; detect uses it unless given --mount")
+    capture.add_argument("--format", choices=POINT_FORMATS,
+                         help="also write the clean cloud beside --out (REF.scene.pcd, .ply or "
+                         ".npy); " + FORMAT_HELP.split("; ", 1)[1])
     capture.set_defaults(func=cmd_capture)
 
     detect = commands.add_parser("detect", help="compare a reference with now: what appeared, "
@@ -650,7 +706,9 @@ def build_parser() -> argparse.ArgumentParser:
                         default="novelty", help="ours (default), the paper's plain method, or a "
                         "baseline without a mixture")
     detect.add_argument("--out", help="folder for appeared.npy, disappeared.npy ((M,3) float32, "
-                        "camera frame, m), report.json and report.png")
+                        "camera frame, m; or .pcd / .ply, --format), report.json and report.png")
+    detect.add_argument("--format", choices=POINT_FORMATS, default="npy",
+                        help=FORMAT_HELP + "; appeared points green, disappeared red")
     detect.add_argument("--no-picture", action="store_true", help="with --out: skip report.png")
     detect.add_argument("--mcap", metavar="FILE",
                         help="write the check as one MCAP file for Foxglove: depth images, "
@@ -667,13 +725,19 @@ def build_parser() -> argparse.ArgumentParser:
                              "nothing changed (2 stays an error), like git diff --exit-code")
     detect.set_defaults(func=cmd_detect)
 
-    record = commands.add_parser("record", help="record a depth source to an .oni file")
-    record.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
-    record.add_argument("--out", required=True, help="the .oni file to write")
+    record = commands.add_parser("record", help="record a depth source to an .oni file or a ROS 2 "
+                                 "bag (MCAP)")
+    record.add_argument("--source", required=True, help="depth URI (camera, .oni, images, bag)")
+    record.add_argument("--out", required=True, help="FILE.oni, or the folder of a ROS 2 bag "
+                        "(as ros2 bag record -o NAME: NAME/NAME.mcap and metadata.yaml)")
+    record.add_argument("--format", choices=("oni", "rosbag2"),
+                        help="oni, or rosbag2: sensor_msgs/Image 16UC1 on /camera/depth/image_raw "
+                        "and CameraInfo beside it, stamped with the frames' timestamps "
+                        "(default: oni for an --out ending in .oni, else rosbag2)")
     record.add_argument("--frames", type=_count, help="stop after N frames (default: to the end, or Ctrl-C)")
-    record.add_argument("--codec", choices=("16zt", "16z", "none"), default="16zt",
-                        help="16zt: lossless, ~4x smaller than raw on Kinect depth (default); "
-                        "16z: lossless, for unquantised depth; none: raw uint16")
+    record.add_argument("--codec", choices=("16zt", "16z", "none"),
+                        help=".oni only: 16zt: lossless, ~4x smaller than raw on Kinect depth "
+                        "(default); 16z: lossless, for unquantised depth; none: raw uint16")
     record.set_defaults(func=cmd_record)
 
     devices = commands.add_parser("list-devices", help="list the OpenNI2 cameras connected now")

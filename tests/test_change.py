@@ -246,8 +246,9 @@ def test_window_filter_matches_numpy(radius):
                                       _window_twin(depth, radius, take_min))
 
 
-def _warp_twin(own, T, intr, depth_range, window=None):
-    """NumPy twin of change._warp_kernel: (target (P,), z_other (P,))."""
+def _warp_twin(own, T, intr, depth_range, window=None, pv=None):
+    """NumPy twin of free_space._warp_kernel: (target (P,), z_other (P,)); pixels without a
+    point (``pv`` < 0) are not warped."""
     h, w = own.shape
     rows, cols = np.mgrid[0:h, 0:w]
     z = own.astype(np.float64).ravel() * 0.001
@@ -261,7 +262,11 @@ def _warp_twin(own, T, intr, depth_range, window=None):
     v = np.floor(intr.fy * p[:, 1] / zsafe + intr.cy + 0.5).astype(np.int64)
     r0, r1, c0, c1 = window if window is not None else (0, h - 1, 0, w - 1)
     ok &= (u >= c0) & (v >= r0) & (u <= c1) & (v <= r1)
-    target = np.where(own.ravel() > 0, -2, -1)
+    has = own.ravel() > 0
+    if pv is not None:
+        has &= pv.ravel() >= 0
+    ok &= has
+    target = np.where(has, -2, -1)
     target[ok] = v[ok] * w + u[ok]
     return target, np.where(ok, pz, 0.0)
 
@@ -321,9 +326,11 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     T[:3, 3] = shift
     window = free_space.sensing_window(other)
     assert window == (0, h - 1, 0, w - 4)
-    got_t, got_z = free_space._warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
-                                   intr.cx, intr.cy, w, np.array(window), 0.4, 2.9)
-    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window)
+    got_t, got_z = free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx,
+                                           intr.fy, intr.cx, intr.cy, w, np.array(window), 0.4,
+                                           2.9)
+    want_t, want_z = _warp_twin(own, T, intr, (0.4, 2.9), window, pv)
+    assert (got_t[pv.ravel() < 0] == -1).all()  # pixels without a point are not warped
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,
@@ -372,3 +379,22 @@ def test_voxel_components_match_ndimage_label(radius):
 def test_voxel_components_reject_duplicates():
     with pytest.raises(InputError, match="unique"):
         label_voxel_components(np.array([5, 5], dtype=np.int64))
+
+
+def test_posteriors_over_a_background_match_the_full_mixture():
+    from robot_change.change.greedy import posteriors
+    from robot_change.mixture.model import Mixture
+
+    rng = np.random.default_rng(5)
+    means = rng.normal(size=(5, 3))
+    covs = np.stack([np.eye(3) * s for s in (0.2, 0.3, 0.25, 0.1, 0.4)])
+    weights = np.array([0.3, 0.2, 0.1, 0.25, 0.15])
+    mix = Mixture(weights, means, covs)
+    background = Mixture(weights[:3] / weights[:3].sum(), means[:3], covs[:3])
+    points = rng.normal(size=(200, 3))
+    rows = np.flatnonzero(rng.random(200) < 0.6)
+    full = posteriors(mix, points, rows)
+    fast = posteriors(mix, points, rows, (3, background.score_samples(points)))
+    np.testing.assert_allclose(fast[:, 3:], full[:, 3:], rtol=1e-10, atol=1e-14)
+    assert not fast[:, :3].any()
+    assert not fast[np.setdiff1d(np.arange(200), rows)].any()

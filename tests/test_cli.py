@@ -78,17 +78,18 @@ def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):
 
 
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("name", ["live.oni", "live"])
 def test_record_stopped_by_a_signal_keeps_a_playable_file_and_leaves_nothing_else(tmp_path,
-                                                                                  sig):
+                                                                                  sig, name):
     """Ctrl-C (SIGINT) and kill / systemctl stop (SIGTERM) mid-recording of a live camera
     (OpenNI's DummyDevice): exit 0, the frames so far finished into an .oni that libOpenNI2
-    plays, no temp file, no leaked shared memory."""
+    plays, or a ROS 2 bag folder that rosbags reads, no temp file, no leaked shared memory."""
     import signal
     import time
 
     from hw.depth import open_depth
 
-    out = tmp_path / "live.oni"
+    out = tmp_path / name
     proc = subprocess.Popen([sys.executable, "-m", "robot_change.cli", "record", "--source",
                              "openni2://Oz", "--out", str(out)], cwd=REPO, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -101,10 +102,10 @@ def test_record_stopped_by_a_signal_keeps_a_playable_file_and_leaves_nothing_els
     stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 0, stderr
     assert "leaked" not in stderr and "Traceback" not in stderr, stderr
-    assert [p.name for p in tmp_path.iterdir()] == ["live.oni"]
+    assert [p.name for p in tmp_path.iterdir()] == [name]
     written = int(stdout.split("wrote ")[1].split(" frame")[0])
     assert written >= 2
-    with open_depth(f"oni:{out}") as source:
+    with open_depth(str(out)) as source:  # .oni, or a folder holding metadata.yaml: a bag
         played = sum(1 for _ in source)
     assert played == written
 
@@ -181,7 +182,7 @@ def test_list_devices_without_a_camera_says_so():
           "--out", "/dev/null/x"], "/dev/null/x: Not a directory"),
         (["bench", "--runs", "0"], "--runs: 0: must be at least 1"),
         (["link-bench", "--count", "zero"], "'zero' is not a whole number"),
-        (["cloud", "--source", "{pcd}"], "a .pcd file is not a depth source"),
+        (["cloud", "--source", "{pcd}"], "cloud.pcd: not a PCD file"),
         (["detect", "--reference", "/nonexistent/dock.scene.npz", "--current",
           "sim_fixtures/frames/room_vga.png"], "/nonexistent/dock.scene.npz: No such file"),
         (["detect", "--reference", "{text}", "--current", "sim_fixtures/frames/room_vga.png"],

@@ -22,6 +22,7 @@ from robot_change.mixture.model import (
     Mixture,
     criterion_value,
     fit_mixture,
+    fit_over_background,
     gaussianity_deficiency,
     reg_covar_for_leaf,
 )
@@ -170,6 +171,103 @@ def test_em_loop_iterations_match_numpy_twin():
     np.testing.assert_allclose(w2, tw, rtol=1e-9)
     np.testing.assert_allclose(mu2, tmu, rtol=1e-9, atol=1e-10)
     np.testing.assert_allclose(cov2, tcov, rtol=1e-8, atol=1e-10)
+
+
+def np_background_e_step(x, log_bg, w, mu, covs):
+    """Twin of the background kernels' E-step: log responsibilities (N, 1 + K), column 0 the
+    background's, and log p (N,)."""
+    wlp = np.column_stack([np.log(w[0]) + log_bg, np_weighted_log_prob(x, w[1:], mu, covs)])
+    lp = logsumexp(wlp, axis=1)
+    return wlp - lp[:, None], lp
+
+
+def background_case(seed, k_bg=4, k=2, n=600):
+    rng = np.random.default_rng(seed)
+    x, wb, mb, cb = random_params(rng, k_bg, n)
+    background = Mixture(wb, mb, cb)
+    w = rng.uniform(0.1, 0.3, 1 + k)
+    w[0] = 1.0
+    w /= w.sum()
+    return x, background, background.score_samples(x), w, rng.normal(size=(k, 3)), \
+        random_spd(rng, k, 0.3)
+
+
+def test_background_responsibilities_match_numpy():
+    x, _, log_bg, w, mu, cov = background_case(30)
+    prec, log_det, _ = em.precision_cholesky(cov)
+    resp, lp = em.responsibilities_background(x, log_bg, w, mu, prec, log_det)
+    lr2, lp2 = np_background_e_step(x, log_bg, w, mu, cov)
+    np.testing.assert_allclose(lp, lp2, rtol=1e-10)
+    np.testing.assert_allclose(resp, np.exp(lr2), rtol=1e-9, atol=1e-12)
+
+
+def test_background_em_step_and_loop_match_numpy():
+    x, _, log_bg, w, mu, cov = background_case(31)
+    x, mu = x + 3.0, mu + 3.0  # the one-pass scatter must not cancel
+    log_bg = log_bg + 0.0
+    prec, log_det, _ = em.precision_cholesky(cov)
+    lp, nk, mu_new, cov_new = em.em_step_background(x, log_bg, w, mu, prec, log_det, 1e-4)
+    lr2, lp2 = np_background_e_step(x, log_bg, w, mu, cov)
+    nk2, mu2, cov2 = np_m_step(x, np.exp(lr2), 1e-4)
+    assert lp == pytest.approx(lp2.mean(), rel=1e-12)
+    np.testing.assert_allclose(nk, nk2, rtol=1e-10)
+    np.testing.assert_allclose(mu_new, mu2[1:], rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(cov_new, cov2[1:], rtol=1e-8, atol=1e-11)
+    w3, mu3, cov3, lp3, n_iter, status, _ = em.em_loop_background(x, log_bg, w, mu, cov, 1e-4,
+                                                                  0.0, 4)
+    assert (n_iter, status) == (4, em.STATUS_MAX_ITER)
+    tw, tmu, tcov = w, mu, cov
+    for _ in range(4):
+        lr, lp_t = np_background_e_step(x, log_bg, tw, tmu, tcov)
+        nk_t, m_t, c_t = np_m_step(x, np.exp(lr), 1e-4)
+        tw, tmu, tcov = nk_t / nk_t.sum(), m_t[1:], c_t[1:]
+    assert lp3 == pytest.approx(lp_t.mean(), rel=1e-10)
+    np.testing.assert_allclose(w3, tw, rtol=1e-9)
+    np.testing.assert_allclose(mu3, tmu, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(cov3, tcov, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", [40, 41, 42])
+def test_fit_over_background_is_fit_mixture_with_fixed_weights(seed):
+    """The same fit as fit_mixture with the background's components fixed, weights and all."""
+    rng = np.random.default_rng(seed)
+    w, mu, cov = (np.asarray(a, dtype=float) for a in KNOWN["blobs3"])
+    background = Mixture(w[:2] / w[:2].sum(), mu[:2], cov[:2])
+    x = draw(rng, w, mu, cov, 3000)  # a third blob appeared
+    seed_mu = mu[2:] + rng.normal(0.0, 0.05, size=(1, 3))
+    seed_cov = cov[2:] * 1.5
+    start = np.array([0.8, 0.2])
+    got = fit_over_background(x, background, background.score_samples(x), start, seed_mu,
+                              seed_cov, reg_covar=1e-6, tol=1e-6)
+    init = Mixture(np.concatenate([background.weights * start[0], start[1:]]),
+                   np.vstack([background.means, seed_mu]),
+                   np.concatenate([background.covariances, seed_cov]))
+    want = fit_mixture(x, init=init, fixed=[0, 1], fix_weights=True, split=False,
+                       reg_covar=1e-6, tol=1e-6)
+    np.testing.assert_allclose(got.weights, want.weights, rtol=1e-9)
+    np.testing.assert_allclose(got.means, want.means, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got.covariances, want.covariances, rtol=1e-8, atol=1e-12)
+    np.testing.assert_array_equal(got.means[:2], background.means)
+    assert got.record.steps[0].n_iter == want.record.steps[0].n_iter
+    # the last E-step's log-likelihood: within tol x N of the final parameters'
+    assert abs(got.record.steps[0].log_likelihood - want.record.steps[0].log_likelihood) \
+        <= 1e-6 * len(x)
+
+
+def test_fit_over_background_drops_a_component_that_loses_its_points():
+    rng = np.random.default_rng(43)
+    w, mu, cov = (np.asarray(a, dtype=float) for a in KNOWN["blobs3"])
+    background = Mixture(w / w.sum(), mu, cov)
+    x = draw(rng, w, mu, cov, 2000)  # nothing new: a seed far away empties
+    got = fit_over_background(x, background, background.score_samples(x), [0.9, 0.1],
+                              [[50.0, 50.0, 50.0]], [np.eye(3) * 1e-4], reg_covar=1e-6)
+    assert got.n_components == 3
+    np.testing.assert_allclose(got.weights, background.weights, rtol=1e-9)
+    assert got.record.steps[0].log_likelihood == pytest.approx(
+        background.score_samples(x).sum(), rel=1e-12)
+    with pytest.raises(InputError, match="must agree"):
+        fit_over_background(x, background, background.score_samples(x)[:-1], [0.9, 0.1],
+                            [[0.0, 0.0, 0.0]], [np.eye(3)])
 
 
 # ----------------------------------------------------------------------------- vs scikit-learn

@@ -23,7 +23,8 @@ from hw.errors import (
     FrameTimeout,
 )
 from hw.oni import read_oni_header, write_oni
-from hw.openni2 import OpenNI2Source, list_devices, open_device, open_recording, record
+from hw.openni2 import OpenNI2Source, list_devices, open_device, open_recording
+from hw.record import record
 
 DUMMY = "openni2://Oz"  # OpenNI's DummyDevice driver: a synthetic live 320x240 stream
 

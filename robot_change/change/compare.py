@@ -17,11 +17,14 @@ from hw.depth import Intrinsics
 from robot_change.change.epoch import (
     Epoch,
     as_epoch,
+    check_current_depth,
     check_pair,
     check_scene_models,
+    clean_current,
     current_epoch,
 )
-from robot_change.change.free_space import free_and_observed
+from robot_change.change.free_space import free_and_observed, free_space_views
+from robot_change.change.parallel import both
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import group_regions, pixel_mask
 from robot_change.change.registration import (
@@ -39,6 +42,8 @@ __all__ = [
     "Direction",
     "Reference",
     "align",
+    "direction_free",
+    "direction_regions",
     "finish",
     "fit_own",
     "geometric_filters",
@@ -55,14 +60,24 @@ Current: TypeAlias = "SceneModel | Epoch | np.ndarray"
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Direction:
-    """One direction's result before regions: candidate mask (M,) bool, posteriors (M, K) of
-    the searched mixture (or None), that mixture, its greedy trace, and the observed mask."""
+    """One direction's result: candidate mask (M,) bool, posteriors (M, K) of the searched
+    mixture (or None), that mixture, its greedy trace, the observed mask, and its regions
+    when the direction grouped them itself (None: :func:`finish` groups them)."""
 
     changed: np.ndarray
     posterior: np.ndarray | None
     mixture: Mixture | None
     trace: GreedyTrace | None
     observed: np.ndarray
+    regions: tuple | None = None
+
+
+def direction_regions(kind: str, epoch: Epoch, direction: Direction, params: ChangeParams
+                      ) -> tuple:
+    """The direction's changed points of ``epoch`` grouped into regions
+    (:func:`robot_change.change.regions.group_regions`)."""
+    return group_regions(kind, epoch, direction.changed, params, direction.posterior,
+                         direction.trace.change if direction.trace is not None else None)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -91,33 +106,75 @@ def fit_own(ep: Epoch, params: ChangeParams) -> Mixture:
 
 
 def align(reference: Reference, current: Current, params: ChangeParams, intrinsics: Intrinsics | None,
-           timings: dict, initial_pose: np.ndarray | None = None) -> Aligned:
+           timings: dict, initial_pose: np.ndarray | None = None, free_space: bool = True
+           ) -> Aligned:
     """Checks, the current's clean cloud, registration and whether this is the station at all,
-    the reference moved into the current camera frame, the free-space checks both ways."""
+    the reference moved into the current camera frame, and (``free_space``) the free-space
+    checks both ways (:func:`direction_free`; a caller that runs the two directions on two
+    threads leaves them to each direction).  With ``params.threads`` > 1 the current's
+    cleaning (and the free-space views of its image) runs beside the registration."""
     check_scene_models(reference, current)
     ref = as_epoch(reference, "reference")
-    cur = current_epoch(ref, current, intrinsics, timings,
-                        reference if isinstance(reference, SceneModel) else None)
+    model = reference if isinstance(reference, SceneModel) else None
+    if isinstance(current, np.ndarray):
+        intrinsics = check_current_depth(ref, current, intrinsics, model)
+        current_depth = current
+
+        def prepare() -> Epoch:
+            cur = clean_current(ref, current, intrinsics, timings)
+            if params.threads > 1 and params.disappeared and params.free_space:
+                free_space_views(cur, params)  # the disappeared direction's, made here
+            return cur
+    else:
+        cur = current_epoch(ref, current, intrinsics, timings)
+        current_depth = cur.depth
+
+        def prepare() -> Epoch:
+            return cur
+
+    def register() -> Registration | Exception:
+        try:
+            return register_depth(ref.depth, current_depth, ref.intrinsics, params.registration,
+                                  initial=initial_pose, keep=ref.derived)
+        except Exception as exc:  # raised after the pair's own checks, which come first
+            return exc
+
+    reg, cur = both(register, prepare, params.threads)
     check_pair(ref, cur, params)
-    reg = register_depth(ref.depth, cur.depth, ref.intrinsics, params.registration,
-                         initial=initial_pose)
+    if isinstance(reg, Exception):
+        raise reg
     timings["registration_ms"] = reg.ms
     reason = reg.not_at_station(params.registration)
     if reason:
         return Aligned(ref, cur, reg, reason)
-    identity = reg.is_identity
-    if not identity:
+    if not reg.is_identity:
         T = reg.inverse()
         ref = dataclasses.replace(
             ref, points=transform_points(T, ref.points),
             mixture=ref.mixture.transformed(T) if ref.mixture is not None else None)
-    free_cur, obs_cur = timed_free(cur, ref, params, timings, "appeared_",
-                                    None if identity else reg.T_ref_from_cur)
+    aligned = Aligned(ref, cur, reg, reason)
+    if not free_space:
+        return aligned
+    free_cur, obs_cur = direction_free(aligned, "appeared", params, timings)
     if not params.disappeared:
-        return Aligned(ref, cur, reg, reason, free_cur, obs_cur)
-    free_ref, obs_ref = timed_free(ref, cur, params, timings, "disappeared_",
-                                    None if identity else reg.inverse())
-    return Aligned(ref, cur, reg, reason, free_cur, obs_cur, free_ref, obs_ref)
+        return dataclasses.replace(aligned, free_cur=free_cur, observed_cur=obs_cur)
+    free_ref, obs_ref = direction_free(aligned, "disappeared", params, timings)
+    return dataclasses.replace(aligned, free_cur=free_cur, observed_cur=obs_cur,
+                               free_ref=free_ref, observed_ref=obs_ref)
+
+
+def direction_free(aligned: Aligned, kind: str, params: ChangeParams, timings: dict
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(free, observed) of one direction's points, timed as ``<kind>_free_space_ms``:
+    ``"appeared"``, the current's points against the reference's depth image;
+    ``"disappeared"``, the reference's against the current's."""
+    reg = aligned.registration
+    if kind == "appeared":
+        other, base, T = aligned.cur, aligned.ref, reg.T_ref_from_cur
+    else:
+        other, base, T = aligned.ref, aligned.cur, reg.inverse()
+    return timed_free(other, base, params, timings, f"{kind}_",
+                      None if reg.is_identity else T)
 
 
 def timed_free(other: Epoch, base: Epoch, params: ChangeParams, timings: dict, prefix: str,
@@ -161,12 +218,10 @@ def finish(method: str, params: ChangeParams, aligned: Aligned, app: Direction |
             ) -> ChangeSet:
     ref, cur = aligned.ref, aligned.cur
     t0 = time.perf_counter()
-    regions_a = group_regions("appeared", cur, app.changed, params, app.posterior,
-                              app.trace.change if app.trace is not None else None) \
-        if app is not None else ()
-    regions_d = group_regions("disappeared", ref, dis.changed, params, dis.posterior,
-                              dis.trace.change if dis.trace is not None else None) \
-        if dis is not None else ()
+    regions_a = () if app is None else app.regions if app.regions is not None else \
+        direction_regions("appeared", cur, app, params)
+    regions_d = () if dis is None else dis.regions if dis.regions is not None else \
+        direction_regions("disappeared", ref, dis, params)
     rows_a = (np.sort(np.concatenate([r.point_index for r in regions_a]))
               if regions_a else np.zeros(0, np.int64))
     rows_d = (np.sort(np.concatenate([r.point_index for r in regions_d]))

@@ -36,6 +36,7 @@ Numeric module: arrays in, arrays out; no I/O, no logging, no global state.  Ker
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -47,6 +48,8 @@ from robot_change.change.compare import (
     Direction,
     Reference,
     align,
+    direction_free,
+    direction_regions,
     finish,
     fit_own,
     geometric_filters,
@@ -55,10 +58,16 @@ from robot_change.change.compare import (
 from robot_change.change.epoch import Epoch
 from robot_change.change.greedy import greedy_trace, posteriors
 from robot_change.change.params import ChangeParams
+from robot_change.change.parallel import both
 from robot_change.change.regions import label_voxel_components
 from robot_change.change.results import ChangeSet
 from robot_change.errors import InputError
-from robot_change.mixture.model import Mixture, component_of, fit_mixture
+from robot_change.mixture.model import (
+    Mixture,
+    component_of,
+    fit_mixture,
+    fit_over_background,
+)
 
 __all__ = [
     "detect_changes",
@@ -71,16 +80,19 @@ def _current_mixture(cur: Epoch, ref_mix: Mixture, params: ChangeParams) -> Mixt
         return fit_own(cur, params)
     # EM from the reference mixture, every component free, no splits: the reference's
     # components follow the current cloud (a removed object's component moves or dies)
-    return fit_mixture(cur.points, init=ref_mix, leaf=cur.leaf_m, seed=params.seed, split=False,
-                       tol=params.novelty_tol)
+    step = 1
+    if params.current_fit_points and cur.n_points > params.current_fit_points:
+        step = -(-cur.n_points // params.current_fit_points)
+    return fit_mixture(cur.points[::step], init=ref_mix, leaf=cur.leaf_m, seed=params.seed,
+                       split=False, tol=params.novelty_tol)
 
 
-def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: ChangeParams):
-    """``base_mix`` plus one free component per connected group (on the voxel grid) of novel
-    points with at least ``min_region_points`` points, largest first, at most
-    ``max_novelty_components``; returns (init Mixture, fixed mask (K_init,) bool: True for
-    the components of ``base_mix``)."""
-    k0 = base_mix.n_components
+def _novelty_seeds(other: Epoch, novel: np.ndarray, params: ChangeParams
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One new component per connected group (on the voxel grid) of novel points of
+    ``other`` with at least ``min_region_points`` points, largest first, at most
+    ``max_novelty_components``: their weights (G,) (share of ``other``'s points), means
+    (G, 3) and covariances (G, 3, 3) (:func:`robot_change.mixture.model.component_of`)."""
     idx = np.flatnonzero(novel)
     groups = []
     if idx.size:
@@ -91,17 +103,52 @@ def _seed_novelty(base_mix: Mixture, other: Epoch, novel: np.ndarray, params: Ch
                 break
             groups.append(idx[labels == lab])
     if not groups:
-        return base_mix, np.ones(k0, dtype=bool)  # nothing to seed: every component fixed
-    n = other.n_points
+        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))
     reg = other.leaf_m ** 2 / 12.0
-    w_new = np.array([len(g) / n for g in groups])
     means, covs = zip(*(component_of(other.points[g], reg) for g in groups))
+    return np.array([len(g) / other.n_points for g in groups]), np.array(means), np.array(covs)
+
+
+def _novelty_fit(base_mix: Mixture, other: Epoch, log_dens: np.ndarray, novel: np.ndarray,
+                 params: ChangeParams) -> tuple[Mixture, bool]:
+    """The searched mixture: ``base_mix`` held fixed as the background of ``other``'s cloud,
+    plus novelty components seeded from the novel points (:func:`_novelty_seeds`) and fitted
+    by EM.  Returns (mixture, whether its first K_base components are the background held
+    with its weights, so that ``log_dens`` is their log-density)."""
+    k0 = base_mix.n_components
+    w_new, means, covs = _novelty_seeds(other, novel, params)
+    if not len(w_new) and params.novelty_fix_weights:
+        # no group of novel points to seed: with the fixed components' weights held, EM has
+        # nothing to estimate, so the searched mixture is the base mixture itself
+        return base_mix, True
+    if params.novelty_fix_weights and not params.novelty_split:
+        return fit_over_background(other.points, base_mix, log_dens,
+                                   np.concatenate([[1.0 - w_new.sum()], w_new]), means, covs,
+                                   leaf=other.leaf_m, tol=params.novelty_tol), True
     weights = np.concatenate([base_mix.weights * (1.0 - w_new.sum()), w_new])
-    init = Mixture(weights / weights.sum(), np.vstack([base_mix.means, np.array(means)]),
-                   np.concatenate([base_mix.covariances, np.array(covs)]))
-    fixed = np.zeros(init.n_components, dtype=bool)
-    fixed[:k0] = True
-    return init, fixed
+    init = Mixture(weights / weights.sum(), np.vstack([base_mix.means, means]),
+                   np.concatenate([base_mix.covariances, covs]))
+    fixed = np.arange(init.n_components) < k0
+    return fit_mixture(other.points, init=init, fixed=fixed,
+                       fix_weights=params.novelty_fix_weights, leaf=other.leaf_m,
+                       seed=params.seed, split=params.novelty_split, tol=params.novelty_tol,
+                       max_components=k0 + params.max_novelty_components), \
+        params.novelty_fix_weights
+
+
+def _self_threshold(base: Epoch, base_mix: Mixture, quantile: float) -> float:
+    """The ``quantile`` of ``base_mix``'s log-density on ``base``'s own points (a fixed
+    stride subsample of <= 4000); kept in ``base.derived`` when ``base_mix`` is the epoch's
+    own mixture (a rigid move changes neither)."""
+    key = ("self_log_density_quantile", quantile)
+    own = base_mix is base.mixture
+    if own and key in base.derived:
+        return base.derived[key]
+    step = max(1, base.n_points // 4000)
+    thr = float(np.quantile(base_mix.score_samples(base.points[::step]), quantile))
+    if own:
+        base.derived[key] = thr
+    return thr
 
 
 def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, params: ChangeParams,
@@ -110,12 +157,12 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
 
     ``base_mix`` (fitted on ``base``) is held fixed as the background of ``other``'s cloud;
     novelty components for poorly explained points; greedy EMD base -> other over them.
-    Returns (candidate mask (M,), searched mixture, posterior (M, K), trace).
+    Returns (candidate mask (M,), searched mixture, posterior (M, K) of its novelty
+    components (the fixed ones' columns may be 0) or None when no component is a change,
+    trace).
     """
     t0 = time.perf_counter()
-    # the quantile of the base's own log-densities, on a fixed stride subsample (<= 4000 pts)
-    step = max(1, base.n_points // 4000)
-    thr = np.quantile(base_mix.score_samples(base.points[::step]), params.novelty_quantile)
+    thr = _self_threshold(base, base_mix, params.novelty_quantile)
     log_dens = base_mix.score_samples(other.points)
     novel = log_dens < thr
     if params.novelty_seed == "density+free_space":
@@ -123,31 +170,20 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
     novel &= observed  # what the base's camera could not see is no evidence of novelty
     t1 = time.perf_counter()
     k0 = base_mix.n_components
-    init, fixed = _seed_novelty(base_mix, other, novel, params)
-    if fixed.all() and params.novelty_fix_weights:
-        # no group of novel points to seed: with the fixed components' weights held, EM has
-        # nothing to estimate, so the searched mixture is the base mixture itself
-        fitted = base_mix
-    else:
-        fitted = fit_mixture(other.points, init=init, fixed=fixed,
-                             fix_weights=params.novelty_fix_weights, leaf=other.leaf_m,
-                             seed=params.seed, split=params.novelty_split,
-                             tol=params.novelty_tol,
-                             max_components=k0 + params.max_novelty_components)
+    fitted, background = _novelty_fit(base_mix, other, log_dens, novel, params)
     t2 = time.perf_counter()
     candidates = np.zeros(fitted.n_components, dtype=bool)
     candidates[k0:] = True
     trace = greedy_trace(base_mix, fitted, candidates, other.n_points, params)
     t3 = time.perf_counter()
-    # posteriors only where they can matter: with the free-space check on, a point it rejects
-    # is never changed, so its posterior is not computed (left 0)
-    rows = np.flatnonzero(free) if params.free_space else None
-    post = posteriors(fitted, other.points, rows)
+    post = None
+    cand = np.zeros(other.n_points, dtype=bool)
     if trace.change.size:
-        mass = post[:, trace.change].sum(axis=1)
-        cand = mass > params.posterior_threshold
-    else:
-        cand = np.zeros(other.n_points, dtype=bool)
+        # posteriors only where they can matter: with the free-space check on, a point it
+        # rejects is never changed, so its posterior is not computed (left 0)
+        rows = np.flatnonzero(free) if params.free_space else None
+        post = posteriors(fitted, other.points, rows, (k0, log_dens) if background else None)
+        cand = post[:, trace.change].sum(axis=1) > params.posterior_threshold
     t4 = time.perf_counter()
     timings[f"{prefix}novelty_mask_ms"] = (t1 - t0) * 1e3
     timings[f"{prefix}novelty_fit_ms"] = (t2 - t1) * 1e3
@@ -201,7 +237,8 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         return detect_plain(reference, current, params, intrinsics=intrinsics)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    aligned = align(reference, current, params, intrinsics, timings, initial_pose)
+    aligned = align(reference, current, params, intrinsics, timings, initial_pose,
+                    free_space=False)
     if not aligned.at_station:
         return not_at_station_result("novelty", params, aligned, timings, t_start)
     ref, cur = aligned.ref, aligned.cur
@@ -210,25 +247,40 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         t0 = time.perf_counter()
         ref_mix = fit_own(ref, params)
         timings["reference_fit_ms"] = (time.perf_counter() - t0) * 1e3
-    free_a, obs_a = aligned.free_cur, aligned.observed_cur
-    cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params, timings,
-                                                "appeared_", free_a, obs_a)
-    cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free_a, obs_a)
-    app = Direction(cand, post, mix, trace, obs_a)
-    dis = None
-    k_cur = 0
-    if params.disappeared:
+
+    def appeared() -> Direction:
+        free, observed = direction_free(aligned, "appeared", params, timings)
+        cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params,
+                                                    timings, "appeared_", free, observed)
+        cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free, observed)
+        t0 = time.perf_counter()
+        direction = Direction(cand, post, mix, trace, observed)
+        direction = dataclasses.replace(
+            direction, regions=direction_regions("appeared", cur, direction, params))
+        timings["appeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
+        return direction
+
+    def disappeared() -> tuple[Direction | None, int]:
+        if not params.disappeared:
+            return None, 0
+        free, observed = direction_free(aligned, "disappeared", params, timings)
         cur_mix = cur.mixture
         if cur_mix is None:
             t0 = time.perf_counter()
             cur_mix = _current_mixture(cur, ref_mix, params)
             timings["current_fit_ms"] = (time.perf_counter() - t0) * 1e3
-        k_cur = cur_mix.n_components
-        free_d, obs_d = aligned.free_ref, aligned.observed_ref
         cand, mix, post, trace = _novelty_direction("disappeared", cur, ref, cur_mix, params,
-                                                    timings, "disappeared_", free_d, obs_d)
-        cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free_d,
-                                  obs_d)
-        dis = Direction(cand, post, mix, trace, obs_d)
+                                                    timings, "disappeared_", free, observed)
+        cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free,
+                                 observed)
+        t0 = time.perf_counter()
+        direction = Direction(cand, post, mix, trace, observed)
+        direction = dataclasses.replace(
+            direction, regions=direction_regions("disappeared", ref, direction, params))
+        timings["disappeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
+        return direction, cur_mix.n_components
+
+    app, (dis, k_cur) = both(appeared, disappeared,
+                             params.threads if params.disappeared else 1)
     return finish("novelty", params, aligned, app, dis, ref_mix.n_components, k_cur, timings,
                    t_start)

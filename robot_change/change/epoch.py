@@ -24,8 +24,10 @@ from robot_change.mixture.model import Mixture
 __all__ = [
     "Epoch",
     "as_epoch",
+    "check_current_depth",
     "check_pair",
     "check_scene_models",
+    "clean_current",
     "current_epoch",
     "epoch_from_depth",
 ]
@@ -38,6 +40,12 @@ class Epoch:
     ``depth`` (H, W) uint16 mm (fused for a reference), ``intrinsics``, the clean cloud
     ``points`` (M, 3) float32 with its voxel ``keys`` (M,) int64 and ``pixel_voxel`` (H, W)
     int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``.
+
+    ``derived``: results computed from this epoch that a rigid move of it does not change
+    (functions of its depth image, or of its mixture on its own points), kept so that a
+    station's reference pays for them once: an epoch of a SceneModel shares the model's dict,
+    and a moved copy (``dataclasses.replace``) shares it too.  Keys are tuples naming the
+    result and its parameters.
     """
 
     depth: np.ndarray
@@ -48,6 +56,7 @@ class Epoch:
     leaf_m: float
     mixture: Mixture | None
     cloud_params: CloudParams | None = None
+    derived: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_points(self) -> int:
@@ -80,12 +89,14 @@ def as_epoch(obj: Any, name: str) -> Epoch:
             cloud_params = getattr(src, "params", None)
         leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
         mixture = getattr(obj, "mixture", None)
+        derived = obj.derived if isinstance(obj, SceneModel) else {}
     except AttributeError as exc:
         raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
                          f"{type(obj).__name__} ({exc})") from None
     return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
                  np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
-                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None)
+                 leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None,
+                 derived)
 
 
 def check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
@@ -115,32 +126,50 @@ def _raise_mismatch(message: str) -> None:
     raise SceneMismatchError(message)
 
 
+def check_current_depth(reference: Epoch, current: np.ndarray, intrinsics: Intrinsics | None,
+                        reference_model: Any = None) -> Intrinsics:
+    """The checks of a current depth array against the reference (dtype, shape, camera, the
+    reference model's parameters); returns its intrinsics (the reference's when not given)."""
+    if intrinsics is None:
+        intrinsics = reference.intrinsics
+    if not isinstance(intrinsics, Intrinsics):
+        raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
+                         f"{type(intrinsics).__name__}")
+    if current.ndim != 2 or current.dtype != np.uint16:
+        raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
+                         f"{current.dtype} of shape {current.shape}")
+    if reference_model is not None:
+        check_compatible(reference_model, (intrinsics, reference_model.params))
+    if current.shape != (intrinsics.height, intrinsics.width):
+        raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
+                         f"intrinsics are for {intrinsics.width}x{intrinsics.height}")
+    if current.shape != reference.depth.shape or intrinsics != reference.intrinsics:
+        _raise_mismatch(f"current depth {current.shape[::-1]} with {intrinsics} does not "
+                        f"match the reference's {reference.depth.shape[::-1]} "
+                        f"{reference.intrinsics}; use the camera mode the reference was "
+                        f"taken with, or rebuild the reference")
+    return intrinsics
+
+
+def clean_current(reference: Epoch, current: np.ndarray, intrinsics: Intrinsics,
+                  timings: dict) -> Epoch:
+    """The current's :class:`Epoch` from a depth array already checked
+    (:func:`check_current_depth`), cleaned with the reference's CloudParams (timed as
+    ``current_cloud_ms``)."""
+    t0 = time.perf_counter()
+    cloud_params = reference.cloud_params or CloudParams(leaf_m=reference.leaf_m)
+    ep = epoch_from_depth(current, intrinsics, cloud_params)
+    timings["current_cloud_ms"] = (time.perf_counter() - t0) * 1e3
+    return ep
+
+
 def current_epoch(reference: Epoch, current: Any, intrinsics: Intrinsics | None,
                    timings: dict, reference_model: Any = None) -> Epoch:
-    t0 = time.perf_counter()
+    """The current's :class:`Epoch`: a depth array checked and cleaned, or an Epoch /
+    SceneModel as it is."""
     if isinstance(current, np.ndarray):
-        if intrinsics is None:
-            intrinsics = reference.intrinsics
-        if not isinstance(intrinsics, Intrinsics):
-            raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
-                             f"{type(intrinsics).__name__}")
-        if current.ndim != 2 or current.dtype != np.uint16:
-            raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
-                             f"{current.dtype} of shape {current.shape}")
-        if reference_model is not None:
-            check_compatible(reference_model, (intrinsics, reference_model.params))
-        if current.shape != (intrinsics.height, intrinsics.width):
-            raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
-                             f"intrinsics are for {intrinsics.width}x{intrinsics.height}")
-        if current.shape != reference.depth.shape or intrinsics != reference.intrinsics:
-            _raise_mismatch(f"current depth {current.shape[::-1]} with {intrinsics} does not "
-                            f"match the reference's {reference.depth.shape[::-1]} "
-                            f"{reference.intrinsics}; use the camera mode the reference was "
-                            f"taken with, or rebuild the reference")
-        cloud_params = reference.cloud_params or CloudParams(leaf_m=reference.leaf_m)
-        ep = epoch_from_depth(current, intrinsics, cloud_params)
-        timings["current_cloud_ms"] = (time.perf_counter() - t0) * 1e3
-        return ep
+        intrinsics = check_current_depth(reference, current, intrinsics, reference_model)
+        return clean_current(reference, current, intrinsics, timings)
     if intrinsics is not None:
         raise InputError("intrinsics= is only for a current depth array; a SceneModel "
                          "carries its own")

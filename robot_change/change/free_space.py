@@ -20,42 +20,72 @@ from robot_change.errors import InputError
 
 __all__ = [
     "free_and_observed",
+    "free_space_views",
     "free_space_votes",
+    "other_views",
     "sensing_window",
 ]
 
 
 @numba.njit(cache=True, nogil=True)
-def _filter_pass(src, dst, radius, take_min, along_rows):
-    """One 1-D pass of :func:`_window_filter` (min over readings > 0, or max)."""
-    height, width = src.shape
-    for r in range(height):
-        for c in range(width):
-            best = np.int64(65535) if take_min else np.int64(0)
-            if along_rows:
-                lo, hi = max(c - radius, 0), min(c + radius + 1, width)
+def _filter_columns(src, radius, take_min):
+    """One 1-D pass of :func:`_window_filter` down the columns of ``src`` (H, W) uint16: the
+    min (``take_min``) or max over rows ``[r - radius, r + radius]`` clipped to the image, by
+    van Herk / Gil-Werman (prefix and suffix extrema in blocks of ``2 radius + 1`` rows: three
+    comparisons a pixel whatever the radius; the inner loops run along a row, so they
+    vectorise).  Values are taken as they are: the min's caller maps "no reading" (0) to
+    65535 first."""
+    h, w = src.shape
+    k = 2 * radius + 1
+    n = h + 2 * radius
+    ident = np.uint16(65535) if take_min else np.uint16(0)
+    pre = np.empty((n, w), dtype=np.uint16)
+    suf = np.empty((n, w), dtype=np.uint16)
+    out = np.empty((h, w), dtype=np.uint16)
+    for b0 in range(0, n, k):
+        b1 = min(b0 + k, n)
+        for i in range(b0, b1):  # prefix extrema within the block
+            r = i - radius
+            for c in range(w):
+                v = src[r, c] if 0 <= r < h else ident
+                if i > b0:
+                    v = min(pre[i - 1, c], v) if take_min else max(pre[i - 1, c], v)
+                pre[i, c] = v
+        for i in range(b1 - 1, b0 - 1, -1):  # suffix extrema within the block
+            r = i - radius
+            for c in range(w):
+                v = src[r, c] if 0 <= r < h else ident
+                if i < b1 - 1:
+                    v = min(suf[i + 1, c], v) if take_min else max(suf[i + 1, c], v)
+                suf[i, c] = v
+    for r in range(h):
+        for c in range(w):
+            if take_min:
+                out[r, c] = min(suf[r, c], pre[r + 2 * radius, c])
             else:
-                lo, hi = max(r - radius, 0), min(r + radius + 1, height)
-            for t in range(lo, hi):
-                d = np.int64(src[r, t]) if along_rows else np.int64(src[t, c])
-                if take_min:
-                    if d > 0 and d < best:
-                        best = d
-                elif d > best:
-                    best = d
-            if take_min and best == 65535:
-                best = 0
-            dst[r, c] = best
+                out[r, c] = max(suf[r, c], pre[r + 2 * radius, c])
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _window_filter(depth, radius, take_min):
     """Square-window min (``take_min``: readings > 0 only, 0 where the window has none) or
-    max of a uint16 depth image, window (2 radius + 1)^2, separable."""
-    tmp = np.zeros(depth.shape, dtype=np.uint16)
-    out = np.zeros(depth.shape, dtype=np.uint16)
-    _filter_pass(depth, tmp, radius, take_min, True)
-    _filter_pass(tmp, out, radius, take_min, False)
+    max of a (H, W) uint16 depth image, window (2 radius + 1)^2, separable: columns, then
+    rows (as the columns of the transpose)."""
+    src = depth
+    if take_min:  # no reading (0) never wins a min: 65535 until the end
+        src = depth.copy()
+        for r in range(src.shape[0]):
+            for c in range(src.shape[1]):
+                if src[r, c] == 0:
+                    src[r, c] = 65535
+    tmp = np.ascontiguousarray(_filter_columns(src, radius, take_min).T)
+    out = np.ascontiguousarray(_filter_columns(tmp, radius, take_min).T)
+    if take_min:
+        for r in range(out.shape[0]):
+            for c in range(out.shape[1]):
+                if out[r, c] == 65535:
+                    out[r, c] = 0
     return out
 
 
@@ -76,15 +106,19 @@ def sensing_window(depth: np.ndarray, min_fraction: float = 0.05) -> tuple[int, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, max_m):
-    """Where each pixel of this epoch's depth image lands in the other epoch's image.
+def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, window, min_m,
+                 max_m):
+    """Where each pixel of this epoch's depth image that belongs to a point lands in the other
+    epoch's image.
 
-    ``own_depth`` (H, W) uint16 mm; (``rot`` (3, 3), ``trans`` (3,)) maps this camera's frame
-    into the other's (same intrinsics, image ``width`` pixels wide).  Returns ``target`` (P,)
-    int64, the flat index of the other image's pixel the reading projects to (-1 for no reading
-    here; -2 when the other camera could not have seen it: behind it, outside its sensing
-    ``window`` (row0, row1, col0, col1, inclusive), or outside its depth range
-    ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other frame (m).
+    ``own_depth`` (H, W) uint16 mm; ``pixel_voxel`` (H, W) int32, the point of each pixel (-1:
+    none, e.g. the removed floor: not warped); (``rot`` (3, 3), ``trans`` (3,)) maps this
+    camera's frame into the other's (same intrinsics, image ``width`` pixels wide).  Returns
+    ``target`` (P,) int64, the flat index of the other image's pixel the reading projects to
+    (-1 for no reading or no point here; -2 when the other camera could not have seen it:
+    behind it, outside its sensing ``window`` (row0, row1, col0, col1, inclusive), or outside
+    its depth range ``min_m``..``max_m``) and ``z_other`` (P,) float64, its depth in the other
+    frame (m).
     """
     h, w = own_depth.shape
     target = np.full(h * w, -1, dtype=np.int64)
@@ -92,7 +126,7 @@ def _warp_kernel(own_depth, rot, trans, fx, fy, cx, cy, width, window, min_m, ma
     for r in range(h):
         for c in range(w):
             d = own_depth[r, c]
-            if d == 0:
+            if d == 0 or pixel_voxel[r, c] < 0:
                 continue
             p = r * w + c
             z = d * 0.001
@@ -151,13 +185,27 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_po
     return votes, total, unseen
 
 
+def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the free-space check reads of the other epoch's (H, W) uint16 depth image:
+    ``near`` (its nearest reading within ``pose_radius`` pixels, 0: none), ``far`` (its
+    farthest within ``hole_radius``), both (H, W) uint16 mm, and its :func:`sensing_window`
+    as a (4,) int64 array.  A function of the image alone: a reference's is computed once
+    (:func:`free_and_observed` keeps it in the epoch's ``derived``)."""
+    other = np.ascontiguousarray(other_depth)
+    near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
+    far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
+    return near, far, np.array(sensing_window(other), dtype=np.int64)
+
+
 def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth: np.ndarray,
                      n_points: int, margin_m: float, margin_per_m2: float = 0.0,
                      pose_radius: int = 0, hole_radius: int = 0,
                      no_reading_is_free: bool = True, *,
                      intrinsics: Intrinsics | None = None,
                      other_from_own: np.ndarray | None = None,
-                     depth_range_m: tuple[float, float] = (0.0, 65.535)
+                     depth_range_m: tuple[float, float] = (0.0, 65.535),
+                     views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Free-space evidence per point of one epoch against the other epoch's depth image.
 
@@ -173,7 +221,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
     (open space beyond the sensor's range).  A pixel that lands behind the other camera,
     outside the part of its image it has readings in (:func:`sensing_window`) or outside
-    ``depth_range_m`` was not observed by it.
+    ``depth_range_m`` was not observed by it.  ``views``: :func:`other_views` of
+    ``other_depth`` with these radii, when already at hand.
 
     Returns
     -------
@@ -193,22 +242,33 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError("other_from_own must be a finite (4, 4) rigid transform")
+    near, far, window = views if views is not None else other_views(other_depth, pose_radius,
+                                                                    hole_radius)
     own = np.ascontiguousarray(own_depth)
+    pv = np.ascontiguousarray(pixel_voxel, dtype=np.int32)
     if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
         target = np.where(own.ravel() > 0, np.arange(own.size), -1)
         z_other = own.ravel() * 0.001
     else:
-        window = np.array(sensing_window(other_depth), dtype=np.int64)
-        target, z_other = _warp_kernel(own, T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx,
-                                       intrinsics.fy, intrinsics.cx, intrinsics.cy, width,
-                                       window, float(depth_range_m[0]),
-                                       float(depth_range_m[1]))
-    other = np.ascontiguousarray(other_depth)
-    near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
-    far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
-    return _free_space_kernel(np.ascontiguousarray(pixel_voxel, dtype=np.int32).ravel(),
-                              target, z_other, near.ravel(), far.ravel(), int(n_points),
-                              float(margin_m), float(margin_per_m2), bool(no_reading_is_free))
+        target, z_other = _warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
+                                       intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                       intrinsics.cy, width, window,
+                                       float(depth_range_m[0]), float(depth_range_m[1]))
+    return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
+                              int(n_points), float(margin_m), float(margin_per_m2),
+                              bool(no_reading_is_free))
+
+
+def free_space_views(base: Epoch, params: ChangeParams
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`other_views` of ``base``'s depth image with the check's radii, made once and
+    kept in ``base.derived`` (a station's reference: once for all its checks)."""
+    radii = (params.free_space_pose_radius_px, params.free_space_hole_radius_px)
+    key = ("free_space_views", *radii)
+    views = base.derived.get(key)
+    if views is None:
+        views = base.derived[key] = other_views(base.depth, *radii)
+    return views
 
 
 def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from_other: np.ndarray
@@ -222,7 +282,7 @@ def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from
         params.free_space_margin_per_m2, params.free_space_pose_radius_px,
         params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
         intrinsics=other.intrinsics, other_from_own=base_from_other,
-        depth_range_m=(cp.min_depth_m, cp.max_depth_m))
+        depth_range_m=(cp.min_depth_m, cp.max_depth_m), views=free_space_views(base, params))
     observed = (total > 0) & (2 * unseen < total)
     seen = total - unseen
     free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))

@@ -10,6 +10,7 @@ import numpy as np
 from robot_change.change import transport as emd_mod
 from robot_change.change.params import ChangeParams
 from robot_change.change.results import GreedyTrace
+from robot_change.mixture import em
 from robot_change.mixture.model import Mixture
 
 __all__ = [
@@ -67,11 +68,29 @@ def greedy_trace(fixed_mix: Mixture, var_mix: Mixture, candidates: np.ndarray, n
     return GreedyTrace(cand_idx, order, emd_after, n_ok, np.sort(change))
 
 
-def posteriors(mix: Mixture, points: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
-    """(M, K) posteriors; only ``rows`` filled when given (zeros elsewhere)."""
-    if rows is None:
-        return mix.responsibilities(points)
-    post = np.zeros((points.shape[0], mix.n_components))
-    if rows.size:
-        post[rows] = mix.responsibilities(points[rows])
+def posteriors(mix: Mixture, points: np.ndarray, rows: np.ndarray | None,
+               background: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+    """(M, K) posteriors of ``mix``'s components at ``points`` (M, 3); only ``rows`` filled
+    when given (zeros elsewhere).
+
+    ``background``: (k0, log_bg) when the first k0 components are a fixed background whose
+    log-density at each point (M,) is at hand (their weights summing to 1; a novelty fit,
+    :func:`robot_change.mixture.model.fit_over_background`): then only the other components'
+    columns are computed, at N x (K - k0) cost, and the background's are left 0.
+    """
+    k_n = mix.n_components
+    sel = np.arange(points.shape[0]) if rows is None else rows
+    post = np.zeros((points.shape[0], k_n))
+    if sel.size == 0:
+        return post
+    if background is None:
+        post[sel] = mix.responsibilities(points[sel])
+        return post
+    k0, log_bg = background
+    weights = np.concatenate([[mix.weights[:k0].sum()], mix.weights[k0:]])
+    prec, log_det, _ = em.precision_cholesky(np.ascontiguousarray(mix.covariances[k0:]))
+    resp, _ = em.responsibilities_background(
+        np.ascontiguousarray(points[sel], dtype=np.float64), np.ascontiguousarray(log_bg[sel]),
+        weights, np.ascontiguousarray(mix.means[k0:]), prec, log_det)
+    post[sel, k0:] = resp[:, 1:]
     return post

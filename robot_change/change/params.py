@@ -76,6 +76,12 @@ class ChangeParams:
     # free, no splits: a removed object's component moves away or dies; ~5x faster: 15-25 ms
     # instead of 80-110 ms, same F1 to 0.001 on the dev scenes).
     current_mixture: str = "from_reference"
+    # Most points the "from_reference" EM of the current's mixture runs on: above it, a fixed
+    # stride subsample of the current cloud (0 = every point).  The mixture is only the
+    # background the reference's points are held against; measured (bench/eval_change.py
+    # --as-daemon, dev + real): 4000, 6000, 8000 and 12000 give the same changed points as
+    # every point on every scene; a room view's fit (31k points) 9.0 ms -> 1.7 ms at 6000.
+    current_fit_points: int = 6000
     # Most novelty components on top of the fixed ones (bounds K = K_ref + this).
     max_novelty_components: int = 8
     # Ground distance between components for the EMD: "euclidean" (between means) or
@@ -131,6 +137,11 @@ class ChangeParams:
     min_cloud_points: int = 50
     # Seed of the mixture fits (subsets); same seed, same result.
     seed: int = 0
+    # Threads of one check: 2 runs the registration beside the current's cleaning, and what
+    # appeared beside what disappeared (the kernels release the GIL), on two cores; 1 runs
+    # all in the caller's thread.  The same result either way; the same CPU time, about 0.6x
+    # the wall time on two cores (docs/benchmarks.md).
+    threads: int = 2
     # --- registration -----------------------------------------------------------------------
     # How the current view is registered to the reference before comparing (and the station
     # tolerance); RegistrationParams(enabled=False) compares in the shared pixel grid.
@@ -147,6 +158,7 @@ class ChangeParams:
             _bool(name, getattr(self, name))
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
+        _int("current_fit_points", self.current_fit_points, 0, 10**9)
         _int("max_novelty_components", self.max_novelty_components, 1, 64)
         _choice("ground_distance", self.ground_distance, GROUND_DISTANCES)
         _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
@@ -164,6 +176,7 @@ class ChangeParams:
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
+        _int("threads", self.threads, 1, 2)
 
     def replace(self, **changes: Any) -> ChangeParams:
         """A copy with some fields changed (validated)."""

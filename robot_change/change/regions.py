@@ -150,7 +150,7 @@ def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangePa
 
 
 def pixel_mask(epoch: Epoch, rows: np.ndarray) -> np.ndarray:
-    sel = np.zeros(epoch.n_points + 1, dtype=bool)
+    """(H, W) bool: the pixels of the points ``rows`` of ``epoch``."""
+    sel = np.zeros(epoch.n_points + 1, dtype=bool)  # the last entry (False): pixel_voxel -1
     sel[rows] = True
-    pv = epoch.pixel_voxel
-    return sel[np.where(pv >= 0, pv, epoch.n_points)]
+    return sel[epoch.pixel_voxel]

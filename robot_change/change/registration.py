@@ -22,7 +22,11 @@ a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
 * **table-plane starts** (a table top only: a dominant plane of at most 2 m): top-down
   occupancy grids of the two views on their planes, cross-correlated by FFT over in-plane
   shifts for a few yaws, give starts for (x, y, yaw) in the plane that ICP from the main
-  estimate cannot reach when moved objects drag it (docs/algorithm.md, step 6b);
+  estimate cannot reach when moved objects drag it; they compete with the main estimate on a
+  score taken both ways (docs/algorithm.md, step 6b);
+* **trimming the change** (a table top only): the objects (cells above the table) that
+  contradict the other view more than they fit it are left out and ICP is run again on the
+  table and the objects that stayed put, twice (docs/algorithm.md, step 6c);
 * **fitness**: the fraction of current cells with an inlier correspondence at the end, and the
   RMSE of those.  Low fitness, or an offset beyond the station tolerance, is "not at the
   station", a different answer from "changed" (decided in :mod:`robot_change.change.detect`).
@@ -43,6 +47,7 @@ from typing import Any
 
 import numba
 import numpy as np
+from scipy import ndimage
 
 from hw.depth import Intrinsics
 from robot_change import validate
@@ -117,9 +122,18 @@ class RegistrationParams:
     table_object_m: float = 0.015
     table_yaw_deg: float = 10.0
     table_yaw_step_deg: float = 2.0
-    # ... and a start replaces the main estimate only when its score is higher by this share
-    # of the main estimate's.
-    table_start_margin: float = 0.1
+    # The starts compete with the main estimate on a score taken both ways: each view's
+    # inlier cells, less the cells either view sees through, less table_hole_weight times the
+    # cells of either view that land on no reading of the other (a table top's outline).
+    table_hole_weight: float = 1.0
+    # On a table top, after the finest level: trim_rounds rounds of ICP from search_level down
+    # to the finest level without the objects that changed: the connected groups of cells
+    # standing more than table_object_m above each view's plane in which the cells that
+    # contradict the other view (seen through, or paired beyond inlier_sigmas) outnumber
+    # trim_conflict_share of those that contradict or fit.  Moved objects drag ICP into a
+    # compromise; the table and the objects that stayed put are the static part.  0: none.
+    trim_rounds: int = 2
+    trim_conflict_share: float = 0.5
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -179,7 +193,9 @@ class RegistrationParams:
         _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")
         _num("table_yaw_deg", self.table_yaw_deg, 0.0, 45.0)
         _num("table_yaw_step_deg", self.table_yaw_step_deg, 0.0, 45.0, low_open=True)
-        _num("table_start_margin", self.table_start_margin, 0.0, 1.0)
+        _num("table_hole_weight", self.table_hole_weight, 0.0, 100.0)
+        _int("trim_rounds", self.trim_rounds, 0, 20)
+        _num("trim_conflict_share", self.trim_conflict_share, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -577,12 +593,14 @@ def _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_d
 
 @numba.njit(cache=True, nogil=True)
 def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_m2):
-    """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land on a
-    reference cell with a reading, how many the reference sees *through*: its reading there is
-    farther than the point by more than ``margin_m + margin_per_m2 * z^2``.  Returns
-    (through, compared)."""
+    """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land in the
+    reference image, how many the reference sees *through* (its reading there is farther than
+    the point by more than ``margin_m + margin_per_m2 * z^2``), how many land on a reading
+    (compared), and how many land on no reading (a hole).  Returns (through, compared,
+    holes)."""
     through = 0
     compared = 0
+    holes = 0
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
             x = cur_v[i, j, 0]
@@ -601,21 +619,89 @@ def _seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per
                 continue
             rz = ref_v[v, u, 2]
             if rz <= 0.0:
+                holes += 1
                 continue
             compared += 1
             if rz > pz + margin_m + margin_per_m2 * pz * pz:
                 through += 1
-    return through, compared
+    return through, compared, holes
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                 sigmas, margin_m, margin_per_m2):
+    """What the reference says of each current cell (``cur_v``, ``cur_n`` (h, w, 3)) moved by
+    (rot, trans) and projected into it: 2 (contradicts) when it sees through the cell (its
+    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it as
+    :func:`_associate` does with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
+    when it pairs it within them; 0 otherwise (outside its image, on no reading, hidden
+    behind a nearer reading, or not paired).  Returns (h, w) int8."""
+    h, w = cur_v.shape[0], cur_v.shape[1]
+    out = np.zeros((h, w), dtype=np.int8)
+    md2 = max_dist * max_dist
+    for i in range(h):
+        for j in range(w):
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            if z <= 0.0:
+                continue
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+                continue
+            rz = ref_v[v, u, 2]
+            if rz <= 0.0:
+                continue
+            margin = margin_m + margin_per_m2 * pz * pz
+            if rz > pz + margin:
+                out[i, j] = 2
+                continue
+            if rz < pz - margin:
+                continue
+            nx0 = cur_n[i, j, 0]
+            ny0 = cur_n[i, j, 1]
+            nz0 = cur_n[i, j, 2]
+            mx = ref_n[v, u, 0]
+            my = ref_n[v, u, 1]
+            mz = ref_n[v, u, 2]
+            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
+                                                                and mz == 0.0):
+                continue
+            dx = px - ref_v[v, u, 0]
+            dy = py - ref_v[v, u, 1]
+            dz = pz - ref_v[v, u, 2]
+            if dx * dx + dy * dy + dz * dz > md2:
+                continue
+            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+            if nx * mx + ny * my + nz * mz < min_cos:
+                continue
+            if abs(mx * dx + my * dy + mz * dz) <= sigmas * depth_sigma(pz):
+                out[i, j] = 1
+            else:
+                out[i, j] = 2
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
-                 sigmas, margin_m, margin_per_m2, res, jac, zs):
+                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight, res, jac, zs):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
-    metres): per pose, the inlier pairs of :func:`_count_inliers` minus the cells of either
-    view the other sees through (:func:`_seen_through`, both ways).  A wrong slide along a
-    room fits floor and walls (inliers) but puts surfaces where the other camera saw free
-    space.  Returns (n,) float64."""
+    metres): per pose, the inlier pairs of :func:`_count_inliers` (with ``both_ways`` those of
+    the reference's cells moved into the current view too) minus the cells of either view the
+    other sees through, minus ``hole_weight`` times the cells of either view that land on no
+    reading of the other inside its image (:func:`_seen_through`, both ways).  A wrong slide
+    along a room fits floor and walls (inliers) but puts surfaces where the other camera saw
+    free space; a wrong turn on a table top puts the table where the other saw none.
+    ``res``, ``jac``, ``zs``: scratch arrays of :func:`_associate`, one row per cell (the two
+    views' levels are the same size).  Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
     for m in range(rots.shape[0]):
@@ -626,11 +712,14 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers = _count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
                                  min_cos, sigmas, res, jac, zs)
-        through_cur, _ = _seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy, margin_m,
-                                       margin_per_m2)
-        through_ref, _ = _seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy, margin_m,
-                                       margin_per_m2)
-        out[m] = inliers - through_cur - through_ref
+        if both_ways:
+            inliers += _count_inliers(ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy,
+                                      max_dist, min_cos, sigmas, res, jac, zs)
+        through_cur, _, holes_cur = _seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
+                                                  margin_m, margin_per_m2)
+        through_ref, _, holes_ref = _seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
+                                                  margin_m, margin_per_m2)
+        out[m] = inliers - through_cur - through_ref - hole_weight * (holes_cur + holes_ref)
     return out
 
 
@@ -757,7 +846,7 @@ def _weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> t
 
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
-                   initial: np.ndarray | None = None) -> Registration:
+                   initial: np.ndarray | None = None, keep: dict | None = None) -> Registration:
     """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
     into the reference camera frame, from the two depth images.
 
@@ -769,6 +858,10 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     params : RegistrationParams
     initial : (4, 4) float64, optional
         Starting estimate (identity by default: the robot believes it is at its station).
+    keep : dict, optional
+        Where the reference's pyramid is kept between calls (a station's reference, checked
+        against many frames, builds it once): an epoch's ``derived``
+        (robot_change.change.epoch.Epoch), which belongs to ``reference`` alone.
 
     Returns
     -------
@@ -789,7 +882,13 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if not params.enabled:
         return identity_registration(T)
     t0 = time.perf_counter()
-    ref_levels = _levels(ref, intrinsics, params)
+    key = ("registration_levels", intrinsics, params.levels, params.min_depth_m,
+           params.max_depth_m, params.band_m, params.band_slope)
+    ref_levels = keep.get(key) if keep is not None else None
+    if ref_levels is None:
+        ref_levels = _levels(ref, intrinsics, params)
+        if keep is not None:
+            keep[key] = ref_levels
     cur_levels = _levels(cur, intrinsics, params)
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     iterations = 0
@@ -797,6 +896,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     lam_n = np.zeros(6)
     vec = np.eye(6)
     tracks: list[np.ndarray] = []  # estimates from the table-plane starts, to search_level
+    planes: tuple[_TablePlane, _TablePlane] | None = None  # a table top's, when it is one
     for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
         pairs = _Pairs(cl)
         start = T
@@ -808,8 +908,10 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             scores = _score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
             if scores[1] > scores[0]:  # the narrow cut wins ties
                 T, n_it, converged, lam_n, vec, A = wide
-        if li == 0 and params.table_starts > 0:
-            tracks = [st for st in _table_starts(ref_levels, cur_levels, params)]
+        if li == 0 and (params.table_starts > 0 or params.trim_rounds > 0):
+            planes = _table_planes(ref_levels, cur_levels, params)
+            if planes is not None and params.table_starts > 0:
+                tracks = _table_starts(ref_levels, cur_levels, planes, params)
         if tracks and li <= params.search_level:
             ends = [_icp_level(rl, cl, st, params, li, min_cos, pairs) for st in tracks]
             iterations += sum(e[1] for e in ends)
@@ -821,15 +923,21 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                                                                min_cos, pairs)
                 iterations += n_it
         if tracks and li == params.search_level:
-            # the table-plane tracks against the main one, on the search's score
-            scores = _score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs)
-            # a start must beat the main track clearly: where little stayed put (most objects
-            # moved) a wrong start can score a little better than the right main estimate
-            scores[1:] -= params.table_start_margin * abs(scores[0])
+            # the table-plane tracks against the main one, on the score taken both ways
+            scores = _score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs,
+                                  True, params.table_hole_weight)
             best = int(np.argmax(scores))  # the first of equal scores: the main track
             if best > 0:
                 T, n_it, converged, lam_n, vec, _ = ends[best - 1]
             tracks = []
+    if planes is not None:
+        for _round in range(params.trim_rounds):
+            for li in range(params.search_level, len(ref_levels)):
+                rl, cl = _without_changed_objects(ref_levels[li], cur_levels[li], planes, T,
+                                                  params, li, min_cos)
+                T, n_it, converged, lam_n, vec, _ = _icp_level(rl, cl, T, params, li, min_cos,
+                                                               _Pairs(cl))
+                iterations += n_it
     fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
                                                min_cos, pairs)
     through = _contradiction(ref_levels[-1], cur_levels[-1], T, params)
@@ -842,10 +950,10 @@ def _contradiction(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationPa
     """The larger of the fractions of each view that the other sees through (finest level)."""
     out = 0.0
     for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
-        through, compared = _seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
-                                          M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                          other.cy, params.seen_through_margin_m,
-                                          params.seen_through_margin_per_m2)
+        through, compared, _ = _seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
+                                             M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                             other.cy, params.seen_through_margin_m,
+                                             params.seen_through_margin_per_m2)
         out = max(out, through / compared if compared else 0.0)
     return out
 
@@ -909,15 +1017,17 @@ def _icp_level(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams
 
 
 def _score_poses(rl: _Level, cl: _Level, poses: list[np.ndarray], params: RegistrationParams,
-                 min_cos: float, pairs: _Pairs) -> np.ndarray:
+                 min_cos: float, pairs: _Pairs, both_ways: bool = False,
+                 hole_weight: float = 0.0) -> np.ndarray:
     """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
-    search step, less the cells either view sees through."""
+    search step (of the current's cells; ``both_ways``: of both views' cells), less the cells
+    either view sees through and ``hole_weight`` times those landing on no reading."""
     rots = np.array([T[:3, :3] for T in poses])
     transs = np.array([T[:3, 3] for T in poses])
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
                         params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                        pairs.res, pairs.jac, pairs.zs)
+                        bool(both_ways), float(hole_weight), pairs.res, pairs.jac, pairs.zs)
 
 
 def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
@@ -1040,31 +1150,56 @@ def _parabola_peak(before: float, after: float, at: float) -> float:
     return 0.5 * (before - after) / den if den < 0 else 0.0
 
 
-def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
-                  params: RegistrationParams) -> list[np.ndarray]:
-    """Up to ``params.table_starts`` (4, 4) starting estimates of ``T_ref_from_cur`` for a
-    table top, [] unless each view's dominant plane (:func:`_dominant_plane`, coarsest level)
-    holds ``table_plane_fraction`` of its cells and its supporters (2-98 %) span no more than
-    ``table_max_extent_m`` in either plane direction (a room's floor is larger).  Each start
-    puts the current plane on the reference's and moves it in the plane by a yaw about its
-    normal and a shift: the peaks of the cross-correlation (FFT, cyclic, with a 0.25 m guard
-    band round the reference's plane) of the two views' top-down grids (:func:`_plane_grid`,
-    finest level, ``table_cell_m`` cells), one grid of the current per yaw, the best distinct
-    (apart by > 2.5 table_yaw_step_deg or > 3 cells) of all yaws, best first."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class _TablePlane:
+    """A view's table plane: ``frame`` (4, 4) camera-from-plane (:func:`_plane_frame`), ``lo``,
+    ``hi`` (2,) the 2-98 % extent of the cells on it in the plane's x and y, metres."""
+
+    frame: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def heights(self, vertex: np.ndarray) -> np.ndarray:
+        """(h, w) height above the plane (towards the camera) of each point of ``vertex``
+        (h, w, 3), metres."""
+        n = self.frame[:3, 2]
+        return vertex @ n - float(n @ self.frame[:3, 3])
+
+
+def _table_planes(ref_levels: list[_Level], cur_levels: list[_Level],
+                  params: RegistrationParams) -> tuple[_TablePlane, _TablePlane] | None:
+    """The (reference, current) table planes when the views are of a table top, else None:
+    each view's dominant plane (:func:`_dominant_plane`, coarsest level) must hold
+    ``table_plane_fraction`` of its cells and its supporters (2-98 %) span no more than
+    ``table_max_extent_m`` in either plane direction (a room's floor is larger)."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
         n, d, frac = _dominant_plane(level)
         if frac < params.table_plane_fraction:
-            return []
+            return None
         F = _plane_frame(n, d)
         v = level.vertex.reshape(-1, 3)
         q = (v[v[:, 2] > 0] - F[:3, 3]) @ F[:3, :3]
         on = q[np.abs(q[:, 2]) < 0.01, :2]
         lo, hi = np.percentile(on, 2, axis=0), np.percentile(on, 98, axis=0)
         if float((hi - lo).max()) > params.table_max_extent_m:
-            return []  # a floor, not a table top
-        planes.append((F, lo, hi))
-    (Fr, lo, hi), (Fc, _lo, _hi) = planes
+            return None  # a floor, not a table top
+        planes.append(_TablePlane(F, lo, hi))
+    return planes[0], planes[1]
+
+
+def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
+                  planes: tuple[_TablePlane, _TablePlane], params: RegistrationParams
+                  ) -> list[np.ndarray]:
+    """Up to ``params.table_starts`` (4, 4) starting estimates of ``T_ref_from_cur`` for a
+    table top whose (reference, current) ``planes`` are :func:`_table_planes`'.  Each start
+    puts the current plane on the reference's and moves it in the plane by a yaw about its
+    normal and a shift: the peaks of the cross-correlation (FFT, cyclic, with a 0.25 m guard
+    band round the reference's plane) of the two views' top-down grids (:func:`_plane_grid`,
+    finest level, ``table_cell_m`` cells), one grid of the current per yaw, the best distinct
+    (apart by > 2.5 table_yaw_step_deg or > 3 cells) of all yaws, best first."""
+    Fr, lo, hi = planes[0].frame, planes[0].lo, planes[0].hi
+    Fc = planes[1].frame
     rl, cl = ref_levels[-1], cur_levels[-1]
     cell = params.table_cell_m
     to_r = invert(Fr)
@@ -1108,6 +1243,49 @@ def _table_starts(ref_levels: list[_Level], cur_levels: list[_Level],
         M[0, 3], M[1, 3] = sx, sy
         out.append(Fr @ M @ to_c)
     return out
+
+
+# --------------------------------------------------------------------------- trimming the change
+
+
+def _changed_objects(own: _Level, other: _Level, M: np.ndarray, plane: _TablePlane,
+                     params: RegistrationParams, max_dist: float, min_cos: float) -> np.ndarray:
+    """(h, w) bool: the cells of ``own`` in objects that changed, as seen from ``other`` with
+    ``M`` (4, 4) other-from-own.  An object is a 4-connected group of cells standing more than
+    ``table_object_m`` above ``plane``; it changed when its cells that contradict ``other``
+    (:func:`_cell_states`) are more than ``trim_conflict_share`` of those that contradict or
+    fit (and at least 2)."""
+    objects, n = ndimage.label((own.vertex[:, :, 2] > 0)
+                               & (plane.heights(own.vertex) > params.table_object_m))
+    out = np.zeros(objects.shape, dtype=bool)
+    if n == 0:
+        return out
+    states = _cell_states(own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
+                          M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
+                          min_cos, params.inlier_sigmas, params.seen_through_margin_m,
+                          params.seen_through_margin_per_m2)
+    counts = np.bincount((3 * objects + states).ravel(), minlength=3 * (n + 1)).reshape(-1, 3)
+    fits, contradicts = counts[:, 1], counts[:, 2]
+    changed = (contradicts > params.trim_conflict_share * (fits + contradicts)) & \
+        (contradicts >= 2)
+    changed[0] = False  # not an object: the table, and cells with no reading
+    return changed[objects]
+
+
+def _without_changed_objects(rl: _Level, cl: _Level, planes: tuple[_TablePlane, _TablePlane],
+                             T: np.ndarray, params: RegistrationParams, li: int, min_cos: float
+                             ) -> tuple[_Level, _Level]:
+    """The two views of level ``li`` (reference, current) with the normals of their changed
+    objects' cells (:func:`_changed_objects`, judged at ``T``) set to zero, so ICP pairs
+    only the table and the objects that stayed put."""
+    out = []
+    for own, other, M, plane in ((rl, cl, invert(T), planes[0]), (cl, rl, T, planes[1])):
+        drop = _changed_objects(own, other, M, plane, params, params.max_distance_m[li],
+                                min_cos)
+        normal = own.normal.copy()
+        normal[drop] = 0.0
+        out.append(dataclasses.replace(own, normal=normal))
+    return out[0], out[1]
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,

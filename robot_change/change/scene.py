@@ -216,6 +216,13 @@ class SceneModel:
             d = d.copy()
             d.setflags(write=False)
             object.__setattr__(self, "depth", d)
+        object.__setattr__(self, "_derived", {})
+
+    @property
+    def derived(self) -> dict:
+        """What checks against this model compute once and keep (the epochs' ``derived``,
+        robot_change.change.epoch.Epoch): never saved, gone with the object."""
+        return self._derived
 
     @property
     def points(self) -> np.ndarray:

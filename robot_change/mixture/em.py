@@ -120,23 +120,61 @@ def precision_cholesky(covariances):
     return prec, log_det, ok
 
 
+#: Points per block of :func:`_gauss_block`.
+BLOCK = 128
+
+
 @njit(cache=True, nogil=True)
-def _log_gauss_row(x0, x1, x2, means, prec, log_det, log_w, out):
-    """``log w_k + log N(x | mu_k, Sigma_k)`` of one point for every k; returns their max."""
-    k_n = means.shape[0]
-    best = -np.inf
+def _block_workspace(k_n, log_w, log_det):
+    """Buffers of :func:`_gauss_block` for K components: (x0, x1, x2) (BLOCK,) each, values
+    (K, BLOCK), a row (K,), and ``log w_k + log_det_k`` (K,)."""
+    const = np.empty(k_n)
     for k in range(k_n):
-        d0 = x0 - means[k, 0]
-        d1 = x1 - means[k, 1]
-        d2 = x2 - means[k, 2]
-        p = prec[k]
-        y0 = d0 * p[0, 0]
-        y1 = d0 * p[0, 1] + d1 * p[1, 1]
-        y2 = d0 * p[0, 2] + d1 * p[1, 2] + d2 * p[2, 2]
-        v = log_w[k] + log_det[k] - 0.5 * (3.0 * LOG_2PI + y0 * y0 + y1 * y1 + y2 * y2)
-        out[k] = v
-        if v > best:
-            best = v
+        const[k] = log_w[k] + log_det[k]
+    return (np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK), np.empty((k_n, BLOCK)),
+            np.empty(k_n), const)
+
+
+@njit(cache=True, nogil=True)
+def _gauss_block(points, b0, m, means, prec, const, x0, x1, x2, v):
+    """``v[k, j] = log w_k + log N(x_{b0+j} | mu_k, Sigma_k)`` for the ``m`` points from ``b0``
+    and every k, component by component over a block of points held coordinate by coordinate
+    (so the inner loop vectorises)."""
+    for j in range(m):
+        x0[j] = points[b0 + j, 0]
+        x1[j] = points[b0 + j, 1]
+        x2[j] = points[b0 + j, 2]
+    for k in range(means.shape[0]):
+        m0 = means[k, 0]
+        m1 = means[k, 1]
+        m2 = means[k, 2]
+        p00 = prec[k, 0, 0]
+        p01 = prec[k, 0, 1]
+        p11 = prec[k, 1, 1]
+        p02 = prec[k, 0, 2]
+        p12 = prec[k, 1, 2]
+        p22 = prec[k, 2, 2]
+        c = const[k]
+        vk = v[k]
+        for j in range(m):
+            d0 = x0[j] - m0
+            d1 = x1[j] - m1
+            d2 = x2[j] - m2
+            y0 = d0 * p00
+            y1 = d0 * p01 + d1 * p11
+            y2 = d0 * p02 + d1 * p12 + d2 * p22
+            vk[j] = c - 0.5 * (3.0 * LOG_2PI + y0 * y0 + y1 * y1 + y2 * y2)
+
+
+@njit(cache=True, nogil=True)
+def _block_row(v, j, row):
+    """Copy column ``j`` of a block's values into ``row`` (K,); returns its max."""
+    best = -np.inf
+    for k in range(row.shape[0]):
+        t = v[k, j]
+        row[k] = t
+        if t > best:
+            best = t
     return best
 
 
@@ -164,17 +202,21 @@ def e_step(points, weights, means, prec_chol, log_det):
     log_w = np.log(weights)
     log_resp = np.empty((n, k_n))
     log_prob = np.empty(n)
-    for i in range(n):
-        row = log_resp[i]
-        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
-                              log_det, log_w, row)
-        s = 0.0
-        for k in range(k_n):
-            s += math.exp(row[k] - best)
-        lp = best + math.log(s)
-        log_prob[i] = lp
-        for k in range(k_n):
-            row[k] -= lp
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            row = log_resp[i]
+            best = _block_row(vb, j, row)
+            s = 0.0
+            for k in range(k_n):
+                s += math.exp(row[k] - best)
+            lp = best + math.log(s)
+            log_prob[i] = lp
+            for k in range(k_n):
+                row[k] -= lp
     return log_resp, log_prob
 
 
@@ -196,13 +238,19 @@ def log_prob_samples(points, weights, means, prec_chol, log_det):
     log_w = np.log(weights)
     row = np.empty(k_n)
     log_prob = np.empty(n)
-    for i in range(n):
-        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
-                              log_det, log_w, row)
-        s = 0.0
-        for k in range(k_n):
-            s += math.exp(row[k] - best)
-        log_prob[i] = best + math.log(s)
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            best = _block_row(vb, j, row)
+            s = 0.0
+            for k in range(k_n):
+                t = row[k] - best
+                if t >= -SKIP_LOG:
+                    s += math.exp(t)
+            log_prob[i] = best + math.log(s)
     return log_prob
 
 
@@ -227,19 +275,23 @@ def log_prob_labels(points, weights, means, prec_chol, log_det):
     row = np.empty(k_n)
     log_prob = np.empty(n)
     labels = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        best = _log_gauss_row(points[i, 0], points[i, 1], points[i, 2], means, prec_chol,
-                              log_det, log_w, row)
-        s = 0.0
-        arg = -1
-        for k in range(k_n):
-            t = row[k] - best
-            if arg < 0 and row[k] == best:
-                arg = k
-            if t >= -SKIP_LOG:
-                s += math.exp(t)
-        labels[i] = arg
-        log_prob[i] = best + math.log(s)
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            best = _block_row(vb, j, row)
+            s = 0.0
+            arg = -1
+            for k in range(k_n):
+                t = row[k] - best
+                if arg < 0 and row[k] == best:
+                    arg = k
+                if t >= -SKIP_LOG:
+                    s += math.exp(t)
+            labels[i] = arg
+            log_prob[i] = best + math.log(s)
     return log_prob, labels
 
 
@@ -335,41 +387,46 @@ def em_step(points, weights, means, prec_chol, log_det, reg_covar):
     s1 = np.zeros((k_n, 3))
     s2 = np.zeros((k_n, 3, 3))
     total = 0.0
-    for i in range(n):
-        x0 = points[i, 0]
-        x1 = points[i, 1]
-        x2 = points[i, 2]
-        best = _log_gauss_row(x0, x1, x2, means, prec_chol, log_det, log_w, row)
-        s = 0.0
-        for k in range(k_n):
-            t = row[k] - best
-            if t < -SKIP_LOG:
-                row[k] = 0.0
-            else:
-                e = math.exp(t)
-                row[k] = e
-                s += e
-        total += best + math.log(s)
-        inv = 1.0 / s
-        for k in range(k_n):
-            r = row[k] * inv
-            if r == 0.0:
-                continue
-            d0 = x0 - means[k, 0]
-            d1 = x1 - means[k, 1]
-            d2 = x2 - means[k, 2]
-            nk[k] += r
-            s1[k, 0] += r * d0
-            s1[k, 1] += r * d1
-            s1[k, 2] += r * d2
-            rd0 = r * d0
-            rd1 = r * d1
-            s2[k, 0, 0] += rd0 * d0
-            s2[k, 0, 1] += rd0 * d1
-            s2[k, 0, 2] += rd0 * d2
-            s2[k, 1, 1] += rd1 * d1
-            s2[k, 1, 2] += rd1 * d2
-            s2[k, 2, 2] += r * d2 * d2
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            x0 = points[i, 0]
+            x1 = points[i, 1]
+            x2 = points[i, 2]
+            best = _block_row(vb, j, row)
+            s = 0.0
+            for k in range(k_n):
+                t = row[k] - best
+                if t < -SKIP_LOG:
+                    row[k] = 0.0
+                else:
+                    e = math.exp(t)
+                    row[k] = e
+                    s += e
+            total += best + math.log(s)
+            inv = 1.0 / s
+            for k in range(k_n):
+                r = row[k] * inv
+                if r == 0.0:
+                    continue
+                d0 = x0 - means[k, 0]
+                d1 = x1 - means[k, 1]
+                d2 = x2 - means[k, 2]
+                nk[k] += r
+                s1[k, 0] += r * d0
+                s1[k, 1] += r * d1
+                s1[k, 2] += r * d2
+                rd0 = r * d0
+                rd1 = r * d1
+                s2[k, 0, 0] += rd0 * d0
+                s2[k, 0, 1] += rd0 * d1
+                s2[k, 0, 2] += rd0 * d2
+                s2[k, 1, 1] += rd1 * d1
+                s2[k, 1, 2] += rd1 * d2
+                s2[k, 2, 2] += r * d2 * d2
     new_means = np.empty((k_n, 3))
     for k in range(k_n):
         nk[k] += _EPS10
@@ -476,3 +533,193 @@ def em_loop(points, weights, means, covariances, fixed, fix_weights, reg_covar, 
             return w, mu, cov, lp, it, STATUS_CONVERGED, -1
         prev = lp
     return w, mu, cov, lp, it, STATUS_MAX_ITER, -1
+
+
+@njit(cache=True, nogil=True)
+def em_step_background(points, log_bg, weights, means, prec_chol, log_det, reg_covar):
+    """:func:`em_step` for a mixture whose first term is a fixed background density.
+
+    The mixture is ``w_0 exp(log_bg[n]) + sum_k w_k N(x_n | mu_k, Sigma_k)``: the background
+    (e.g. the station's reference mixture, held fixed with its relative weights) enters only
+    through its per-point log-density, so an iteration costs N x K_free, not N x (K_fixed +
+    K_free).
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    log_bg : array, shape (N,)
+        Log-density of each point under the background (its weights summing to 1).
+    weights : array, shape (1 + K,)
+        ``weights[0]``: the background's total weight; then the free components'.
+    means, prec_chol, log_det : the K free components, as in :func:`e_step`
+    reg_covar : float
+
+    Returns
+    -------
+    mean_log_prob : float
+    nk : array, shape (1 + K,)
+        Responsibility mass (plus 10 eps), the background's first.
+    new_means : array, shape (K, 3)
+    new_covariances : array, shape (K, 3, 3)
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights[1:])
+    log_w0 = math.log(weights[0]) if weights[0] > 0.0 else -np.inf
+    row = np.empty(k_n)
+    nk = np.zeros(k_n + 1)
+    s1 = np.zeros((k_n, 3))
+    s2 = np.zeros((k_n, 3, 3))
+    total = 0.0
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            x0 = points[i, 0]
+            x1 = points[i, 1]
+            x2 = points[i, 2]
+            best = _block_row(vb, j, row)
+            v0 = log_w0 + log_bg[i]
+            if v0 > best:
+                best = v0
+            e0 = 0.0 if v0 - best < -SKIP_LOG else math.exp(v0 - best)
+            s = e0
+            for k in range(k_n):
+                t = row[k] - best
+                if t < -SKIP_LOG:
+                    row[k] = 0.0
+                else:
+                    e = math.exp(t)
+                    row[k] = e
+                    s += e
+            total += best + math.log(s)
+            inv = 1.0 / s
+            nk[0] += e0 * inv
+            for k in range(k_n):
+                r = row[k] * inv
+                if r == 0.0:
+                    continue
+                d0 = x0 - means[k, 0]
+                d1 = x1 - means[k, 1]
+                d2 = x2 - means[k, 2]
+                nk[k + 1] += r
+                s1[k, 0] += r * d0
+                s1[k, 1] += r * d1
+                s1[k, 2] += r * d2
+                rd0 = r * d0
+                rd1 = r * d1
+                s2[k, 0, 0] += rd0 * d0
+                s2[k, 0, 1] += rd0 * d1
+                s2[k, 0, 2] += rd0 * d2
+                s2[k, 1, 1] += rd1 * d1
+                s2[k, 1, 2] += rd1 * d2
+                s2[k, 2, 2] += r * d2 * d2
+    nk[0] += _EPS10
+    new_means = np.empty((k_n, 3))
+    for k in range(k_n):
+        m = nk[k + 1] + _EPS10
+        nk[k + 1] = m
+        e0 = s1[k, 0] / m
+        e1 = s1[k, 1] / m
+        e2 = s1[k, 2] / m
+        new_means[k, 0] = means[k, 0] + e0
+        new_means[k, 1] = means[k, 1] + e1
+        new_means[k, 2] = means[k, 2] + e2
+        c = s2[k]
+        _finish_cov(c, m, 0.0)
+        c[0, 0] -= e0 * e0
+        c[0, 1] -= e0 * e1
+        c[0, 2] -= e0 * e2
+        c[1, 1] -= e1 * e1
+        c[1, 2] -= e1 * e2
+        c[2, 2] -= e2 * e2
+        c[1, 0] = c[0, 1]
+        c[2, 0] = c[0, 2]
+        c[2, 1] = c[1, 2]
+        for a in range(3):
+            c[a, a] += reg_covar
+    return total / n, nk, new_means, s2
+
+
+@njit(cache=True, nogil=True)
+def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, tol, max_iter):
+    """:func:`em_loop` over a fixed background density (:func:`em_step_background`).
+
+    The same iterations as :func:`em_loop` with the background's components fixed and
+    ``fix_weights``: the background keeps its shape and only its total weight ``weights[0]``
+    is re-estimated; the K free components are fitted.  Parameters and returns as
+    :func:`em_loop`, with ``weights`` (1 + K,) (the background's first) and ``means``,
+    ``covariances`` those of the free components; ``empty`` is the index of a free component
+    among them (0-based, without the background).
+    """
+    n = points.shape[0]
+    k_n = means.shape[0]
+    w = weights.copy()
+    mu = means.copy()
+    cov = covariances.copy()
+    prev = -np.inf
+    lp = -np.inf
+    it = 0
+    while it < max_iter:
+        prec, log_det, ok = precision_cholesky(cov)
+        for k in range(k_n):
+            if not ok[k]:  # rounding on a degenerate cloud: fall back to the diagonal
+                for a in range(3):
+                    for b in range(3):
+                        if a != b:
+                            cov[k, a, b] = 0.0
+                    cov[k, a, a] = max(cov[k, a, a], reg_covar)
+        if not ok.all():
+            prec, log_det, ok = precision_cholesky(cov)
+        lp, nk, new_mu, new_cov = em_step_background(points, log_bg, w, mu, prec, log_det,
+                                                     reg_covar)
+        it += 1
+        for k in range(k_n):
+            if nk[k + 1] < EMPTY_MASS:
+                return w, mu, cov, lp, it, STATUS_EMPTY, k
+            mu[k] = new_mu[k]
+            cov[k] = new_cov[k]
+        for k in range(k_n + 1):
+            w[k] = nk[k] / n
+        w /= w.sum()
+        if abs(lp - prev) < tol:
+            return w, mu, cov, lp, it, STATUS_CONVERGED, -1
+        prev = lp
+    return w, mu, cov, lp, it, STATUS_MAX_ITER, -1
+
+
+@njit(cache=True, nogil=True)
+def responsibilities_background(points, log_bg, weights, means, prec_chol, log_det):
+    """Responsibilities (N, 1 + K) under ``w_0 exp(log_bg) + sum_k w_k N_k`` (column 0 the
+    background's) and ``log p(x_n)`` (N,); arguments as :func:`em_step_background`."""
+    n = points.shape[0]
+    k_n = means.shape[0]
+    log_w = np.log(weights[1:])
+    log_w0 = math.log(weights[0]) if weights[0] > 0.0 else -np.inf
+    row = np.empty(k_n)
+    resp = np.zeros((n, k_n + 1))
+    log_prob = np.empty(n)
+    x0b, x1b, x2b, vb, _, const = _block_workspace(k_n, log_w, log_det)
+    for b0 in range(0, n, BLOCK):
+        nb = min(BLOCK, n - b0)
+        _gauss_block(points, b0, nb, means, prec_chol, const, x0b, x1b, x2b, vb)
+        for j in range(nb):
+            i = b0 + j
+            best = _block_row(vb, j, row)
+            v0 = log_w0 + log_bg[i]
+            if v0 > best:
+                best = v0
+            e0 = 0.0 if v0 - best < -SKIP_LOG else math.exp(v0 - best)
+            s = e0
+            for k in range(k_n):
+                t = row[k] - best
+                row[k] = 0.0 if t < -SKIP_LOG else math.exp(t)
+                s += row[k]
+            log_prob[i] = best + math.log(s)
+            inv = 1.0 / s
+            resp[i, 0] = e0 * inv
+            for k in range(k_n):
+                resp[i, k + 1] = row[k] * inv
+    return resp, log_prob

@@ -35,6 +35,7 @@ __all__ = [
     "Mixture",
     "criterion_value",
     "fit_mixture",
+    "fit_over_background",
     "gaussianity_deficiency",
     "knn_entropy",
     "reg_covar_for_leaf",
@@ -738,6 +739,92 @@ def fit_mixture(
     record = FitRecord(criterion, n, float(reg_covar), int(max_components), tuple(steps), n_iter,
                        time.perf_counter() - t_start, stop, n_pruned)
     return Mixture(cur.weights / cur.weights.sum(), cur.means, _symmetric(cur.covs), record)
+
+
+def fit_over_background(points, background: Mixture, log_background, weights, means,
+                        covariances, *, leaf: float = DEFAULT_LEAF,
+                        reg_covar: float | None = None, tol: float = 1e-3, max_iter: int = 100,
+                        criterion: str = "mdl") -> Mixture:
+    """EM of free components over a background mixture held fixed, weights and all.
+
+    The same fit as ``fit_mixture(points, init=<background's components, then the free
+    ones>, fixed=<the background's>, fix_weights=True, split=False)`` -- the background keeps
+    its means, covariances and relative weights, only its total weight is re-estimated --
+    but the background enters through its log-density at each point, computed once by the
+    caller, so an EM iteration costs N x K_free instead of N x (K_background + K_free).
+    Novelty components over a station's reference (robot_change.change.detect) are fitted
+    this way.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    background : Mixture
+        The fixed components (its weights sum to 1).
+    log_background : array, shape (N,)
+        ``background.score_samples(points)``.
+    weights : array, shape (1 + K,)
+        Start: the background's total weight, then the free components' (summing to 1).
+    means : array, shape (K, 3)
+    covariances : array, shape (K, 3, 3)
+        The free components' start (positive definite).
+    leaf, reg_covar, tol, max_iter, criterion :
+        As :func:`fit_mixture`.
+
+    Returns
+    -------
+    Mixture
+        The background's components first (weights scaled by its fitted total), then the
+        free components that kept their points (a free component that loses them is removed
+        and EM goes on, as :func:`fit_mixture` does); ``.record`` with one ``"start"`` step,
+        whose log-likelihood is that of the last E-step (within ``tol`` x N of the returned
+        parameters': no extra pass over the points).
+    """
+    t_start = time.perf_counter()
+    x = _check_points(points)
+    n = x.shape[0]
+    if not isinstance(background, Mixture):
+        raise InputError(f"background must be a Mixture, got {type(background).__name__}")
+    log_bg = np.ascontiguousarray(log_background, dtype=np.float64)
+    w = np.array(weights, dtype=np.float64)
+    mu = np.array(means, dtype=np.float64).reshape(-1, 3)
+    cov = np.array(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    if log_bg.shape != (n,) or w.shape != (1 + len(mu),) or len(cov) != len(mu):
+        raise InputError(f"log_background ({n},), weights (1 + K,), means (K, 3) and "
+                         f"covariances (K, 3, 3) must agree, got {log_bg.shape}, {w.shape}, "
+                         f"{mu.shape} and {cov.shape}")
+    validate.choice("fit_over_background", "criterion", criterion, CRITERIA)
+    if reg_covar is None:
+        reg_covar = reg_covar_for_leaf(leaf)
+    total_iter = 0
+    status = em.STATUS_CONVERGED
+    log_l = float(log_bg.sum())  # with no free component left: the background alone
+    while len(mu):
+        w2, mu2, cov2, lp, n_it, status, empty = em.em_loop_background(
+            x, log_bg, w, mu, cov, float(reg_covar), float(tol), max(max_iter - total_iter, 1))
+        total_iter += n_it
+        if status != em.STATUS_EMPTY:
+            w, mu, cov, log_l = w2, mu2, cov2, float(lp) * n
+            break
+        keep = np.arange(len(mu)) != empty
+        w = np.concatenate([w2[:1], w2[1:][keep]])
+        w, mu, cov = w / w.sum(), mu2[keep], cov2[keep]
+    if not len(mu):
+        w = np.ones(1)
+    k0 = background.n_components
+    weights_all = np.concatenate([background.weights * w[0], w[1:]])
+    fixed = np.arange(k0 + len(mu)) < k0
+    seconds = time.perf_counter() - t_start
+    step = FitStep("start", len(weights_all), criterion_value(criterion, log_l, n, weights_all,
+                                                              fixed, True),
+                   log_l, total_iter, status != em.STATUS_MAX_ITER, True, seconds)
+    if status == em.STATUS_MAX_ITER:
+        warnings.warn(f"EM reached max_iter = {max_iter} without converging to tol = {tol}; "
+                      f"the result is the last iterate. Raise max_iter or tol.",
+                      ConvergenceWarning, stacklevel=2)
+    record = FitRecord(criterion, n, float(reg_covar), len(weights_all), (step,), total_iter,
+                       seconds, "split disabled")
+    return Mixture(weights_all / weights_all.sum(), np.vstack([background.means, mu]),
+                   _symmetric(np.concatenate([background.covariances, cov])), record)
 
 
 def _symmetric(c: np.ndarray) -> np.ndarray:

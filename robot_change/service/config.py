@@ -109,7 +109,7 @@ def _depth_uri(owner: str, name: str, value: Any) -> str:
         parse_uri(text)
     except UriError as exc:
         raise BadValue(owner, name, value, f"a depth URI such as 'openni2://', "
-                       f"'openni2://SERIAL', 'oni:FILE.oni' or 'images:DIR/' ({exc})") from None
+                       f"'openni2://SERIAL', 'oni:FILE.oni', 'images:DIR/' or 'rosbag:BAG' ({exc})") from None
     return text
 
 
@@ -221,7 +221,7 @@ class CameraConfig(_Section):
     NAME: ClassVar[str] = "camera"
     source: str = _key("openni2://", _depth_uri,
                        "depth URI: openni2:// (first camera), openni2://SERIAL, oni:FILE.oni, "
-                       "images:DIR/")
+                       "images:DIR/, rosbag:BAG, pcd:FILE.pcd")
     fuse_frames: int = _key(PARAM_BY_NAME["fuse_frames"].default, _param("fuse_frames"),
                             "depth frames fused (per-pixel median) per reference or check")
     min_valid_fraction: float = _key(_SCENE.min_valid_fraction, _scene("min_valid_fraction"),

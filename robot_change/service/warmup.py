@@ -1,7 +1,21 @@
-"""Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY."""
+"""Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY.
+
+On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
+process (``python -m robot_change.service.warmup --helper``) compiles the registration's and
+the transport's kernels into the cache while this process compiles the cloud's, the
+mixture's and the free-space check's; then the whole capture-and-check path runs here once,
+loading what the helper left.  A kernel the helper did not leave (another argument type, or
+the helper failed) is compiled here then: the split only saves time, it is never needed.
+The helper is started only when this process's share is still running after
+``HELPER_AFTER_S`` (a cold cache): with a warm cache everything loads here in about a second.
+"""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import threading
 import time
 
 import numpy as np
@@ -15,8 +29,14 @@ from robot_change.service.params import change_params
 
 __all__ = ["warm_up"]
 
+#: Longest wait for the helper process before this process compiles the rest itself.
+HELPER_TIMEOUT_S = 120.0
+#: The helper starts when this process's share has run this long (a warm cache loads it
+#: in well under a second).
+HELPER_AFTER_S = 1.0
 
-def _synthetic_room(width: int = 160, height: int = 120, box: bool = False) -> np.ndarray:
+
+def _synthetic_room(width: int, height: int, box: bool = False) -> np.ndarray:
     """A small synthetic depth image: floor, back wall, a side wall, optionally a box."""
     cam = Intrinsics.openni_default(width, height)
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
@@ -35,13 +55,129 @@ def _synthetic_room(width: int = 160, height: int = 120, box: bool = False) -> n
     return np.clip((z + ripple) * 1000.0, 0, 65535).astype(np.uint16)
 
 
-def warm_up(config: Config | None = None) -> float:
+def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
+    width, height = 160, 120
+    return Intrinsics.openni_default(width, height), (_synthetic_room(width, height),
+                                                      _synthetic_room(width, height, box=True))
+
+
+def _helper_share() -> None:
+    """The helper process's share: the registration's kernels (the same argument types as a
+    check: a read-only reference image, a writable current one) and the transport's (exact
+    and greedy EMD on mixture-sized problems)."""
+    from robot_change.change import registration
+    from robot_change.change.transport import emd, greedy_emd, ground_distance
+
+    cam, rooms = _tiny_scene()
+    for before, after in (rooms, rooms[::-1]):
+        reference = before.copy()
+        reference.setflags(write=False)
+        registration.register_depth(reference, after.copy(), cam)
+    _table_top_kernels()
+    rng = np.random.default_rng(0)
+    for k in (6, 9):
+        means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
+        covs_a = np.repeat(np.eye(3)[None] * 0.01, k, axis=0)
+        covs_b = np.repeat(np.eye(3)[None] * 0.02, k + 2, axis=0)
+        cost = ground_distance(means_a, means_b, covs_a, covs_b, kind="wasserstein2")
+        weights_a, weights_b = rng.random(k) + 0.1, rng.random(k + 2) + 0.1
+        emd(weights_a, weights_b, cost)
+        candidates = np.zeros(k + 2, dtype=bool)
+        candidates[k:] = True
+        greedy_emd(weights_a, weights_b, cost, candidates, 2)
+
+
+def _own_share(config: Config) -> None:
+    """This process's share while the helper runs: the cloud's and the mixture's kernels (a
+    reference built, the current's mixture, the novelty fit over a background) and the
+    free-space check's, without registration or EMD."""
+    from robot_change.change.free_space import free_space_votes
+    from robot_change.change.greedy import posteriors
+    from robot_change.change.regions import label_voxel_components
+    from robot_change.mixture.model import fit_mixture, fit_over_background
+
+    cam, rooms = _tiny_scene()
+    params = config.scene_params()
+    offset = np.eye(4)
+    offset[:3, 3] = (0.01, 0.0, 0.0)
+    for before, after in (rooms, rooms[::-1]):
+        try:
+            reference = build_scene(np.stack([before] * 2), params, intrinsics=cam)
+        except (EmptySceneError, InputError):
+            continue
+        mix = reference.mixture
+        points = reference.cloud.points
+        refit = fit_mixture(points, init=mix, leaf=params.cloud.leaf_m, split=False, tol=1e-2)
+        log_bg = mix.score_samples(points)
+        seed_w = np.array([0.9, 0.1])
+        novelty = fit_over_background(points, mix, log_bg, seed_w, mix.means[:1],
+                                      mix.covariances[:1], leaf=params.cloud.leaf_m, tol=1e-2)
+        posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
+        label_voxel_components(reference.cloud.keys, 1)
+        free_space_votes(reference.cloud.pixel_voxel, after, reference.depth, len(points),
+                         0.03, 0.004, 3, 5, True, intrinsics=cam, other_from_own=offset)
+        del refit
+
+
+def _start_helper() -> subprocess.Popen | None:
+    """The helper process (same interpreter, same numba cache), or None when it cannot start."""
+    try:
+        return subprocess.Popen([sys.executable, "-m", "robot_change.service.warmup",
+                                 "--helper", str(os.getpid())],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    except OSError:
+        return None
+
+
+def warm_up(config: Config | None = None, helper: bool = True) -> float:
     """Compile (or load from the numba cache) every kernel a capture and a check use, on a tiny
-    synthetic scene; returns the seconds it took."""
+    synthetic scene; returns the seconds it took.  ``helper``: share a cold compile with a
+    helper process (see the module's docstring)."""
     config = config or Config()
     t0 = time.perf_counter()
-    width, height = 160, 120
-    cam = Intrinsics.openni_default(width, height)
+    lock = threading.Lock()
+    procs: list[subprocess.Popen] = []
+    own_done = False
+
+    def start_helper() -> None:
+        with lock:
+            if not own_done:
+                proc = _start_helper()
+                if proc is not None:
+                    procs.append(proc)
+
+    timer = threading.Timer(HELPER_AFTER_S, start_helper)
+    timer.daemon = True
+    if helper:
+        timer.start()
+    try:
+        if helper:
+            _own_share(config)
+            with lock:
+                own_done = True
+            timer.cancel()
+            for proc in procs:
+                try:
+                    proc.wait(timeout=HELPER_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    pass
+        _whole_path(config)
+    finally:
+        timer.cancel()
+        with lock:
+            own_done = True
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return time.perf_counter() - t0
+
+
+def _whole_path(config: Config) -> None:
+    """Every kernel a capture and a check use, on the tiny scene: both directions, through a
+    registration and through a given transform, and the table-top registration kernels."""
+    cam, rooms = _tiny_scene()
     params = config.scene_params()
     # regions of any size, and any registration taken as at the station, so that every stage
     # runs on the tiny scene (both directions; the box is a large share of it)
@@ -53,7 +189,6 @@ def warm_up(config: Config | None = None) -> float:
     shifted = change.replace(registration=change.registration.replace(enabled=False))
     offset = np.eye(4)
     offset[:3, 3] = (0.01, 0.0, 0.0)
-    rooms = (_synthetic_room(width, height), _synthetic_room(width, height, box=True))
     for before, after in (rooms, rooms[::-1]):
         try:
             reference = build_scene(np.stack([before] * 2), params, intrinsics=cam,
@@ -62,8 +197,44 @@ def warm_up(config: Config | None = None) -> float:
             detect_changes(reference, after, shifted, initial_pose=offset)
         except (EmptySceneError, InputError):
             pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
-    # the table-plane starts' kernel runs on table tops only (not on the synthetic room)
+    _table_top_kernels()
+
+
+def _table_top_kernels() -> None:
+    """The registration kernels only a table-top view reaches (the table-plane starts' grid,
+    the trimming's cell states; the synthetic room never passes their gate), with the
+    argument types a check gives them: float32 vertex and normal maps, float64 transforms."""
     from robot_change.change import registration
-    registration._plane_grid(np.zeros((2, 2, 3)), np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8,
-                             0.015, 0.03)
-    return time.perf_counter() - t0
+
+    v = np.zeros((2, 2, 3), np.float32)
+    registration._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
+    registration._cell_states(v, v, v, v, np.eye(3), np.zeros(3), 1.0, 1.0, 0.0, 0.0, 0.06,
+                              0.8, 3.0, 0.03, 0.004)
+
+
+def _exit_with_parent(parent: int) -> None:
+    """The helper ends when the process that started it (pid ``parent``) is gone -- a daemon
+    stopped mid-way -- or when it is handed to another parent."""
+    first = os.getppid()
+
+    def alive() -> bool:
+        try:
+            os.kill(parent, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+    def watch() -> None:
+        while os.getppid() == first and alive():
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="rc-warmup-parent", daemon=True).start()
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--helper":
+        _exit_with_parent(int(sys.argv[2]))
+        _helper_share()
