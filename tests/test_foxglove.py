@@ -406,3 +406,23 @@ def test_the_topics_are_the_documented_ones():
         assert f"`{topic}`" in text, topic
     for frame in FRAMES:
         assert f"`{frame}`" in text, frame
+
+
+def test_a_check_not_at_the_station_is_drawn_too(tmp_path):
+    """Nothing compared: the clouds, images, frames and the reason, no changed points."""
+    scene = sim_fixtures.load_scene("office_far_offset")
+    reference = build_scene(read_oni_frames(str(scene.reference_oni))[:3])
+    depth = read_oni_frames(str(scene.current_oni))[0].depth
+    changes = detect_changes(reference, depth)
+    assert changes.outcome == "not_at_station"
+    CheckFileWriter().write(tmp_path / "far.mcap", check_messages(
+        reference, depth, changes, stamp_ns=STAMP), STAMP)
+    with open(tmp_path / "far.mcap", "rb") as f:
+        got = {channel.topic: decoded for _s, channel, _m, decoded in mcap_reader.make_reader(
+            f, decoder_factories=mcap_decoders()).iter_decoded_messages()}
+    assert set(got) == set(TOPICS)
+    assert len(cloud_of(got["/change/appeared"])) == 0 == len(got["/change/regions"].entities)
+    assert len(got["/change/novelty"].entities) == 0
+    np.testing.assert_array_equal(xyz(cloud_of(got["/current/cloud"])), changes.current_points)
+    assert got["/check/report"]["outcome"] == "not_at_station"
+    assert changes.not_at_station_reason in got["/check/log"].message
