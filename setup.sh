@@ -3,14 +3,18 @@
 # (libopenni2-0, python3-venv), a virtual environment in .venv, and the package itself
 # (editable) with the extras named in the first argument.
 #   ./setup.sh            -> extras "viz"          (to run robot-change and draw pictures)
-#   ./setup.sh test,viz   -> plus the test tools   (to run the test suite)
+#   ./setup.sh test,viz   -> plus the test tools   (to run the test suite; the `test` extra
+#                            also brings Debian's mosquitto broker and openssl: the fleet
+#                            tests start brokers of their own on free loopback ports)
 # Safe to run again: it only installs what is missing.  PYTHON=... picks the interpreter.
 set -euo pipefail
 cd "$(dirname "$0")"
 extras="${1:-viz}"
 
+packages=(libopenni2-0 python3-venv)
+case ",$extras," in *,test,*) packages+=(mosquitto openssl) ;; esac
 missing=()
-for package in libopenni2-0 python3-venv; do
+for package in "${packages[@]}"; do
     dpkg -s "$package" >/dev/null 2>&1 || missing+=("$package")
 done
 if [ "${#missing[@]}" -gt 0 ]; then

@@ -23,6 +23,7 @@ import robot_change
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
 from hw.pointfile import POINT_FORMATS, write_points
+from robot_change import validate
 from robot_change.change.mount import CameraMount
 from robot_change.errors import ConfigError, InputError, RobotChangeError
 
@@ -556,6 +557,19 @@ def cmd_base_sim(args: argparse.Namespace) -> int:
                         proto_max=args.protocol)
 
 
+def cmd_fleet_tail(args: argparse.Namespace) -> int:
+    """The fleet's changes and status as they come (robot_change.tools.fleettail)."""
+    from robot_change.fleet.connection import BrokerSettings
+    from robot_change.tools.fleettail import run_fleet_tail
+
+    validate.broker_url("fleet-tail", "--broker", args.broker)
+    settings = BrokerSettings(args.broker, args.ca_file, args.cert_file, args.key_file,
+                              args.username, args.password_file)
+    return run_fleet_tail(settings, prefix=args.prefix, robot=args.robot, checks=args.checks,
+                          as_json=args.json, session=args.session, count=args.count,
+                          seconds=args.seconds)
+
+
 def cmd_link_bench(args: argparse.Namespace) -> int:
     """PAUSE round trips, reports, STATUS or a flood over a pty pair through a noisy relay."""
     from robot_change.tools.linkbench import run_link_bench
@@ -765,6 +779,27 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)
+
+    tail = commands.add_parser("fleet-tail", help="print the fleet's changes and status from "
+                               "an MQTT broker as they come")
+    tail.add_argument("--broker", required=True, metavar="URL",
+                      help="mqtt://HOST[:PORT] or mqtts://HOST[:PORT] (TLS)")
+    tail.add_argument("--prefix", default="robot-change",
+                      help="the robots' fleet.topic_prefix (default robot-change)")
+    tail.add_argument("--robot", default="+", help="one robot id (default: every robot)")
+    tail.add_argument("--checks", action="store_true",
+                      help="every check too, not only the changes")
+    tail.add_argument("--json", action="store_true", help="one JSON object a line")
+    tail.add_argument("--ca-file", help="mqtts: CA certificates (PEM) of the broker's")
+    tail.add_argument("--cert-file", help="mqtts: a client certificate (PEM)")
+    tail.add_argument("--key-file", help="mqtts: the client certificate's key (PEM)")
+    tail.add_argument("--username", help="user name at the broker")
+    tail.add_argument("--password-file", help="a file holding the password alone")
+    tail.add_argument("--session", metavar="NAME", help="a persistent session: the broker "
+                      "keeps what comes while fleet-tail is away (same NAME next time)")
+    tail.add_argument("--count", type=_count, help="exit after N messages")
+    tail.add_argument("--seconds", type=float, help="exit after S seconds")
+    tail.set_defaults(func=cmd_fleet_tail)
 
     link_bench = commands.add_parser("link-bench", help="PAUSE round trips, change reports, "
                                      "STATUS or a flood over a pty pair through a noisy, "

@@ -18,8 +18,10 @@ RobotChangeError
  |    +-- StationNameError  a station name that is not allowed (it comes from the serial line)
  |    +-- ReferenceMissing  no usable reference for a station (none, or quarantined)
  +-- ProtocolError      the serial protocol to the base controller
-      +-- MessageError  a message with invalid fields or payload bytes (carries the NAK reason)
-      +-- LinkError     the link used in a way the protocol does not allow
+ |    +-- MessageError  a message with invalid fields or payload bytes (carries the NAK reason)
+ |    +-- LinkError     the link used in a way the protocol does not allow
+ +-- FleetError         the fleet's MQTT broker cannot be reached, refused the connection, or
+                        a credential file cannot be read (names the broker and what to check)
 
 ConvergenceWarning (a warning, not an error): an iterative fit stopped at its bound.
 
@@ -169,3 +171,19 @@ class ReferenceMissing(StoreError, LookupError):
         super().__init__(message)
         self.station = station
         self.quarantined = quarantined
+
+
+class FleetError(RobotChangeError):
+    """The fleet's MQTT broker cannot be used.
+
+    Examples: nothing listens at the broker's address; the TLS handshake fails (the broker's
+    certificate is not signed by ``fleet.ca_file``); the broker refuses the user name or
+    password; ``fleet.password_file`` cannot be read.  The message names the broker URL and
+    what to check.  The daemon logs it and retries with a back-off; the robot is never held up
+    by it (checks and PAUSE go on, reports wait in the spool).  ``transient``: the broker is
+    down or out of reach (it may come back), as opposed to a setting that must be changed.
+    """
+
+    def __init__(self, message: str, *, transient: bool = False) -> None:
+        super().__init__(message)
+        self.transient = transient

@@ -21,15 +21,27 @@ from robot_change.errors import BadValue
 
 #: Longest station name, characters.
 MAX_STATION = 32
-_STATION = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,%d}\Z" % (MAX_STATION - 1))
+#: Longest robot id (the fleet's topic level naming a robot), characters.
+MAX_ROBOT_ID = 64
+
+
+def _name_rule(max_chars: int) -> str:
+    return (f"1..{max_chars} ASCII letters, digits, '_' or '-', starting with a letter or "
+            "digit (a name, never a path)")
+
+
 #: What a station name is, for error messages.
-STATION_RULE = (f"a station name is 1..{MAX_STATION} ASCII letters, digits, '_' or '-', "
-                "starting with a letter or digit (a name, never a path)")
+STATION_RULE = f"a station name is {_name_rule(MAX_STATION)}"
+
+
+def _is_name(value: Any, max_chars: int) -> bool:
+    return (isinstance(value, str) and len(value) <= max_chars
+            and re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", value) is not None)
 
 
 def is_station(value: Any) -> bool:
     """Is ``value`` a valid station name (:data:`STATION_RULE`)?"""
-    return isinstance(value, str) and _STATION.match(value) is not None
+    return _is_name(value, MAX_STATION)
 
 
 def _is_whole(value: Any) -> bool:
@@ -123,7 +135,53 @@ def text(owner: str, name: str, value: Any, *, max_bytes: int | None = None,
 
 def station(owner: str, name: str, value: Any) -> str:
     """A station name (:data:`STATION_RULE`)."""
-    if not is_station(value):
-        raise BadValue(owner, name, value, STATION_RULE.removeprefix("a station name is "),
+    return plain_name(owner, name, value, MAX_STATION)
+
+
+def plain_name(owner: str, name: str, value: Any, max_chars: int) -> str:
+    """A name that is safe as a file name and as one MQTT topic level: 1..``max_chars`` ASCII
+    letters, digits, '_' or '-', starting with a letter or digit (stations, robot ids)."""
+    if not _is_name(value, max_chars):
+        raise BadValue(owner, name, value, _name_rule(max_chars),
                        wrong_type=not isinstance(value, str))
     return value
+
+
+#: Longest MQTT topic prefix, bytes of UTF-8 (a topic may have 65535; ours add ~100).
+MAX_TOPIC_PREFIX = 200
+
+
+def topic_prefix(owner: str, name: str, value: Any) -> str:
+    """The first levels of an MQTT topic: levels joined by '/', none empty, no wildcard ('+',
+    '#'), no control character, at most :data:`MAX_TOPIC_PREFIX` bytes of UTF-8."""
+    allowed = ("MQTT topic levels joined by '/' (e.g. \"robot-change\" or \"site-a/robots\"): "
+               f"none empty, no '+' or '#', no control characters, at most "
+               f"{MAX_TOPIC_PREFIX} bytes")
+    text(owner, name, value, non_empty=True)
+    if (len(value.encode("utf-8")) > MAX_TOPIC_PREFIX or any(c in value for c in "+#")
+            or any(ord(c) < 32 or ord(c) == 127 for c in value)
+            or "" in value.split("/") or value.startswith("$")):
+        raise BadValue(owner, name, value, allowed)
+    return value
+
+
+#: The schemes of a broker URL and their default ports.
+BROKER_SCHEMES = {"mqtt": 1883, "mqtts": 8883}
+
+
+def broker_url(owner: str, name: str, value: Any) -> tuple[str, str, int]:
+    """An MQTT broker URL, ``mqtt://HOST[:PORT]`` (TCP, port 1883) or ``mqtts://HOST[:PORT]``
+    (TLS, port 8883), with no path, query or user name (credentials are keys of their own).
+    Returns (scheme, host, port)."""
+    allowed = ("a broker URL mqtt://HOST[:PORT] (plain TCP, port 1883) or mqtts://HOST[:PORT] "
+               "(TLS, port 8883), without a path or credentials")
+    text(owner, name, value, non_empty=True, no_nul=True)
+    match = re.fullmatch(r"(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<host>\[[0-9A-Fa-f:.]+\]|"
+                         r"[A-Za-z0-9._-]+)(?::(?P<port>[0-9]{1,5}))?/?", value.strip())
+    if match is None or match["scheme"].lower() not in BROKER_SCHEMES:
+        raise BadValue(owner, name, value, allowed)
+    scheme = match["scheme"].lower()
+    port = int(match["port"]) if match["port"] else BROKER_SCHEMES[scheme]
+    if not 1 <= port <= 65535:
+        raise BadValue(owner, name, value, allowed + "; the port in 1..65535")
+    return scheme, match["host"].strip("[]"), port

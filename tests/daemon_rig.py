@@ -38,22 +38,28 @@ WATCH_SETUP = """
 """
 
 
-def camera_folder() -> Path:
-    """The PNG frames of office_box_added's reference (decoded from its .oni once)."""
+def camera_folder(epoch: str = "reference") -> Path:
+    """The PNG frames of office_box_added's ``epoch`` ("reference", or "current": the box is
+    there) (decoded from its .oni once)."""
     from sim_fixtures import load_scene
 
-    return Path(load_scene("office_box_added").uri("reference", "images").removeprefix("images:"))
+    return Path(load_scene("office_box_added").uri(epoch, "images").removeprefix("images:"))
 
 
 class Daemon:
     """``robot-change run`` as a subprocess.  ``hang``: where to inject a hang (armed by
     :meth:`arm`); ``watchdog_usec``: systemd's WATCHDOG_USEC (the stall bound is half of it,
-    at least 2 s); ``env``: more environment (e.g. an empty NUMBA_CACHE_DIR); ``config``: more
-    of the configuration file (TOML sections)."""
+    at least 2 s); ``env``: more environment (e.g. an empty NUMBA_CACHE_DIR); ``config``:
+    more configuration (TOML sections) in every file written; ``state_dir``: the store's
+    folder (default ``tmp/state``), e.g. one kept across two daemons."""
 
     def __init__(self, tmp: Path, hang: str | None = None, watchdog_usec: int = 4_000_000,
-                 env: dict[str, str] | None = None, config: str = "") -> None:
+                 env: dict[str, str] | None = None, config: str = "",
+                 state_dir: Path | None = None) -> None:
         self.tmp = tmp
+        tmp.mkdir(parents=True, exist_ok=True)
+        self.extra_config = config
+        self.state_dir = state_dir or tmp / "state"
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
         tty.setraw(self.slave)
@@ -75,12 +81,13 @@ class Daemon:
         self._base_threads: list[threading.Thread] = []
         self.sims: list[BaseSim] = []
 
-    def write_config(self, extra: str = "") -> None:
-        source = f"images:{camera_folder()}?rate=30&loop=1"
+    def write_config(self, extra: str = "", epoch: str = "reference") -> None:
+        """The configuration: ``epoch``'s frames as the camera (see :func:`camera_folder`)."""
+        source = f"images:{camera_folder(epoch)}?rate=30&loop=1"
         self.config.write_text(f"[camera]\nsource = {json.dumps(source)}\n"
                                f"[serial]\nport = {json.dumps(os.ttyname(self.slave))}\n"
-                               f"[store]\nstate_dir = {json.dumps(str(self.tmp / 'state'))}\n"
-                               + extra)
+                               f"[store]\nstate_dir = {json.dumps(str(self.state_dir))}\n"
+                               + self.extra_config + extra)
 
     def __enter__(self) -> "Daemon":
         return self

@@ -187,6 +187,11 @@ def test_list_devices_without_a_camera_says_so():
           "sim_fixtures/frames/room_vga.png"], "/nonexistent/dock.scene.npz: No such file"),
         (["detect", "--reference", "{text}", "--current", "sim_fixtures/frames/room_vga.png"],
          "not an .npz archive"),
+        (["fleet-tail", "--broker", "http://broker"], "must be a broker URL mqtt://HOST"),
+        (["fleet-tail", "--broker", "mqtt://127.0.0.1:1"], "connection refused; is the broker"),
+        (["fleet-tail", "--broker", "mqtt://127.0.0.1:1", "--username", "u", "--password-file",
+          "/nonexistent/pw"], "cannot read the password file /nonexistent/pw"),
+        (["fleet-tail", "--broker", "mqtt://127.0.0.1:1", "--robot", "a/b"], "fleet-tail.robot"),
     ],
 )
 def test_bad_input_is_a_clear_error_with_exit_status_2(args, message, tmp_path):

@@ -165,7 +165,7 @@ def test_a_bad_value_names_key_value_and_what_is_allowed(tmp_path, text, expecte
 
 @pytest.mark.parametrize("text, expected", [
     ("[camrea]\n", "unknown section [camrea] (known: camera, serial, store, cloud, mixture, "
-                   "change, watch, viz, service); did you mean 'camera'?"),
+                   "change, watch, viz, service, fleet); did you mean 'camera'?"),
     ("[viz]\nport = 8765\n", "did you mean 'live_port'? (or 'port' of [serial])"),
     ("[cloud]\nleaf = 0.02\n", "cloud.leaf = 0.02: unknown key (known in [cloud]:"),
     ("[cloud]\nleaf = 0.02\n", "did you mean 'leaf_m'?"),
@@ -256,3 +256,56 @@ def test_a_live_view_without_foxglove_sdk_is_a_config_error(tmp_path, monkeypatc
         check_config(config)
     # files alone do not need it at load time: the daemon skips them with a warning
     check_config(load_config(write(tmp_path, f"[store]\nstate_dir = '{tmp_path}'\n")))
+
+
+# ---------------------------------------------------------------------------------------------
+# [fleet]
+
+
+@pytest.mark.parametrize("text, expected", [
+    ('[fleet]\nbroker = "http://broker"\n', 'fleet.broker = "http://broker": must be a broker '
+                                            'URL mqtt://HOST[:PORT]'),
+    ('[fleet]\nbroker = "mqtt://user:pw@broker"\n', "without a path or credentials"),
+    ('[fleet]\nrobot_id = "r7"\n', 'fleet.robot_id = "r7": needs fleet.broker'),
+    ('[fleet]\nbroker = "mqtt://b"\nrobot_id = "a/b"\n', 'fleet.robot_id = "a/b": must be 1..64'),
+    ('[fleet]\nbroker = "mqtt://b"\ntopic_prefix = "a/#"\n', "fleet.topic_prefix"),
+    ('[fleet]\nbroker = "mqtt://b"\nca_file = "ca.crt"\n', "needs an mqtts:// broker"),
+    ('[fleet]\nbroker = "mqtts://b"\ncert_file = "c.crt"\n', "must come with fleet.key_file"),
+    ('[fleet]\nbroker = "mqtt://b"\npassword_file = "pw"\n', "needs fleet.username"),
+    ('[fleet]\nbroker = "mqtt://b"\nspool_mb = 0\n', "fleet.spool_mb = 0: must be a number"),
+    ('[fleet]\nbroker = "mqtt://b"\npassword = "x"\n', "fleet.password = \"x\": unknown key"),
+])
+def test_a_bad_fleet_section_is_a_config_error(tmp_path, text, expected):
+    assert expected in error_of(tmp_path, text)
+
+
+def test_the_fleet_is_off_by_default_and_its_files_are_taken_from_the_config_folder(tmp_path):
+    assert not Config.default().fleet.enabled
+    config = load_config(write(tmp_path, '[fleet]\nbroker = "mqtts://broker.lan"\n'
+                               'robot_id = "r7"\nca_file = "ca.crt"\nusername = "r7"\n'
+                               'password_file = "/etc/robot-change/pw"\n'))
+    fleet = config.fleet
+    assert fleet.enabled and fleet.ca_file == str(tmp_path.resolve() / "ca.crt")
+    settings = fleet.settings()
+    assert (settings.host, settings.port, settings.tls) == ("broker.lan", 8883, True)
+    assert settings.password_file == "/etc/robot-change/pw"
+    shown = config.as_toml()
+    assert '[fleet]\nbroker = "mqtts://broker.lan"\nrobot_id = "r7"' in shown
+    assert "password =" not in shown
+    assert load_config(write(tmp_path, '[fleet]\nbroker = "mqtt://b"\n')).fleet.robot_id
+
+
+def test_check_config_reads_the_fleets_files_but_never_prints_the_password(tmp_path):
+    from robot_change.service.params import load_checked_config
+
+    (tmp_path / "pw").write_text("hunter2\n")
+    text = (f'[store]\nstate_dir = "{tmp_path}"\n[fleet]\nbroker = "mqtt://b"\n'
+            'username = "r7"\npassword_file = "pw"\n')
+    config = load_checked_config(write(tmp_path, text))
+    assert "hunter2" not in config.as_toml() and "hunter2" not in repr(config)
+    (tmp_path / "pw").unlink()
+    with pytest.raises(ConfigError, match=r"fleet.password_file = .*pw': no such file"):
+        load_checked_config(write(tmp_path, text))
+    (tmp_path / "pw").write_text("\n")
+    with pytest.raises(ConfigError, match="must hold the password alone on one line"):
+        load_checked_config(write(tmp_path, text))

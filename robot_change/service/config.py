@@ -4,9 +4,10 @@
     config.watch.watch_m, config.cloud.params(), config.parameters()
 
 Sections: ``camera``, ``serial``, ``store``, ``cloud``, ``mixture``, ``change``, ``watch``,
-``viz``, ``service``; ``systemd/robot-change.toml`` documents every key with its default.  Keys
-that are also runtime parameters of the protocol (``robot_change.link.protocol.PARAMS``:
-``watch_m``, ``fuse_frames``, ``max_depth_mm`` ...) have the same names, ranges and defaults, and
+``viz``, ``service``, ``fleet`` (off unless ``fleet.broker`` is set);
+``systemd/robot-change.toml`` documents every key with its default.  Keys that are also runtime
+parameters of the protocol (``robot_change.link.protocol.PARAMS``: ``watch_m``,
+``fuse_frames``, ``max_depth_mm`` ...) have the same names, ranges and defaults, and
 :meth:`Config.parameters` gives their values as the daemon's starting parameter table.
 
 Every error is a :class:`ConfigError` naming the file, the dotted key, the value and what is
@@ -23,6 +24,7 @@ import ipaddress
 import math
 import os
 import re
+import socket
 import tomllib
 import types
 from pathlib import Path
@@ -36,6 +38,7 @@ from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import BadValue, ConfigError
 from robot_change.export.live import DEFAULT_HOST, DEFAULT_PORT
+from robot_change.fleet.connection import BrokerSettings
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.service.store import (
     DEFAULT_MAX_STATIONS,
@@ -53,6 +56,7 @@ __all__ = [
     "ChangeConfig",
     "CloudConfig",
     "Config",
+    "FleetConfig",
     "MixtureConfig",
     "SerialConfig",
     "ServiceConfig",
@@ -121,6 +125,15 @@ def _address(owner: str, name: str, value: Any) -> str:
         raise BadValue(owner, name, value, "an IP address of this machine: \"127.0.0.1\" (this "
                        "machine only), \"0.0.0.0\" (every network) or one interface's") from None
     return text
+
+
+def _optional_text(owner: str, name: str, value: Any) -> str:
+    return validate.text(owner, name, value, max_bytes=1024, non_empty=True, no_nul=True)
+
+
+def _broker(owner: str, name: str, value: Any) -> str:
+    validate.broker_url(owner, name, value)
+    return value
 
 
 def _triple(limit: float, unit: str) -> Check:
@@ -432,9 +445,87 @@ class ServiceConfig(_Section):
     log_level: str = _key("info", _choice(LOG_LEVELS), "journal verbosity")
 
 
+@dataclasses.dataclass(frozen=True)
+class FleetConfig(_Section):
+    """The fleet: checks, changes and health on an MQTT broker (robot_change.fleet).  Off
+    while ``broker`` is unset; then no other key may differ from its default."""
+
+    NAME: ClassVar[str] = "fleet"
+    broker: str | None = _key(None, _broker,
+                              "the broker: mqtt://HOST[:PORT] (port 1883) or mqtts://HOST[:PORT] "
+                              "(TLS, port 8883); unset: the fleet is off")
+    robot_id: str | None = _key(None, functools.partial(validate.plain_name,
+                                                        max_chars=validate.MAX_ROBOT_ID),
+                                "this robot's name in the topics (default: the host name)")
+    topic_prefix: str = _key("robot-change", validate.topic_prefix,
+                             "first topic levels: <prefix>/<robot_id>/status, /checks/<station>, "
+                             "/changes/<station>, /command, /reply")
+    ca_file: str | None = _key(None, _text, "mqtts: CA certificates (PEM) the broker's "
+                               "certificate must be signed by (default: the system's)")
+    cert_file: str | None = _key(None, _text, "mqtts: this robot's client certificate (PEM)")
+    key_file: str | None = _key(None, _text, "mqtts: the client certificate's key (PEM, "
+                                "unencrypted)")
+    username: str | None = _key(None, _optional_text, "user name at the broker")
+    password_file: str | None = _key(None, _text, "a file holding the password alone (never "
+                                     "in this file, never printed)")
+    spool_mb: float = _key(64.0, _float(0.01, 100_000.0, " MB"),
+                           "reports kept on disk while the broker is out of reach; when full, "
+                           "the oldest are dropped and counted")
+    keepalive_s: int = _key(30, _int(5, 3600, " seconds"),
+                            "MQTT keep-alive: the broker marks the robot offline (Last Will) "
+                            "after 1.5 times this without a word")
+
+    @property
+    def enabled(self) -> bool:
+        return self.broker is not None
+
+    def _cross_check(self) -> None:
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        if self.broker is None:
+            for name, default in defaults.items():
+                if getattr(self, name) != default:
+                    raise ConfigError(f"fleet.{name} = {_show(getattr(self, name))}: needs "
+                                      "fleet.broker (the fleet is off without it)")
+            return
+        tls = validate.broker_url("fleet", "broker", self.broker)[0] == "mqtts"
+        for name in ("ca_file", "cert_file", "key_file"):
+            if getattr(self, name) is not None and not tls:
+                raise ConfigError(f"fleet.{name} = {_show(getattr(self, name))}: needs an "
+                                  f"mqtts:// broker (fleet.broker = {_show(self.broker)})")
+        if (self.cert_file is None) != (self.key_file is None):
+            given = "cert_file" if self.cert_file is not None else "key_file"
+            other = "key_file" if given == "cert_file" else "cert_file"
+            raise ConfigError(f"fleet.{given} = {_show(getattr(self, given))}: must come with "
+                              f"fleet.{other} (set both or neither)")
+        if self.password_file is not None and self.username is None:
+            raise ConfigError(f"fleet.password_file = {_show(self.password_file)}: needs "
+                              "fleet.username")
+        if self.robot_id is None:
+            host = socket.gethostname().split(".")[0]
+            if not validate.is_station(host) or len(host) > validate.MAX_ROBOT_ID:
+                raise ConfigError(f"fleet.robot_id: not set, and the host name {host!r} cannot "
+                                  "name the robot in a topic; set fleet.robot_id (1..64 ASCII "
+                                  "letters, digits, '_' or '-')")
+            object.__setattr__(self, "robot_id", host)
+
+    def settings(self) -> BrokerSettings:
+        """The :class:`robot_change.fleet.connection.BrokerSettings` these keys describe."""
+        if self.broker is None:
+            raise ConfigError("the fleet is off: fleet.broker is not set")
+        return BrokerSettings(self.broker, self.ca_file, self.cert_file, self.key_file,
+                              self.username, self.password_file, self.keepalive_s)
+
+    @property
+    def files(self) -> dict[str, str]:
+        """The files the fleet reads (key -> path), for the configuration check."""
+        return {name: getattr(self, name) for name in
+                ("ca_file", "cert_file", "key_file", "password_file")
+                if getattr(self, name) is not None}
+
+
 _SECTIONS: tuple[type[_Section], ...] = (CameraConfig, SerialConfig, StoreConfig, CloudConfig,
                                           MixtureConfig, ChangeConfig, WatchConfig, VizConfig,
-                                          ServiceConfig)
+                                          ServiceConfig, FleetConfig)
 #: key -> the section it belongs to (each key name is used by one section only).
 _ALL_KEYS: dict[str, str] = {
     f.name: cls.NAME for cls in _SECTIONS
@@ -455,6 +546,7 @@ class Config:
     watch: WatchConfig = dataclasses.field(default_factory=WatchConfig)
     viz: VizConfig = dataclasses.field(default_factory=VizConfig)
     service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
+    fleet: FleetConfig = dataclasses.field(default_factory=FleetConfig)
     #: the file it was read from (None for defaults); not part of equality
     path: Path | None = dataclasses.field(default=None, compare=False)
 
@@ -579,7 +671,12 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
             raise ConfigError(f"{source}: {exc}") from None
     store = sections["store"]
     if base_dir is not None and not os.path.isabs(store.state_dir):
-        sections["store"] = StoreConfig(state_dir=str(base_dir / store.state_dir))
+        sections["store"] = dataclasses.replace(store, state_dir=str(base_dir / store.state_dir))
+    fleet = sections["fleet"]
+    if base_dir is not None and fleet.files:  # a relative path: from the file's folder
+        sections["fleet"] = dataclasses.replace(fleet, **{
+            name: str(base_dir / path) for name, path in fleet.files.items()
+            if not os.path.isabs(path)})
     return Config(**sections)  # type: ignore[arg-type]
 
 

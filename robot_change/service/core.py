@@ -37,6 +37,9 @@ Threads and queues (nothing grows without bound)::
     control   commands (bounded queue), frames, capture / check / watch, heartbeat contents
     detector  (robot_change.service.watch) <= 2 threads running WATCH checks
     monitor   progress of every part (robot_change.service.liveness): a stall is told to the base
+    fleet     (robot_change.fleet.publisher; with [fleet]) a bounded report queue, its writer
+              (-> on-disk spool) and network (-> MQTT broker) threads; a check told to the
+              base is handed to it afterwards with a call that never blocks
 
 Liveness: the link, camera and control threads stamp every turn, a CHECK or capture and every
 WATCH check is a unit of work that must end, and while a watch runs (the base parked, the
@@ -87,6 +90,9 @@ from robot_change.errors import (
     SceneMismatchError,
     StoreError,
 )
+from robot_change.fleet.messages import utc_text
+from robot_change.fleet.publisher import Publisher
+from robot_change.fleet.spool import Spool
 from robot_change.link.port import BytePort
 from robot_change.link.protocol import (
     PARAM_BY_ID,
@@ -138,11 +144,13 @@ from robot_change.link.session import (
 )
 from robot_change.service.camera import CameraThread, FrameQueue
 from robot_change.service.config import Config
+from robot_change.service.documents import check_report, status_document
 from robot_change.service.liveness import Progress
 from robot_change.service.params import change_params, scene_params
 from robot_change.service.store import ReferenceStore
 from robot_change.service.views import CheckView, CheckViews
 from robot_change.service.watch import GateOptions, StationWatch
+from robot_change.throttle import Throttled
 
 __all__ = ["Service", "ServiceOptions"]
 
@@ -252,26 +260,6 @@ def wire_text(text: str) -> str:
     return _ABSOLUTE_PATH.sub(name, text)
 
 
-class _Throttled:
-    """A log line that repeats at most once per ``every`` seconds, saying how many were held."""
-
-    def __init__(self, every: float = 10.0) -> None:
-        self.every = every
-        self._last: dict[str, float] = {}
-        self._held: collections.Counter = collections.Counter()
-
-    def __call__(self, key: str, level: int, fmt: str, *args: Any) -> None:
-        now = time.monotonic()
-        last = self._last.get(key)
-        if last is not None and now - last < self.every:
-            self._held[key] += 1
-            return
-        held, self._held[key] = self._held[key], 0
-        self._last[key] = now
-        log.log(level, fmt + (f" ({held} more like it in the last {now - last:.0f} s)"
-                              if held and last is not None else ""), *args)
-
-
 def _short(text: str) -> str:
     text = " ".join(str(text).split())
     return text if len(text.encode()) <= _FAULT_TEXT else text.encode()[:_FAULT_TEXT - 3].decode(
@@ -302,7 +290,7 @@ class Service:
         self.params: dict[str, int] = dict(config.parameters())
         self.link = Link(Role.MODULE, config=link_config or LinkConfig.for_baud(config.serial.baud),
                          software=f"robot-change {robot_change.__version__}", admit=self._admit)
-        self._throttled = _Throttled()
+        self._throttled = Throttled(log)
         self._admitted = 0  # commands admitted by the link, not yet in self._commands
         self.runner = LinkRunner(self.link, port, max_wait=self.options.link_max_wait)
         self._lock = threading.RLock()
@@ -339,12 +327,26 @@ class Service:
         self.views = CheckViews(config.viz, None if self.options.report_dir is None
                                 else Path(self.options.report_dir) / "checks", self.counters)
         self.last_check: dict[str, Any] = {}
+        #: the last FAULTs told to the base, newest last: time (UTC text), code, text
+        self.faults: collections.deque[dict[str, str]] = collections.deque(maxlen=10)
+        #: the fleet (robot_change.fleet), when the configuration names a broker
+        self.fleet: Publisher | None = self._make_fleet(config) if config.fleet.enabled else None
         #: the last WATCH results, newest last: t, seq, frame_index, changed, changed_in_window,
         #: action ("pause", "report", "clear" or "")
         self.watch_log: collections.deque[dict[str, Any]] = collections.deque(maxlen=256)
         self._heartbeat_at = 0.0
 
     # -- life cycle ---------------------------------------------------------------------------
+
+    def _make_fleet(self, config: Config) -> Publisher:
+        """The fleet's publisher: reports spooled in ``<state_dir>/fleet-spool``, the status
+        from :func:`robot_change.service.documents.status_document`."""
+        fleet = config.fleet
+        spool = Spool(Path(config.store.state_dir) / "fleet-spool",
+                      int(fleet.spool_mb * 1024 * 1024))
+        return Publisher(fleet.settings(), fleet.robot_id, spool, prefix=fleet.topic_prefix,
+                         status=lambda: status_document(self),
+                         versions={"robot_change": robot_change.__version__})
 
     def start(self) -> None:
         """Start the link, camera and controller threads (call :func:`warm_up` first)."""
@@ -365,6 +367,11 @@ class Service:
                 self.progress.beat(name)
             self._threads.append(thread)
             thread.start()
+        if self.fleet is not None:
+            self.fleet.start()
+            log.info("fleet: reports to %s as robot %s (spool %s: %d waiting)",
+                     self.fleet.settings.url, self.fleet.robot, self.fleet.spool.folder,
+                     len(self.fleet.spool))
         log.info("service started: store %s, link %s", self.store.root,
                  getattr(self.port, "url", None) or getattr(self.port, "name", None) or self.port)
 
@@ -385,6 +392,8 @@ class Service:
         for thread in detectors:  # idle workers end at once; a hung one is not waited for
             thread.join(max(0.05, end - time.monotonic()))
         self.views.close(max(0.05, end - time.monotonic()))  # a view is not worth waiting for
+        if self.fleet is not None:  # what is queued goes to the spool; never waited for long
+            self.fleet.close(max(0.05, min(0.3, end - time.monotonic())))
         stuck = [t.name for t in self._threads + detectors if t.is_alive()]
         if stuck:
             log.warning("threads still running at exit: %s", ", ".join(stuck))
@@ -473,6 +482,8 @@ class Service:
             log.warning("[store] changed in the configuration: restart the service to use it")
         if config.viz != old.viz:
             log.warning("[viz] changed in the configuration: restart the service to use it")
+        if config.fleet != old.fleet:
+            log.warning("[fleet] changed in the configuration: restart the service to use it")
         if camera is not None:
             self.camera.swap(camera)
             log.info("configuration reloaded; reopening the camera")
@@ -518,6 +529,13 @@ class Service:
         """A change may raise PAUSE now: armed, ``pause_on_change`` set, the latch not set."""
         with self._lock:
             return self.armed and bool(self.params["pause_on_change"]) and not self.latched
+
+    def state_fields(self) -> dict[str, Any]:
+        """state, paused, armed, station, last_check, faults: one consistent snapshot."""
+        with self._lock:
+            return {"state": self.reported_state().name.lower(), "paused": self.latched,
+                    "armed": self.armed, "station": self.station,
+                    "last_check": dict(self.last_check) or None, "faults": list(self.faults)}
 
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
@@ -668,6 +686,8 @@ class Service:
         else:
             self._throttled(f"fault-{coalesce}", logging.ERROR, "FAULT %s: %s", code.name, text)
         self.counters[f"fault_{code.name.lower()}"] += 1
+        self.faults.append({"time": utc_text(time.time()), "code": code.name,
+                            "text": _short(wire_text(text))})
         if self.link.version < 2:
             code = V1_FAULT_CODE.get(code, code)
         self._send(Fault(code, _short(wire_text(text))), coalesce=coalesce)
@@ -695,6 +715,7 @@ class Service:
         for part in split_change_report(report_id, station,
                                         _wire_regions(regions, mount if v2 else None)):
             self._send(part)
+        self._to_fleet(station, changes, report_id)
         return report_id
 
     def send_no_change(self, station: str, changes: ChangeSet) -> None:
@@ -702,6 +723,7 @@ class Service:
         if self.link.version >= 2:
             self._send(check_result(station, changes, self.config.camera.mount()))
         self._send(Clear(station))
+        self._to_fleet(station, changes)
 
     def _answer_not_at_station(self, station: str, changes: ChangeSet, what: str) -> None:
         """CHECK_RESULT NOT_AT_STATION (version 2), or FAULT COMMAND_REFUSED (version 1)."""
@@ -715,6 +737,17 @@ class Service:
             self._send(check_result(station, changes, self.config.camera.mount()))
         else:
             self._send(Fault(FaultCode.COMMAND_REFUSED, _short(text)))
+        self._to_fleet(station, changes)
+
+    def _to_fleet(self, station: str, changes: ChangeSet, report_id: int | None = None) -> None:
+        """A check told to the base goes to the fleet too, after the base's messages: queued
+        at once (the report is made on the fleet's writer thread), never waited for."""
+        if self.fleet is None:
+            return
+        mount = self.config.camera.mount()
+        self.fleet.report(station, lambda: check_report(station, changes, mount),
+                          origin="watch" if self._watch is not None else "check",
+                          link_report_id=report_id, changed=report_id is not None)
 
     def _kept_regions(self, changes: ChangeSet) -> list[ChangeRegion]:
         """The regions of a ChangeSet to report, largest first, at most MAX_REPORT_REGIONS (the
@@ -923,8 +956,9 @@ class Service:
                  "fitness %.2f)", station, changes.outcome if changes.outcome !=
                  "changed" or not regions else f"{len(regions)} changed region(s)", ms, n,
                  1e3 * float(np.linalg.norm(reg.translation_m)), reg.rotation_deg, reg.fitness)
-        self.last_check = {"station": station, "regions": len(regions), "ms": ms,
-                           "frame_index": frames[-1].index, "outcome": changes.outcome}
+        self.last_check = {"station": station, "regions": len(regions), "ms": round(ms, 1),
+                           "frame_index": frames[-1].index, "outcome": changes.outcome,
+                           "time": utc_text(time.time())}
         self._write_check(station, reference, depth, changes, regions)
         if changes.outcome == "not_at_station":
             self._answer_not_at_station(station, changes, "CHECK")
@@ -954,10 +988,9 @@ class Service:
                 "disappeared_mask": changes.disappeared_mask,
                 "intrinsics": np.array([cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy]),
                 "region_boxes": boxes, "region_kinds": kinds}, {"station": station})
-            summary = changes.summary(self.config.camera.mount())
-            summary["station"] = station
+            report = check_report(station, changes, self.config.camera.mount())
             write_atomically(Path(folder) / f"{station}.last-check.json",
-                             (json.dumps(summary, indent=1) + "\n").encode())
+                             (json.dumps(report, indent=1) + "\n").encode())
         except Exception:  # noqa: BLE001 -- a picture for people is never worth a fault
             log.warning("could not write the last check of %s to %s", station, folder,
                         exc_info=True)

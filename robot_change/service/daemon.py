@@ -201,4 +201,11 @@ def _status_line(service: Service) -> str:
     state = service.reported_state().name.lower()
     where = f" {service.station}" if service.station else ""
     camera = "camera ok" if service.camera_ok else f"camera lost: {service.camera_error}"
-    return f"{state}{where}; {camera}; link {service.link.state.value}"[:200]
+    fleet = ""
+    if service.fleet is not None:
+        counts = service.fleet.counts()
+        spool = counts["spool"]
+        fleet = (f"; fleet {counts['connection']}, {spool['queued']} spooled"
+                 + (f", {spool['dropped'] + counts['queue_dropped']} dropped"
+                    if spool["dropped"] + counts["queue_dropped"] else ""))
+    return f"{state}{where}; {camera}; link {service.link.state.value}{fleet}"[:200]

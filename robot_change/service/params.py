@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 from robot_change.change.params import ChangeParams
-from robot_change.errors import ConfigError, InputError
+from robot_change.errors import ConfigError, FleetError, InputError
 from robot_change.export.foxglove import sdk
 from robot_change.service.config import Config, load_config
 
@@ -38,12 +38,30 @@ def check_config(config: Config) -> None:
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     _check_state_dir(where, Path(config.store.state_dir))
+    _check_fleet_files(where, config)
     if config.viz.live:
         try:
             sdk()
         except InputError as exc:
             raise ConfigError(f"{where}: viz.live = true: {exc}; or set viz.live = "
                               "false") from None
+
+
+def _check_fleet_files(where: str, config: Config) -> None:
+    """The fleet's TLS and password files are files this user can read (their content is
+    read when the daemon connects; the password is never printed)."""
+    for name, path in config.fleet.files.items():
+        key = f"{where}: fleet.{name} = {path!r}"
+        if not os.path.isfile(path):
+            raise ConfigError(f"{key}: no such file")
+        if not os.access(path, os.R_OK):
+            raise ConfigError(f"{key}: not readable by this user (uid {os.getuid()}); the "
+                              "service user must be able to read it")
+    if config.fleet.password_file is not None:
+        try:
+            config.fleet.settings().password()
+        except FleetError as exc:
+            raise ConfigError(f"{where}: fleet.password_file: {exc}") from None
 
 
 def _check_state_dir(where: str, path: Path) -> None:
