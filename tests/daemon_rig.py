@@ -65,7 +65,7 @@ class Daemon:
         tty.setraw(self.slave)
         self.arm_file = tmp / "hang.arm"
         self.config = tmp / "robot-change.toml"
-        self.write_config(config)
+        self.write_config()
         self.notes = Notes(tmp / "notify.sock")
         full = dict(os.environ, NOTIFY_SOCKET=str(tmp / "notify.sock"),
                     WATCHDOG_USEC=str(watchdog_usec), PYTHONPATH=str(REPO), **(env or {}))
