@@ -64,7 +64,7 @@ from hw.serial_port import (
     open_port,  # noqa: E402
 )
 from robot_change.service.config import Config  # noqa: E402
-from robot_change.service.core import Service  # noqa: E402
+from robot_change.service.core import Service, ServiceOptions  # noqa: E402
 from robot_change.service.store import ReferenceStore  # noqa: E402
 from robot_change.service.warmup import warm_up  # noqa: E402
 from robot_change.tools.basesim import BaseSim  # noqa: E402
@@ -125,14 +125,15 @@ class SwitchingSource(DepthSource):
 class InProcess:
     """A service and a simulated base on a pty pair, in this process."""
 
-    def __init__(self, camera, tmp: Path, config: Config | None = None) -> None:
+    def __init__(self, camera, tmp: Path, config: Config | None = None,
+                 options: ServiceOptions | None = None) -> None:
         master, slave = os.openpty()
         tty.setraw(master)
         tty.setraw(slave)
         self.master, self.slave = master, slave
         self.port = open_port(os.ttyname(slave), timeout=0.01)
         self.service = Service(config or Config(), camera, self.port,
-                               ReferenceStore(tmp / "references"))
+                               ReferenceStore(tmp / "references"), options)
         self.log = open(tmp / "base.log", "w")
         self.sim = BaseSim(FdPort(master), out=self.log)
 

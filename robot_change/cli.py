@@ -405,6 +405,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from robot_change.change.detect import detect_changes
 
     started = time.perf_counter()
+    stamp_ns = time.time_ns()
+    if args.mcap:
+        from robot_change.export.foxglove import sdk
+
+        sdk()  # without foxglove-sdk, say so before the work
     reference = _reference_scene(args)
     current, current_depth, camera = _current_input(args, reference)
     detector = {"novelty": detect_changes, "plain": baselines.detect_plain,
@@ -433,13 +438,30 @@ def cmd_detect(args: argparse.Namespace) -> int:
             summary["files"].append(str(out / "report.png"))
         from hw.atomic import write_atomically
 
+        if args.mcap:
+            summary["files"].append(str(args.mcap))
         write_atomically(out / "report.json",
                          (json.dumps(summary, indent=2) + "\n").encode("utf-8"))
+    if args.mcap:
+        _write_check_mcap(args.mcap, reference, current_depth, changes, mount, summary, stamp_ns)
+        if not args.out:
+            summary["files"] = [str(args.mcap)]
     if args.json:
         _print_json(summary)
     else:
         _print_change_summary(summary)
     return DETECT_EXIT[changes.outcome] if args.exit_code else 0
+
+
+def _write_check_mcap(path: str, reference, current_depth: np.ndarray, changes,
+                      mount: CameraMount, summary: dict[str, Any], stamp_ns: int) -> None:
+    """``detect --mcap``: the check as one MCAP file for Foxglove (robot_change.export)."""
+    from robot_change.export.foxglove import check_messages
+    from robot_change.export.mcap import CheckFileWriter
+
+    messages = check_messages(reference, current_depth, changes, mount, report=summary,
+                              stamp_ns=stamp_ns)
+    CheckFileWriter().write(path, messages, stamp_ns, {"outcome": changes.outcome})
 
 
 def _print_change_summary(summary: dict[str, Any]) -> None:
@@ -702,6 +724,10 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--format", choices=POINT_FORMATS, default="npy",
                         help=FORMAT_HELP + "; appeared points green, disappeared red")
     detect.add_argument("--no-picture", action="store_true", help="with --out: skip report.png")
+    detect.add_argument("--mcap", metavar="FILE",
+                        help="write the check as one MCAP file for Foxglove: depth images, "
+                        "clean clouds, mixtures, changed points, region boxes, frames, the "
+                        "report (docs/ros.md; the viz extra)")
     detect.add_argument("--mount", help="the camera on the base: x,y,z,roll,pitch,yaw of its "
                         "body frame (x forward, y left, z up) in base_link, metres and degrees "
                         "(default: the mounting the reference was captured with, else "

@@ -153,6 +153,11 @@ def test_free_form_change_thresholds_are_kept_and_validated(tmp_path):
     ("[service]\nlog_level = \"verbose\"\n", "service.log_level = \"verbose\": must be one of "
                                              "'debug', 'info', 'warning', 'error'"),
     ("[service]\nwatchdog = \"yes\"\n", "service.watchdog = \"yes\": must be true or false"),
+    ("[viz]\nkeep_checks = -1\n", "viz.keep_checks = -1: must be a whole number in 0..100000"),
+    ("[viz]\nlive = \"on\"\n", "viz.live = \"on\": must be true or false"),
+    ("[viz]\nlive_port = 70000\n", "viz.live_port = 70000: must be a whole number in 0..65535"),
+    ("[viz]\nlive_host = \"robot.local\"\n", "viz.live_host = \"robot.local\": must be an IP "
+                                            "address of this machine: \"127.0.0.1\""),
 ])
 def test_a_bad_value_names_key_value_and_what_is_allowed(tmp_path, text, expected):
     assert expected in error_of(tmp_path, text)
@@ -160,7 +165,8 @@ def test_a_bad_value_names_key_value_and_what_is_allowed(tmp_path, text, expecte
 
 @pytest.mark.parametrize("text, expected", [
     ("[camrea]\n", "unknown section [camrea] (known: camera, serial, store, cloud, mixture, "
-                   "change, watch, service, fleet); did you mean 'camera'?"),
+                   "change, watch, viz, service, fleet); did you mean 'camera'?"),
+    ("[viz]\nport = 8765\n", "did you mean 'live_port'? (or 'port' of [serial])"),
     ("[cloud]\nleaf = 0.02\n", "cloud.leaf = 0.02: unknown key (known in [cloud]:"),
     ("[cloud]\nleaf = 0.02\n", "did you mean 'leaf_m'?"),
     ("[serial]\nbaudrate = 9600\n", "did you mean 'baud'?"),
@@ -225,6 +231,31 @@ def test_unknown_change_keys_are_refused_with_a_hint(tmp_path):
     config = load_config(path)
     with pytest.raises(ConfigError, match="did you mean change.free_space_margin_m"):
         check_config(config)
+
+
+def test_viz_defaults_are_off_live_bound_to_localhost_and_keep_twenty(tmp_path):
+    viz = load_config(write(tmp_path, "")).viz
+    assert (viz.keep_checks, viz.live, viz.live_host, viz.live_port) == (20, False,
+                                                                          "127.0.0.1", 8765)
+    viz = load_config(write(tmp_path, "[viz]\nlive = true\nlive_host = \"::1\"\n"
+                                      "live_port = 0\nkeep_checks = 0\n")).viz
+    assert (viz.keep_checks, viz.live, viz.live_host, viz.live_port) == (0, True, "::1", 0)
+
+
+def test_a_live_view_without_foxglove_sdk_is_a_config_error(tmp_path, monkeypatch):
+    import sys
+
+    from robot_change.service.params import check_config
+
+    config = load_config(write(tmp_path, f"[store]\nstate_dir = '{tmp_path}'\n[viz]\n"
+                                         "live = true\n"))
+    check_config(config)  # the library is installed here
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # as on a machine without the viz extra
+    with pytest.raises(ConfigError, match=r"viz.live = true: Foxglove views of a check need "
+                       r"foxglove-sdk: install the 'viz' extra .*; or set viz.live = false"):
+        check_config(config)
+    # files alone do not need it at load time: the daemon skips them with a warning
+    check_config(load_config(write(tmp_path, f"[store]\nstate_dir = '{tmp_path}'\n")))
 
 
 # ---------------------------------------------------------------------------------------------

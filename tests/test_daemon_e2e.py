@@ -7,6 +7,7 @@ Every wait is bounded: basesim's expect timeouts, ``subprocess`` timeouts, socke
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
 import os
@@ -195,6 +196,9 @@ def test_demo_runs_the_daemon_and_shows_the_pause_and_the_report(tmp_path: Path)
     times = [int(t) for t in re.findall(r"\((-?\d+) ms\)", text)]
     assert times and min(times) >= 0, text
     assert "base <- HEARTBEAT" in text[text.index("base -> RESUME"):], text
+    if importlib.util.find_spec("foxglove") is not None:  # the viz extra: the check as MCAP
+        assert "the check in 3-D: open " in text and list(
+            (tmp_path / "state" / "reports" / "checks").glob("*-office.mcap")), text
     picture = (tmp_path / "report.png").read_bytes()
     assert picture.startswith(b"\x89PNG\r\n\x1a\n") and len(picture) > 20_000
     assert time.monotonic() - started < 60

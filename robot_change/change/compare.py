@@ -246,7 +246,7 @@ def finish(method: str, params: ChangeParams, aligned: Aligned, app: Direction |
         method=method, params=params, timings_ms=timings,
         outcome="changed" if changed else "no_change",
         registration=aligned.registration,
-        unobserved_fraction=unseen / seen_of if seen_of else 0.0)
+        unobserved_fraction=unseen / seen_of if seen_of else 0.0, current_points=cur.points)
 
 
 def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, timings: dict,
@@ -268,4 +268,4 @@ def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, t
         greedy_appeared=None, greedy_disappeared=None, method=method, params=params,
         timings_ms=timings, outcome="not_at_station", registration=aligned.registration,
         unobserved_fraction=1.0 - aligned.registration.fitness,
-        not_at_station_reason=aligned.reason)
+        not_at_station_reason=aligned.reason, current_points=cur.points)

@@ -122,7 +122,9 @@ class ChangeSet:
     (``changed`` False, no regions).  ``registration``: the :class:`Registration` used.
     ``unobserved_fraction``: of the two clouds' points, the fraction the other epoch's camera
     could not have seen (outside its image or range), neither appeared nor disappeared.
-    ``not_at_station_reason``: why, for that outcome (else "").
+    ``not_at_station_reason``: why, for that outcome (else "").  ``current_points`` (N, 3)
+    float32: the current's whole clean cloud (the rows ``appeared_index`` refer to; None when
+    not kept).
     """
 
     changed: bool
@@ -147,6 +149,7 @@ class ChangeSet:
     registration: Registration = dataclasses.field(default_factory=identity_registration)
     unobserved_fraction: float = 0.0
     not_at_station_reason: str = ""
+    current_points: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
     @property
     def regions(self) -> tuple[Region, ...]:

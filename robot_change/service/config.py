@@ -4,9 +4,9 @@
     config.watch.watch_m, config.cloud.params(), config.parameters()
 
 Sections: ``camera``, ``serial``, ``store``, ``cloud``, ``mixture``, ``change``, ``watch``,
-``service``, ``fleet`` (off unless ``fleet.broker`` is set); ``systemd/robot-change.toml``
-documents every key with its default.  Keys that
-are also runtime parameters of the protocol (``robot_change.link.protocol.PARAMS``: ``watch_m``,
+``viz``, ``service``, ``fleet`` (off unless ``fleet.broker`` is set);
+``systemd/robot-change.toml`` documents every key with its default.  Keys that are also runtime
+parameters of the protocol (``robot_change.link.protocol.PARAMS``: ``watch_m``,
 ``fuse_frames``, ``max_depth_mm`` ...) have the same names, ranges and defaults, and
 :meth:`Config.parameters` gives their values as the daemon's starting parameter table.
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import ipaddress
 import math
 import os
 import re
@@ -36,6 +37,7 @@ from robot_change.change.mount import CameraMount
 from robot_change.change.scene import SceneParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import BadValue, ConfigError
+from robot_change.export.live import DEFAULT_HOST, DEFAULT_PORT
 from robot_change.fleet.connection import BrokerSettings
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.service.store import (
@@ -59,6 +61,7 @@ __all__ = [
     "SerialConfig",
     "ServiceConfig",
     "StoreConfig",
+    "VizConfig",
     "WatchConfig",
     "load_config",
 ]
@@ -67,6 +70,8 @@ __all__ = [
 #: unit lists it in RestartPreventExitStatus=: restarting cannot fix a configuration file.
 EXIT_CONFIG = 78
 
+#: Per-check MCAP files kept by default (the newest; ~0.5 MB each for VGA depth).
+DEFAULT_KEEP_CHECKS = 20
 #: Baud rates a USB serial adapter and the base controller commonly agree on.
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000,
               2000000)
@@ -109,6 +114,16 @@ def _depth_uri(owner: str, name: str, value: Any) -> str:
     except UriError as exc:
         raise BadValue(owner, name, value, f"a depth URI such as 'openni2://', "
                        f"'openni2://SERIAL', 'oni:FILE.oni', 'images:DIR/' or 'rosbag:BAG' ({exc})") from None
+    return text
+
+
+def _address(owner: str, name: str, value: Any) -> str:
+    text = _text(owner, name, value)
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        raise BadValue(owner, name, value, "an IP address of this machine: \"127.0.0.1\" (this "
+                       "machine only), \"0.0.0.0\" (every network) or one interface's") from None
     return text
 
 
@@ -404,6 +419,22 @@ class WatchConfig(_Section):
 
 
 @dataclasses.dataclass(frozen=True)
+class VizConfig(_Section):
+    """Views of the checks for Foxglove (robot_change.export): per-check MCAP files beside the
+    last check, and a live WebSocket server."""
+
+    NAME: ClassVar[str] = "viz"
+    keep_checks: int = _key(DEFAULT_KEEP_CHECKS, _int(0, 100_000),
+                            "every CHECK is written as an MCAP file to <state_dir>/reports/"
+                            "checks/; the newest this many are kept (0: none written)")
+    live: bool = _key(False, validate.flag,
+                      "serve every CHECK live over the Foxglove WebSocket protocol")
+    live_host: str = _key(DEFAULT_HOST, _address, "address the live view listens on")
+    live_port: int = _key(DEFAULT_PORT, _int(0, 65535), "TCP port of the live view (0: any "
+                          "free port, logged at start)")
+
+
+@dataclasses.dataclass(frozen=True)
 class ServiceConfig(_Section):
     """The daemon itself."""
 
@@ -493,8 +524,8 @@ class FleetConfig(_Section):
 
 
 _SECTIONS: tuple[type[_Section], ...] = (CameraConfig, SerialConfig, StoreConfig, CloudConfig,
-                                          MixtureConfig, ChangeConfig, WatchConfig, ServiceConfig,
-                                          FleetConfig)
+                                          MixtureConfig, ChangeConfig, WatchConfig, VizConfig,
+                                          ServiceConfig, FleetConfig)
 #: key -> the section it belongs to (each key name is used by one section only).
 _ALL_KEYS: dict[str, str] = {
     f.name: cls.NAME for cls in _SECTIONS
@@ -513,6 +544,7 @@ class Config:
     mixture: MixtureConfig = dataclasses.field(default_factory=MixtureConfig)
     change: ChangeConfig = dataclasses.field(default_factory=ChangeConfig)
     watch: WatchConfig = dataclasses.field(default_factory=WatchConfig)
+    viz: VizConfig = dataclasses.field(default_factory=VizConfig)
     service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
     fleet: FleetConfig = dataclasses.field(default_factory=FleetConfig)
     #: the file it was read from (None for defaults); not part of equality
@@ -625,10 +657,10 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
                 extra[key] = value
             else:
                 where = f"{cls.NAME}.{key} = {_show(value)}"
-                if key in _ALL_KEYS:
-                    hint = f"; it belongs in [{_ALL_KEYS[key]}]"
-                else:
-                    hint = _suggest(key, sorted(fields))
+                hint = _suggest(key, sorted(fields))
+                if key in _ALL_KEYS:  # e.g. [viz] port: live_port, or serial.port
+                    hint = (f"{hint} (or '{key}' of [{_ALL_KEYS[key]}])" if hint
+                            else f"; it belongs in [{_ALL_KEYS[key]}]")
                 raise ConfigError(f"{source}: {where}: unknown key (known in [{cls.NAME}]: "
                                   f"{', '.join(sorted(fields))}){hint}")
         if extra:

@@ -148,6 +148,7 @@ from robot_change.service.documents import check_report, status_document
 from robot_change.service.liveness import Progress
 from robot_change.service.params import change_params, scene_params
 from robot_change.service.store import ReferenceStore
+from robot_change.service.views import CheckView, CheckViews
 from robot_change.service.watch import GateOptions, StationWatch
 from robot_change.throttle import Throttled
 
@@ -176,7 +177,9 @@ class ServiceOptions:
     ``gate_fraction``: it triggers a check when the count of pixels that differ from the
     reference moved by more than ``gate_pixels + gate_fraction x`` the count at the last check.
     ``report_dir``: where the last CHECK of each station is written (fused depth, change masks,
-    regions; ``<station>.last-check.npz``) for people and ``robot-change demo``; None: nowhere.
+    regions; ``<station>.last-check.npz``) for people and ``robot-change demo``, and every
+    CHECK as an MCAP file for Foxglove in its ``checks/`` folder (the configuration's [viz],
+    robot_change.service.views); None: nowhere.
     ``link_max_wait``: the link thread's longest sleep (s), bounding the added send latency.
     ``stall_after_s``: a part that makes no progress for this long (a check, a capture or a
     WATCH check that does not end, a thread that does not turn) is a stall (module docstring);
@@ -321,6 +324,8 @@ class Service:
         self.stall_told = threading.Event()  # the base acknowledged the FAULT STALLED
         self.stuck: list[str] = []  # threads that did not stop (robot_change.service.daemon)
         self.counters = collections.Counter()
+        self.views = CheckViews(config.viz, None if self.options.report_dir is None
+                                else Path(self.options.report_dir) / "checks", self.counters)
         self.last_check: dict[str, Any] = {}
         #: the last FAULTs told to the base, newest last: time (UTC text), code, text
         self.faults: collections.deque[dict[str, str]] = collections.deque(maxlen=10)
@@ -350,6 +355,7 @@ class Service:
             log.info("removed %d temp file(s) left by an interrupted write", len(removed))
         self._pool = concurrent.futures.ThreadPoolExecutor(self.options.detector_threads,
                                                            thread_name_prefix="detector")
+        self.views.start()
         with self._lock:
             self.state = ModuleState.IDLE
         self._refresh_heartbeat(force=True)
@@ -385,6 +391,7 @@ class Service:
         detectors = [t for t in threading.enumerate() if t.name.startswith("detector")]
         for thread in detectors:  # idle workers end at once; a hung one is not waited for
             thread.join(max(0.05, end - time.monotonic()))
+        self.views.close(max(0.05, end - time.monotonic()))  # a view is not worth waiting for
         if self.fleet is not None:  # what is queued goes to the spool; never waited for long
             self.fleet.close(max(0.05, min(0.3, end - time.monotonic())))
         stuck = [t.name for t in self._threads + detectors if t.is_alive()]
@@ -473,6 +480,8 @@ class Service:
             log.warning("[serial] changed in the configuration: restart the service to use it")
         if config.store != old.store:
             log.warning("[store] changed in the configuration: restart the service to use it")
+        if config.viz != old.viz:
+            log.warning("[viz] changed in the configuration: restart the service to use it")
         if config.fleet != old.fleet:
             log.warning("[fleet] changed in the configuration: restart the service to use it")
         if camera is not None:
@@ -934,6 +943,7 @@ class Service:
         n = self.params["fuse_frames"]
         frames = self._fresh_frames(n, f"CHECK {station}")
         t0 = time.perf_counter()
+        stamp_ns = time.time_ns()
         stack = np.stack([f.depth for f in frames])
         depth = stack[0] if n == 1 else fuse_depth(stack, reference.params.min_valid(n))
         changes = detect.detect_changes(reference, depth, change_params(self.config, self.params),
@@ -958,6 +968,8 @@ class Service:
             self.send_report(station, changes)
         else:
             self.send_no_change(station, changes)
+        # the answers are queued for the link: the view for Foxglove is drawn on its own thread
+        self.views.submit(CheckView(station, reference, depth, changes, mount, stamp_ns))
 
     def _write_check(self, station: str, reference: SceneModel, depth: np.ndarray,
                      changes: ChangeSet, regions: list[ChangeRegion]) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from robot_change.change.params import ChangeParams
 from robot_change.errors import ConfigError, FleetError, InputError
+from robot_change.export.foxglove import sdk
 from robot_change.service.config import Config, load_config
 
 __all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
@@ -26,8 +27,9 @@ def load_checked_config(path: str | os.PathLike) -> Config:
 
 def check_config(config: Config) -> None:
     """What the file alone cannot say: the library's own parameter checks on the values the
-    daemon will run with (ChangeParams, SceneParams, the wire's parameter table), and a state
-    folder that is a folder the service can write (or create).  Raises :class:`ConfigError`."""
+    daemon will run with (ChangeParams, SceneParams, the wire's parameter table), a state
+    folder that is a folder the service can write (or create), and the library a live view
+    needs (foxglove-sdk).  Raises :class:`ConfigError`."""
     where = str(config.path) if config.path is not None else "<config>"
     try:
         params = config.parameters()
@@ -37,6 +39,12 @@ def check_config(config: Config) -> None:
         raise ConfigError(f"{where}: {exc}") from None
     _check_state_dir(where, Path(config.store.state_dir))
     _check_fleet_files(where, config)
+    if config.viz.live:
+        try:
+            sdk()
+        except InputError as exc:
+            raise ConfigError(f"{where}: viz.live = true: {exc}; or set viz.live = "
+                              "false") from None
 
 
 def _check_fleet_files(where: str, config: Config) -> None:

@@ -9,7 +9,8 @@ the base and reports what changed; the base resumes; the daemon stops on SIGTERM
 
 Files in ``--out``: ``report.png`` (what changed), ``robot-change.toml`` (the daemon's
 configuration), ``daemon.log`` (its log), ``base.log`` (every message the base saw), ``state/``
-(the stored reference and the last check).
+(the stored reference, the last check, and with foxglove-sdk each CHECK as an MCAP file for
+Foxglove in ``state/reports/checks/``).
 """
 
 from __future__ import annotations
@@ -162,6 +163,8 @@ def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
             picture = _picture(state, out_dir, config)
             _say(out, f"wrote {picture} (what changed), {out_dir / 'base.log'}, "
                       f"{out_dir / 'daemon.log'}")
+            for view in sorted((state / "reports" / "checks").glob("*.mcap"))[-1:]:
+                _say(out, f"the check in 3-D: open {view} in Foxglove (docs/ros.md)")
         return code
     finally:
         if daemon.poll() is None:
