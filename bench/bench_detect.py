@@ -48,6 +48,23 @@ def room_scenes(root: Path) -> list[str]:
     return [n for n in names if not n.startswith("paper_") and n not in NOT_COMPARED]
 
 
+def room_cases(scenes: list[str]) -> list[tuple]:
+    """Per scene: (name, the reference fused from its 3 frames, saved and loaded (a station's
+    reference as the daemon holds it), the first current frame (H, W) uint16, intrinsics)."""
+    from robot_change.change.scene import SceneModel, build_scene
+    from sim_fixtures import load_scene
+
+    cases = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in scenes:
+            sc = load_scene(name)
+            build_scene(sc.reference_frames(), intrinsics=sc.intrinsics).save(
+                Path(tmp) / "ref.npz")
+            cases.append((name, SceneModel.load(Path(tmp) / "ref.npz"),
+                          sc.current_frames()[0], sc.intrinsics))
+    return cases
+
+
 def worker(scenes: list[str], threads: int) -> None:
     """Load the scenes, then answer ``run N`` lines on stdin with one JSON line each."""
     sys.path.insert(0, os.getcwd())
@@ -55,22 +72,13 @@ def worker(scenes: list[str], threads: int) -> None:
 
     from robot_change.change.detect import detect_changes
     from robot_change.change.params import ChangeParams
-    from robot_change.change.scene import SceneModel, build_scene
-    from sim_fixtures import load_scene
 
     params = ChangeParams()
     if "threads" in {f.name for f in dataclasses.fields(ChangeParams)}:
         params = params.replace(threads=threads)
     elif threads > 1:
         raise SystemExit("this checkout has no ChangeParams.threads")
-    cases = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in scenes:
-            sc = load_scene(name)
-            ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
-            ref.save(Path(tmp) / "ref.npz")
-            cases.append((name, SceneModel.load(Path(tmp) / "ref.npz"),
-                          sc.current_frames()[0], sc.intrinsics))
+    cases = room_cases(scenes)
     print(json.dumps({"ready": len(cases)}), flush=True)
     for line in sys.stdin:
         runs = int(line.split()[1])

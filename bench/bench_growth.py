@@ -24,9 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -42,19 +40,9 @@ from robot_change.change.params import ChangeParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams  # noqa: E402
 from robot_change.mixture.model import fit_mixture  # noqa: E402
-from robot_change.tools.benchmark import machine_info  # noqa: E402
+from robot_change.tools.benchmark import machine_info, median_ms  # noqa: E402
 
 SCENES = ("office_box_added", "lounge_chair_removed", "storage_carton_removed")
-
-
-def _median_ms(fn, runs: int) -> float:
-    fn()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
 
 
 def measure(sc, params: SceneParams, runs: int) -> dict:
@@ -66,9 +54,10 @@ def measure(sc, params: SceneParams, runs: int) -> dict:
               "max_iter": params.max_iter, "search_points": params.search_points}
     check = ChangeParams(threads=1)
     return {"n_points": int(len(points)), "k": int(ref.mixture.n_components),
-            "fit_ms": _median_ms(lambda: fit_mixture(points, **fit_kw), runs),
-            "detect_ms": _median_ms(lambda: detect_changes(ref, frame, check,
-                                                           intrinsics=sc.intrinsics), runs)}
+            "fit_ms": median_ms(lambda: fit_mixture(points, **fit_kw), runs, warmup=1),
+            "detect_ms": median_ms(lambda: detect_changes(ref, frame, check,
+                                                          intrinsics=sc.intrinsics), runs,
+                                   warmup=1)}
 
 
 def slope(x, y) -> float:
@@ -133,33 +122,26 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for name, rows in result["points"].items():
-        n = [r["n_points"] for r in rows]
-        a.plot(n, [r["fit_ms"] for r in rows], "o-", label=f"fit, {name}")
-        a.plot(n, [r["detect_ms"] for r in rows], "s--", label=f"check, {name}")
-    n_all = [r["n_points"] for rows in result["points"].values() for r in rows]
-    ref = np.array([min(n_all), max(n_all)], float)
-    top = max(r["fit_ms"] for rows in result["points"].values() for r in rows)
-    a.plot(ref, top * ref / ref[1], "k:", label="linear (through the largest)")
-    a.set_xscale("log")
-    a.set_yscale("log")
-    a.set_xlabel("points in the reference's clean cloud (leaf 3 cm ... 1 cm)")
-    a.set_ylabel("ms (median, one thread)")
-    a.set_title("Growth with the cloud's size (K bound 16)")
-    a.legend(fontsize=7)
-    for name, rows in result["bound"].items():
-        k = [r["bound"] for r in rows]
-        b.plot(k, [r["fit_ms"] for r in rows], "o-", label=f"fit, {name}")
-        b.plot(k, [r["detect_ms"] for r in rows], "s--", label=f"check, {name}")
-    kb = np.array([min(k), max(k)], float)
-    top = max(r["fit_ms"] for rows in result["bound"].values() for r in rows)
-    b.plot(kb, top * kb / kb[1], "k:", label="linear (through the largest)")
-    b.set_xscale("log")
-    b.set_yscale("log")
-    b.set_xlabel("K bound (max_components; leaf 3 cm)")
-    b.set_title("Growth with the mixture's K bound")
-    b.legend(fontsize=7)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    panels = (("points", "n_points", "points in the reference's clean cloud (leaf 3 cm ... 1 cm)",
+               "Growth with the cloud's size (K bound 16)"),
+              ("bound", "bound", "K bound (max_components; leaf 3 cm)",
+               "Growth with the mixture's K bound"))
+    for ax, (sweep, key, xlabel, title) in zip(axes, panels):
+        for name, rows in result[sweep].items():
+            x = [r[key] for r in rows]
+            ax.plot(x, [r["fit_ms"] for r in rows], "o-", label=f"fit, {name}")
+            ax.plot(x, [r["detect_ms"] for r in rows], "s--", label=f"check, {name}")
+        xs = [r[key] for rows in result[sweep].values() for r in rows]
+        ends = np.array([min(xs), max(xs)], float)
+        top = max(r["fit_ms"] for rows in result[sweep].values() for r in rows)
+        ax.plot(ends, top * ends / ends[1], "k:", label="linear (through the largest)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_title(title)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("ms (median, one thread)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -29,7 +29,6 @@ import json
 import os
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -42,11 +41,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_detect import room_scenes  # noqa: E402
+from bench_detect import room_cases, room_scenes  # noqa: E402
 
 from robot_change.change.detect import detect_changes  # noqa: E402
 from robot_change.change.params import ChangeParams  # noqa: E402
-from robot_change.change.scene import SceneModel, build_scene  # noqa: E402
 from robot_change.cloud.geometry import depth_to_points  # noqa: E402
 from robot_change.tools.benchmark import machine_info  # noqa: E402
 
@@ -83,18 +81,9 @@ def main(argv=None) -> int:
         import open3d as o3d
     except ImportError:
         raise SystemExit("needs Open3D: pip install -e '.[bench]'") from None
-    from sim_fixtures import load_scene
-
     scenes = args.scenes.split(",") if args.scenes else room_scenes(ROOT)
-    cases = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in scenes:
-            sc = load_scene(name)
-            ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
-            ref.save(Path(tmp) / "ref.npz")
-            prepared = open3d_clean(o3d, np.asarray(ref.depth), sc.intrinsics)
-            cases.append((name, SceneModel.load(Path(tmp) / "ref.npz"), prepared,
-                          sc.current_frames()[0], sc.intrinsics))
+    cases = [(name, ref, open3d_clean(o3d, np.asarray(ref.depth), intr), frame, intr)
+             for name, ref, frame, intr in room_cases(scenes)]
     methods = {
         "ours (1 thread)": lambda ref, pre, f, intr: detect_changes(
             ref, f, ChangeParams(threads=1), intrinsics=intr),
