@@ -262,6 +262,7 @@ def cmd_warm_up(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     """Speed of the pipeline on one bundled VGA frame (medians after warm-up, milliseconds)."""
     from robot_change.tools.benchmark import (
+        bench_capture,
         bench_detect,
         bench_emd,
         bench_preprocess,
@@ -282,6 +283,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     scene_dir = SIM_FIXTURES / "scenes" / DETECT_SCENE
     reference_frames = read_oni_frames(_bundled(scene_dir / "reference.oni"))
     current = read_oni_frames(_bundled(scene_dir / "current.oni"))[0]
+    result.update(bench_capture(reference_frames, runs=max(3, args.runs // 3)))
     reference = build_scene(reference_frames)
     mixture = benchmark_em(reference.points, runs=max(3, args.runs // 4),
                            leaf=reference.params.cloud.leaf_m)

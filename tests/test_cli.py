@@ -54,12 +54,17 @@ def test_bench_json_has_the_promised_keys():
     figures = json.loads(result.stdout)
     for key in ("points_ms", "voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms",
                 "n_points_in", "n_points_out", "em_iter_ms", "fit_ms", "fit_k", "emd_10x10_us",
-                "greedy_both_ways_k30_ms", "detect_ms", "machine"):
+                "greedy_both_ways_k30_ms", "detect_ms", "capture_ms", "capture_fit_ms",
+                "capture_save_ms", "machine"):
         assert key in figures
     assert figures["n_points_in"] > figures["n_points_out"] > 0
     assert figures["preprocess_ms"] > 0
     assert 10_000 < figures["fit_points"] < 30_000 and figures["fit_k"] >= 1
     assert figures["detect_regions"] == 1  # the box that appears in office_box_added
+    # the capture's parts are inside its whole, and it built the same reference as the fit
+    parts = sum(figures[f"capture_{part}_ms"] for part in ("fusion", "cloud", "fit", "save"))
+    assert 0 < parts <= figures["capture_ms"] * 1.5
+    assert figures["capture_points"] == figures["fit_points"]
 
 
 def test_record_converts_images_to_an_oni_that_plays_back(tmp_path):

@@ -224,6 +224,45 @@ def bench_detect(reference, current_frame: np.ndarray, intrinsics: Intrinsics,
             "detect_regions": len(changes.regions)}
 
 
+def bench_capture(frames, runs: int = 10, warmup: int = 2) -> dict[str, float | int]:
+    """``capture_ms``: a station reference from ``frames`` (a sequence of hw.depth.DepthFrame,
+    e.g. 3 VGA frames already read) to a saved ``.scene.npz``: fusion, cleaning, the full fit
+    and the atomic, fsynced save, median over ``runs`` after ``warmup``.
+
+    Also returns the medians of the parts as :func:`robot_change.change.scene.build_scene`
+    times them (``capture_fusion_ms``, ``capture_cloud_ms``, ``capture_fit_ms``),
+    ``capture_save_ms``, and the reference's ``capture_points`` and ``capture_k``.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from robot_change.change.scene import build_scene
+
+    parts: dict[str, list[float]] = {"fusion": [], "cloud": [], "fit": [], "save": [],
+                                     "total": []}
+    with tempfile.TemporaryDirectory(prefix="robot_change_capture_") as folder:
+        path = Path(folder) / "station.scene.npz"
+        scene = None
+        for run in range(warmup + runs):
+            start = time.perf_counter()
+            scene = build_scene(frames)
+            built = time.perf_counter()
+            scene.save(path)
+            done = time.perf_counter()
+            if run < warmup:
+                continue
+            for part in ("fusion", "cloud", "fit"):
+                parts[part].append(scene.seconds[part] * 1e3)
+            parts["save"].append((done - built) * 1e3)
+            parts["total"].append((done - start) * 1e3)
+    out: dict[str, float | int] = {"capture_ms": round(statistics.median(parts["total"]), 2)}
+    for part in ("fusion", "cloud", "fit", "save"):
+        out[f"capture_{part}_ms"] = round(statistics.median(parts[part]), 2)
+    out["capture_points"] = len(scene)
+    out["capture_k"] = scene.mixture.n_components
+    return out
+
+
 def machine_info() -> dict[str, Any]:
     """CPU model, cores, Python and library versions, and the thread settings in force."""
     import numba
