@@ -163,6 +163,30 @@ def test_capture_then_check_without_change_answers_clear(rig: Rig) -> None:
     assert rig.store.load("office").mount == rig.service.config.camera.mount()
 
 
+def test_a_check_with_a_change_sends_pause_before_it_writes_its_files(rig: Rig) -> None:
+    # the files (two compressed VGA depth images, fsynced) take tens of ms: never before the stop
+    latched_when_writing = []
+    write_check = rig.service._write_check
+
+    def noting_write_check(*args):
+        latched_when_writing.append(rig.service.state_fields()["paused"])
+        write_check(*args)
+
+    rig.service._write_check = noting_write_check
+    rig.run("""
+        capture office
+        expect CAPTURED 5
+    """)
+    rig.show("current")
+    rig.run("""
+        check office
+        expect PAUSE cause=CHANGE_CHECK 5
+        expect REPORT station=office regions=1 2
+    """)
+    assert latched_when_writing == [True]
+    assert (rig.tmp / "reports" / "office.last-check.json").is_file()
+
+
 def test_check_with_a_change_pauses_reports_and_resume_clears_the_latch(rig: Rig) -> None:
     rig.run("""
         capture office

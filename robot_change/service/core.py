@@ -959,12 +959,15 @@ class Service:
         self.last_check = {"station": station, "regions": len(regions), "ms": round(ms, 1),
                            "frame_index": frames[-1].index, "outcome": changes.outcome,
                            "time": utc_text(time.time())}
+        changed = changes.outcome != "not_at_station" and bool(regions)
+        if changed and self.may_pause():
+            # the stop first: writing the check's files (compressed, fsynced) takes tens of ms
+            self.send_pause(PauseCause.CHANGE_CHECK)
+        # written before the answer, so that a base (or a person) told of this check finds them
         self._write_check(station, reference, depth, changes, regions)
         if changes.outcome == "not_at_station":
             self._answer_not_at_station(station, changes, "CHECK")
-        elif regions:
-            if self.may_pause():
-                self.send_pause(PauseCause.CHANGE_CHECK)
+        elif changed:
             self.send_report(station, changes)
         else:
             self.send_no_change(station, changes)
