@@ -101,6 +101,48 @@ def test_current_as_depth_array_matches_scene_model(models):
     assert _near(cs.appeared[0], sc.changes[0]["after"]["visible_centroid_m"])
 
 
+def test_a_removed_objects_component_leaves_the_current_mixture():
+    # meeting_two_changes: a removed object at 2.3 m; EM from the reference's components
+    # pulled the object's onto the wall it had hidden, where it still explained the object's
+    # rear third (the daemon's path, a depth array, found 626 of its 820 points).  A
+    # component whose reference points the current camera sees through goes.
+    sc = load_scene("meeting_two_changes")
+    ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+    cur = build_scene(sc.current_frames(), intrinsics=sc.intrinsics)
+
+    def removed_points(current, params=ChangeParams()):
+        cs = detect_changes(ref, current, params,
+                            intrinsics=None if current is cur else sc.intrinsics)
+        return max(r.n_points for r in cs.disappeared if _near(r, (0.52, -0.12, 2.27), 0.3))
+
+    own_fit = removed_points(cur)  # the current's own split-EM fit
+    as_daemon = removed_points(np.array(cur.depth))
+    assert as_daemon >= 0.95 * own_fit
+    # with no component taken as gone, the old loss comes back: the rule is what finds them
+    assert removed_points(np.array(cur.depth), ChangeParams(gone_component_share=1.0)) \
+        < 0.85 * own_fit
+
+
+def test_components_seen_through_counts_each_point_once():
+    from robot_change.change.detect import _components_seen_through
+    from hw.depth import Intrinsics
+    from robot_change.change.epoch import Epoch
+    from robot_change.mixture.model import Mixture
+
+    rng = np.random.default_rng(3)
+    centres = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
+    points = np.concatenate([c + 0.02 * rng.standard_normal((200, 3)) for c in centres])
+    mix = Mixture(np.full(3, 1 / 3), centres, np.tile(np.eye(3) * 4e-4, (3, 1, 1)))
+    ref = Epoch(np.zeros((4, 4), np.uint16), Intrinsics(4, 4, 3.0, 3.0, 1.5, 1.5),
+                points.astype(np.float32), np.arange(len(points), dtype=np.int64),
+                np.full((4, 4), -1, np.int32), 0.03, mix)
+    through = np.zeros(len(points), dtype=bool)
+    through[:150] = True  # 3/4 of the first component
+    through[200:290] = True  # 45 % of the second
+    assert _components_seen_through(ref, mix, through, 0.5).tolist() == [True, False, False]
+    assert _components_seen_through(ref, mix, through, 0.4).tolist() == [True, True, False]
+
+
 def test_summary_is_json_ready(results):
     import json
 

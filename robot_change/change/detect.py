@@ -74,17 +74,44 @@ __all__ = [
 ]
 
 
-def _current_mixture(cur: Epoch, ref_mix: Mixture, params: ChangeParams) -> Mixture:
-    """The current's mixture for the mirror when the current came without one."""
+def _current_mixture(cur: Epoch, ref: Epoch, ref_mix: Mixture, params: ChangeParams,
+                     seen_through: np.ndarray) -> Mixture:
+    """The current's mixture for the mirror when the current came without one.
+
+    ``seen_through`` (M,) bool: the reference's points the current camera sees through (the
+    disappeared direction's free-space check)."""
     if params.current_mixture == "fit":
         return fit_own(cur, params)
     # EM from the reference mixture, every component free, no splits: the reference's
-    # components follow the current cloud (a removed object's component moves or dies)
+    # components follow the current cloud
     step = 1
     if params.current_fit_points and cur.n_points > params.current_fit_points:
         step = -(-cur.n_points // params.current_fit_points)
-    return fit_mixture(cur.points[::step], init=ref_mix, leaf=cur.leaf_m, seed=params.seed,
-                       split=False, tol=params.novelty_tol)
+    mix = fit_mixture(cur.points[::step], init=ref_mix, leaf=cur.leaf_m, seed=params.seed,
+                      split=False, tol=params.novelty_tol)
+    # a removed object's component need not die: EM may pull it onto what the object hid,
+    # where it still explains the object's rear points.  A component of the current whose
+    # reference points (each to its most probable component) the current camera mostly sees
+    # through is no surface of the current: it goes
+    gone = _components_seen_through(ref, mix, seen_through, params.gone_component_share)
+    if gone.any() and not gone.all():
+        keep = ~gone
+        mix = Mixture(mix.weights[keep] / mix.weights[keep].sum(), mix.means[keep],
+                      mix.covariances[keep])
+    return mix
+
+
+def _components_seen_through(ref: Epoch, mix: Mixture, seen_through: np.ndarray,
+                             share: float, max_points: int = 4000) -> np.ndarray:
+    """(K,) bool: components of ``mix`` more than ``share`` of whose reference points are
+    ``seen_through`` (M,) bool; each point goes to its most probable component, on a fixed
+    stride subsample of at most ``max_points`` of the reference's points."""
+    step = max(1, -(-ref.n_points // max_points))
+    labels = mix.predict(ref.points[::step])
+    k = mix.n_components
+    total = np.bincount(labels, minlength=k)
+    through = np.bincount(labels[seen_through[::step]], minlength=k)
+    return through > share * np.maximum(total, 1)
 
 
 def _novelty_seeds(other: Epoch, novel: np.ndarray, params: ChangeParams
@@ -267,7 +294,7 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         cur_mix = cur.mixture
         if cur_mix is None:
             t0 = time.perf_counter()
-            cur_mix = _current_mixture(cur, ref_mix, params)
+            cur_mix = _current_mixture(cur, ref, ref_mix, params, free)
             timings["current_fit_ms"] = (time.perf_counter() - t0) * 1e3
         cand, mix, post, trace = _novelty_direction("disappeared", cur, ref, cur_mix, params,
                                                     timings, "disappeared_", free, observed)

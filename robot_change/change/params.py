@@ -82,6 +82,12 @@ class ChangeParams:
     # --as-daemon, dev + real): 4000, 6000, 8000 and 12000 give the same changed points as
     # every point on every scene; a room view's fit (31k points) 9.0 ms -> 1.7 ms at 6000.
     current_fit_points: int = 6000
+    # After the "from_reference" EM, a component of the current's mixture goes when more than
+    # this share of the reference's points it explains best is seen through by the current
+    # camera (the disappeared direction's free-space check): a removed object's component
+    # that EM pulled onto the wall the object hid explains no surface of the current.  A
+    # majority rule, not tuned: 0.5.
+    gone_component_share: float = 0.5
     # Most novelty components on top of the fixed ones (bounds K = K_ref + this).
     max_novelty_components: int = 8
     # Ground distance between components for the EMD: "euclidean" (between means) or
@@ -159,6 +165,7 @@ class ChangeParams:
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
         _int("current_fit_points", self.current_fit_points, 0, 10**9)
+        _num("gone_component_share", self.gone_component_share, 0.0, 1.0)
         _int("max_novelty_components", self.max_novelty_components, 1, 64)
         _choice("ground_distance", self.ground_distance, GROUND_DISTANCES)
         _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
