@@ -357,6 +357,65 @@ def _finish_cov(c, nk, reg_covar):
         c[a, a] += reg_covar
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate(x0, x1, x2, row, inv, means, nk, off, s1, s2):
+    """Add one point's M-step sums: responsibility ``r = row[k] * inv`` of every component k
+    (skipped when 0) into ``nk[off + k]``, and ``r d``, ``r d d^T`` (upper triangle), with
+    ``d = x - means[k]`` the offset from the *old* mean, into ``s1[k]`` (K, 3), ``s2[k]``
+    (K, 3, 3)."""
+    for k in range(means.shape[0]):
+        r = row[k] * inv
+        if r == 0.0:
+            continue
+        d0 = x0 - means[k, 0]
+        d1 = x1 - means[k, 1]
+        d2 = x2 - means[k, 2]
+        nk[off + k] += r
+        s1[k, 0] += r * d0
+        s1[k, 1] += r * d1
+        s1[k, 2] += r * d2
+        rd0 = r * d0
+        rd1 = r * d1
+        s2[k, 0, 0] += rd0 * d0
+        s2[k, 0, 1] += rd0 * d1
+        s2[k, 0, 2] += rd0 * d2
+        s2[k, 1, 1] += rd1 * d1
+        s2[k, 1, 2] += rd1 * d2
+        s2[k, 2, 2] += r * d2 * d2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _finish(means, nk, off, s1, s2, reg_covar):
+    """M-step from the sums of :func:`_accumulate`: adds 10 eps to ``nk[off + k]``, returns the
+    new means (K, 3) and turns ``s2`` in place into the new covariances (scatter about the old
+    mean corrected by the mean shift ``e``: ``S / nk - e e^T``, plus the floor)."""
+    k_n = means.shape[0]
+    new_means = np.empty((k_n, 3))
+    for k in range(k_n):
+        m = nk[off + k] + _EPS10
+        nk[off + k] = m
+        e0 = s1[k, 0] / m
+        e1 = s1[k, 1] / m
+        e2 = s1[k, 2] / m
+        new_means[k, 0] = means[k, 0] + e0
+        new_means[k, 1] = means[k, 1] + e1
+        new_means[k, 2] = means[k, 2] + e2
+        c = s2[k]
+        _finish_cov(c, m, 0.0)
+        c[0, 0] -= e0 * e0
+        c[0, 1] -= e0 * e1
+        c[0, 2] -= e0 * e2
+        c[1, 1] -= e1 * e1
+        c[1, 2] -= e1 * e2
+        c[2, 2] -= e2 * e2
+        c[1, 0] = c[0, 1]
+        c[2, 0] = c[0, 2]
+        c[2, 1] = c[1, 2]
+        for a in range(3):
+            c[a, a] += reg_covar
+    return new_means
+
+
 @njit(cache=True, nogil=True)
 def em_step(points, weights, means, prec_chol, log_det, reg_covar):
     """One fused EM iteration: E-step on the given parameters and the M-step statistics.
@@ -407,48 +466,8 @@ def em_step(points, weights, means, prec_chol, log_det, reg_covar):
                     row[k] = e
                     s += e
             total += best + math.log(s)
-            inv = 1.0 / s
-            for k in range(k_n):
-                r = row[k] * inv
-                if r == 0.0:
-                    continue
-                d0 = x0 - means[k, 0]
-                d1 = x1 - means[k, 1]
-                d2 = x2 - means[k, 2]
-                nk[k] += r
-                s1[k, 0] += r * d0
-                s1[k, 1] += r * d1
-                s1[k, 2] += r * d2
-                rd0 = r * d0
-                rd1 = r * d1
-                s2[k, 0, 0] += rd0 * d0
-                s2[k, 0, 1] += rd0 * d1
-                s2[k, 0, 2] += rd0 * d2
-                s2[k, 1, 1] += rd1 * d1
-                s2[k, 1, 2] += rd1 * d2
-                s2[k, 2, 2] += r * d2 * d2
-    new_means = np.empty((k_n, 3))
-    for k in range(k_n):
-        nk[k] += _EPS10
-        e0 = s1[k, 0] / nk[k]
-        e1 = s1[k, 1] / nk[k]
-        e2 = s1[k, 2] / nk[k]
-        new_means[k, 0] = means[k, 0] + e0
-        new_means[k, 1] = means[k, 1] + e1
-        new_means[k, 2] = means[k, 2] + e2
-        c = s2[k]
-        _finish_cov(c, nk[k], 0.0)
-        c[0, 0] -= e0 * e0
-        c[0, 1] -= e0 * e1
-        c[0, 2] -= e0 * e2
-        c[1, 1] -= e1 * e1
-        c[1, 2] -= e1 * e2
-        c[2, 2] -= e2 * e2
-        c[1, 0] = c[0, 1]
-        c[2, 0] = c[0, 2]
-        c[2, 1] = c[1, 2]
-        for a in range(3):
-            c[a, a] += reg_covar
+            _accumulate(x0, x1, x2, row, 1.0 / s, means, nk, 0, s1, s2)
+    new_means = _finish(means, nk, 0, s1, s2, reg_covar)
     return total / n, nk, new_means, s2
 
 
@@ -597,49 +616,9 @@ def em_step_background(points, log_bg, weights, means, prec_chol, log_det, reg_c
             total += best + math.log(s)
             inv = 1.0 / s
             nk[0] += e0 * inv
-            for k in range(k_n):
-                r = row[k] * inv
-                if r == 0.0:
-                    continue
-                d0 = x0 - means[k, 0]
-                d1 = x1 - means[k, 1]
-                d2 = x2 - means[k, 2]
-                nk[k + 1] += r
-                s1[k, 0] += r * d0
-                s1[k, 1] += r * d1
-                s1[k, 2] += r * d2
-                rd0 = r * d0
-                rd1 = r * d1
-                s2[k, 0, 0] += rd0 * d0
-                s2[k, 0, 1] += rd0 * d1
-                s2[k, 0, 2] += rd0 * d2
-                s2[k, 1, 1] += rd1 * d1
-                s2[k, 1, 2] += rd1 * d2
-                s2[k, 2, 2] += r * d2 * d2
+            _accumulate(x0, x1, x2, row, inv, means, nk, 1, s1, s2)
     nk[0] += _EPS10
-    new_means = np.empty((k_n, 3))
-    for k in range(k_n):
-        m = nk[k + 1] + _EPS10
-        nk[k + 1] = m
-        e0 = s1[k, 0] / m
-        e1 = s1[k, 1] / m
-        e2 = s1[k, 2] / m
-        new_means[k, 0] = means[k, 0] + e0
-        new_means[k, 1] = means[k, 1] + e1
-        new_means[k, 2] = means[k, 2] + e2
-        c = s2[k]
-        _finish_cov(c, m, 0.0)
-        c[0, 0] -= e0 * e0
-        c[0, 1] -= e0 * e1
-        c[0, 2] -= e0 * e2
-        c[1, 1] -= e1 * e1
-        c[1, 2] -= e1 * e2
-        c[2, 2] -= e2 * e2
-        c[1, 0] = c[0, 1]
-        c[2, 0] = c[0, 2]
-        c[2, 1] = c[1, 2]
-        for a in range(3):
-            c[a, a] += reg_covar
+    new_means = _finish(means, nk, 1, s1, s2, reg_covar)
     return total / n, nk, new_means, s2
 
 
