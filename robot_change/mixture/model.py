@@ -421,8 +421,8 @@ def gaussianity_deficiency(points: np.ndarray, blur: float, k: int = 4, n_querie
 
 
 def _split_component(x: np.ndarray, mean, cov, weight: float, reg_covar: float,
-                     n_lloyd: int = 5):
-    """Two-means split of one component's points along its principal axis.
+                     n_lloyd: int = 5, axis: int = -1):
+    """Two-means split of one component's points along one of its axes.
 
     Parameters
     ----------
@@ -431,33 +431,22 @@ def _split_component(x: np.ndarray, mean, cov, weight: float, reg_covar: float,
     mean : array, shape (3,)
     cov : array, shape (3, 3)
     weight : float
+    axis : int
+        Which eigenvector of ``cov`` the two seeds ``mean +- sqrt(lambda) v`` lie on, in
+        ``numpy.linalg.eigh``'s increasing order: -1 the principal axis, 0 the thinnest (it
+        separates two parallel sheets).
 
     Returns
     -------
     (weights (2,), means (2, 3), covariances (2, 3, 3)) or None when a half gets < 2 points.
     """
     lam, vec = np.linalg.eigh(cov)
-    step = math.sqrt(max(lam[-1], 0.0)) * vec[:, -1]
-    centres = np.stack([mean - step, mean + step])
-    for it in range(n_lloyd + 1):
-        # nearer to centres[1] <=> x . (c1 - c0) > (|c1|^2 - |c0|^2) / 2
-        side = x @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1]
-                                                     - centres[0] @ centres[0])
-        if side.all() or not side.any():
-            return None
-        if it == n_lloyd:
-            break
-        new = np.stack([x[~side].mean(axis=0), x[side].mean(axis=0)])
-        if np.array_equal(new, centres):
-            break
-        centres = new
-    halves = (x[~side], x[side])
-    if min(len(h) for h in halves) < 2:
+    step = math.sqrt(max(lam[axis], 0.0)) * vec[:, axis]
+    mean = np.asarray(mean, dtype=np.float64)
+    ok, counts, mus, covs = em.two_means(x, mean - step, mean + step, n_lloyd, reg_covar)
+    if not ok:
         return None
-    ws = np.array([len(h) for h in halves], dtype=np.float64) / len(x) * weight
-    mus = np.stack([h.mean(axis=0) for h in halves])
-    covs = np.stack([np.cov(h, rowvar=False, bias=True) + reg_covar * np.eye(3) for h in halves])
-    return ws, mus, covs
+    return counts / len(x) * weight, mus, covs
 
 
 # --------------------------------------------------------------------------- EM driver
@@ -699,12 +688,12 @@ def fit_mixture(
     refined = split and refine > 0 and init is None and len(cur.weights) >= 3
     if refined:
         xr = x
-        if refine_points is not None and n > refine_points:
+        if RK["search"]:
+            xr = xs
+        elif refine_points is not None and n > refine_points:
             xr = x[np.sort(rng.choice(n, refine_points, replace=False))]
         cur = _refine(xr, cur, n, criterion, refine, float(refine_tol), int(refine_iter),
-                      reg_covar, opts,
-                      math.sqrt(12.0 * reg_covar) * math.sqrt(n / xr.shape[0]), entropy_k,
-                      entropy_subsample, min_points, rng, steps)
+                      reg_covar, opts, min_points, steps)
 
     n_pruned = 0
     if xs is not x or refined:
@@ -924,59 +913,182 @@ def _merged(cur: _State, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray]
     return w, mu, _symmetric(cov[None])[0]
 
 
-def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts, blur,
-            entropy_k, entropy_subsample, min_points, rng, steps, n_pairs: int = 3) -> _State:
+#: Experiment knobs of the refinement (temporary).
+RK = dict(candidates=4, pairs=8, axes=(-1, 0), settle=0, partial_iter=20,
+          mass=1e-3, init_em=True, search=0, min_est=-1e9, min_gain=1.0)
+
+
+def _hard_log_l(counts, covs, reg_covar) -> float:
+    """Log-likelihood of points hard-partitioned into groups, each under its own Gaussian
+    (ML mean, ML covariance plus the floor: ``covs`` (G, 3, 3)) with the groups' shares as
+    weights: ``sum_g n_g (log(n_g / n) - 0.5 (3 log 2 pi + log det C_g + 3 - reg tr C_g^-1))``.
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    _, logdet = np.linalg.slogdet(covs)
+    tr = np.trace(np.linalg.inv(covs), axis1=1, axis2=2)
+    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)
+    return float((counts * (np.log(counts / counts.sum()) + per)).sum())
+
+
+def _best_split(xk, mean, cov, reg_covar, axes):
+    """Two-means splits of the points ``xk`` seeded along each of ``axes`` of ``cov``: the best
+    by hard log-likelihood, ``(log L, weights (2,) summing to 1, means, covariances)``, or
+    None."""
+    best = None
+    for axis in axes:
+        parts = _split_component(xk, mean, cov, 1.0, reg_covar, axis=axis)
+        if parts is None:
+            continue
+        log_l = _hard_log_l(parts[0] * len(xk), parts[2], reg_covar)
+        if best is None or log_l > best[0]:
+            best = (log_l, *parts)
+    return best
+
+
+def _one_gauss(xk, reg_covar):
+    """(log L, weights (1,), means (1, 3), covariances (1, 3, 3)) of ``xk`` under its own
+    Gaussian."""
+    mean, cov = component_of(xk, reg_covar)
+    return (_hard_log_l([len(xk)], cov[None], reg_covar), np.ones(1), mean[None], cov[None])
+
+
+def _partial_em(x, log_resp, cur: _State, gone, new_w, new_mu, new_cov, reg_covar, tol,
+                max_iter, mass):
+    """EM of the new components (replacing the components ``gone``) with every other
+    component held fixed, weights and all, on the points the replaced ones explain
+    (responsibility mass > ``mass``): the partial EM of SMEM.  Returns the new _State (the
+    kept components first, then the new ones; weights summing to 1) or None."""
+    keep = np.ones(len(cur.weights), dtype=bool)
+    keep[list(gone)] = False
+    w_gone = float(cur.weights[~keep].sum())
+    sel = np.exp(log_resp[:, ~keep]).sum(axis=1) > mass
+    xp = x[sel]
+    if len(xp) < 2 * len(new_w):
+        return None
+    wk = cur.weights[keep]
+    prec, log_det, _ = em.precision_cholesky(cur.covs[keep])
+    log_bg = em.log_prob_samples(xp, wk / wk.sum(), cur.means[keep], prec, log_det)
+    w0 = np.concatenate([[1.0 - w_gone], new_w / new_w.sum() * w_gone])
+    w2, mu2, cov2, _, n_it, status, _ = em.em_loop_background(
+        xp, log_bg, w0, new_mu, new_cov, reg_covar, tol, max_iter, True)
+    if status == em.STATUS_EMPTY:
+        return None
+    w = np.concatenate([wk, w2[1:]])
+    return _State(w / w.sum(), np.vstack([cur.means[keep], mu2]),
+                  np.concatenate([cur.covs[keep], cov2]),
+                  np.zeros(len(w), dtype=bool), np.full(len(w), np.nan), n_iter=int(n_it),
+                  converged=status == em.STATUS_CONVERGED)
+
+
+def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts,
+            min_points, steps) -> _State:
     """Split-and-merge moves at fixed K on ``x`` (see ``refine`` of :func:`fit_mixture`)."""
+    rk = RK
     em_opts = dict(opts, tol=tol, max_iter=max_iter)
     t0 = time.perf_counter()
-    cur = _run_em(x, _State(cur.weights, cur.means, cur.covs, cur.fixed, np.full(len(cur.weights),
-                                                                                  np.nan)),
-                  **em_opts)
-    labels = _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
+    cur = _State(cur.weights, cur.means, cur.covs, cur.fixed, np.full(len(cur.weights), np.nan))
+    if rk["init_em"]:
+        cur = _run_em(x, cur, **em_opts)
+    _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
     steps.append(_replace_accepted(FitStep("refine", len(cur.weights), cur.crit, cur.log_l,
                                            cur.n_iter, cur.converged, True,
                                            time.perf_counter() - t0)))
     k_n = len(cur.weights)
-    while True:
+    ids = list(range(k_n))  # identity of each component, kept across moves (cache keys)
+    next_id = k_n
+    split_cache: dict = {}
+    pair_cache: dict = {}
+    rejected: set = set()
+    while budget > 0:
         prec, log_det, _ = em.precision_cholesky(cur.covs)
         log_resp, _ = em.e_step(x, cur.weights, cur.means, prec, log_det)
+        labels = log_resp.argmax(axis=1)
+        groups = [x[labels == k] for k in range(k_n)]
+        # split gains: the best two-means split of each component's points (hard log L)
+        splits = {}
+        for k in range(k_n):
+            if ids[k] not in split_cache:
+                entry = None
+                if len(groups[k]) >= 2 * min_points:
+                    best = _best_split(groups[k], cur.means[k], cur.covs[k], reg_covar,
+                                       rk["axes"])
+                    if best is not None:
+                        entry = (best[0] - _one_gauss(groups[k], reg_covar)[0], best)
+                split_cache[ids[k]] = entry
+            if split_cache[ids[k]] is not None:
+                splits[k] = split_cache[ids[k]]
+        # the most overlapping pairs: merge loss, and the best re-split of their points
         resp = np.exp(log_resp)
         gram = resp.T @ resp
         norm = np.sqrt(np.maximum(np.diag(gram), 1e-300))
         overlap = gram / np.outer(norm, norm)
         iu, ju = np.triu_indices(k_n, 1)
-        pairs = np.argsort(-overlap[iu, ju], kind="stable")[:n_pairs]
-        order = _split_order(x, labels, cur, min_points, entropy_k, entropy_subsample, blur, rng)
-        improved = False
-        for p in pairs:
-            if budget <= 0:
-                return cur
-            budget -= 1
+        cands = []
+        for p in np.argsort(-overlap[iu, ju], kind="stable")[:rk["pairs"]]:
             i, j = int(iu[p]), int(ju[p])
-            k = next((q for q in order if q not in (i, j)), None)
-            if k is None:
+            key = (ids[i], ids[j])
+            if key not in pair_cache:
+                entry = None
+                if min(len(groups[i]), len(groups[j])) >= 2:
+                    xu = np.vstack([groups[i], groups[j]])
+                    now = _hard_log_l([len(groups[i]), len(groups[j])],
+                                      np.stack([component_of(groups[q], reg_covar)[1]
+                                                for q in (i, j)]), reg_covar)
+                    merged = _one_gauss(xu, reg_covar)
+                    mean_u, cov_u = merged[2][0], merged[3][0]
+                    best = _best_split(xu, mean_u, cov_u, reg_covar, rk["axes"])
+                    entry = (merged[0] - now, None if best is None else (best[0] - now, best))
+                pair_cache[key] = entry
+            entry = pair_cache[key]
+            if entry is None:
                 continue
-            t0 = time.perf_counter()
-            parts = _split_component(x[labels == k], cur.means[k], cur.covs[k], cur.weights[k],
-                                     reg_covar)
-            if parts is None:
-                continue
-            wm, mm, cm = _merged(cur, i, j)
-            keep = np.array([q not in (i, j, k) for q in range(k_n)])
-            start = _State(np.concatenate([cur.weights[keep], [wm], parts[0]]),
-                           np.vstack([cur.means[keep], mm[None], parts[1]]),
-                           np.concatenate([cur.covs[keep], cm[None], parts[2]]),
-                           np.zeros(k_n, dtype=bool),
-                           np.concatenate([cur.j[keep], [np.nan, np.nan, np.nan]]))
-            start.weights = start.weights / start.weights.sum()
-            cand = _run_em(x, start, **em_opts)
-            cand_labels = _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
-            ok = bool(len(cand.weights) == k_n and cand.crit < cur.crit
-                  and (n_total * cand.weights >= min_points).all())
-            steps.append(FitStep(f"refine {i}+{j}/{k}", len(cand.weights), cand.crit, cand.log_l,
-                                 cand.n_iter, cand.converged, ok, time.perf_counter() - t0))
-            if ok:
-                cur, labels, improved = cand, cand_labels, True
+            merge_loss, resplit = entry
+            for k, (gain, best) in splits.items():
+                if k not in (i, j):
+                    cands.append((gain + merge_loss, (i, j, k), best))
+            if resplit is not None:
+                cands.append((resplit[0], (i, j), resplit[1]))
+        cands = [c for c in cands if c[0] > rk["min_est"] and tuple(ids[q] for q in c[1]) not in rejected]
+        cands.sort(key=lambda c: -c[0])
+        improved = False
+        for est, move, best in cands[:rk["candidates"]]:
+            if budget <= 0:
                 break
+            t0 = time.perf_counter()
+            if len(move) == 3:
+                i, j, k = move
+                wm, mm, cm = _merged(cur, i, j)
+                new_w = np.concatenate([[wm], best[1] * cur.weights[k]])
+                new_mu = np.vstack([mm[None], best[2]])
+                new_cov = np.concatenate([cm[None], best[3]])
+            else:
+                new_w, new_mu, new_cov = best[1], best[2], best[3]
+            budget -= 1
+            cand = _partial_em(x, log_resp, cur, move, new_w, new_mu, new_cov, reg_covar, tol,
+                               rk["partial_iter"], rk["mass"])
+            ok = False
+            if cand is not None:
+                if rk["settle"]:
+                    cand = _run_em(x, cand, **dict(em_opts, max_iter=rk["settle"]))
+                _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
+                ok = bool(len(cand.weights) == k_n
+                          and cand.crit < cur.crit - rk["min_gain"] * tol * n_total
+                          and (n_total * cand.weights >= min_points).all())
+                name = "+".join(map(str, move[:2])) + (f"/{move[2]}" if len(move) == 3 else "")
+                steps.append(FitStep(f"refine {name}", len(cand.weights), cand.crit,
+                                     cand.log_l, cand.n_iter, cand.converged, ok,
+                                     time.perf_counter() - t0))
+            if not ok:
+                rejected.add(tuple(ids[q] for q in move))
+                continue
+            gone = set(move)
+            ids = [ids[q] for q in range(k_n) if q not in gone] + list(
+                range(next_id, next_id + len(move)))
+            next_id += len(move)
+            cur, improved = cand, True
+            break
         if not improved:
             return cur
+    return cur
+    return cur
+    return cur
