@@ -688,9 +688,7 @@ def fit_mixture(
     refined = split and refine > 0 and init is None and len(cur.weights) >= 3
     if refined:
         xr = x
-        if RK["search"]:
-            xr = xs
-        elif refine_points is not None and n > refine_points:
+        if refine_points is not None and n > refine_points:
             xr = x[np.sort(rng.choice(n, refine_points, replace=False))]
         cur = _refine(xr, cur, n, criterion, refine, float(refine_tol), int(refine_iter),
                       reg_covar, opts, min_points, steps)
@@ -913,9 +911,14 @@ def _merged(cur: _State, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray]
     return w, mu, _symmetric(cov[None])[0]
 
 
-#: Experiment knobs of the refinement (temporary).
-RK = dict(candidates=4, pairs=8, axes=(-1, 0), settle=0, partial_iter=20,
-          mass=1e-3, init_em=True, search=0, min_est=-1e9, min_gain=1.0)
+#: Split-and-merge moves (``refine`` of :func:`fit_mixture`): the most overlapping pairs
+#: considered for a merge in a round, the moves tried per round (largest estimated gain
+#: first), the EM iterations on the refinement subset before the moves, and the
+#: responsibility mass above which a point takes part in a move's partial EM.
+REFINE_PAIRS = 8
+REFINE_TRIES = 4
+REFINE_START_ITER = 5
+PARTIAL_MASS = 1e-3
 
 
 def _hard_log_l(counts, covs, reg_covar) -> float:
@@ -930,34 +933,66 @@ def _hard_log_l(counts, covs, reg_covar) -> float:
     return float((counts * (np.log(counts / counts.sum()) + per)).sum())
 
 
-def _best_split(xk, mean, cov, reg_covar, axes):
-    """Two-means splits of the points ``xk`` seeded along each of ``axes`` of ``cov``: the best
-    by hard log-likelihood, ``(log L, weights (2,) summing to 1, means, covariances)``, or
-    None."""
+def _split_gain(xk, mean, cov, reg_covar, tol, max_iter):
+    """How much splitting a component raises the log-likelihood of its points ``xk``.
+
+    Two-means splits seeded along the largest and along the smallest axis of ``cov`` (the
+    smallest separates two parallel sheets); the better by hard log-likelihood is refined by a
+    local EM of the two halves on ``xk`` (which also finds a thin sheet inside a thicker
+    spread, where no cut separates the two).  Returns ``(gain, weights (2,) summing to 1,
+    means (2, 3), covariances (2, 3, 3))`` -- the gain against the points' own single
+    Gaussian, nats -- or None.
+    """
     best = None
-    for axis in axes:
+    for axis in (-1, 0):
         parts = _split_component(xk, mean, cov, 1.0, reg_covar, axis=axis)
         if parts is None:
             continue
         log_l = _hard_log_l(parts[0] * len(xk), parts[2], reg_covar)
         if best is None or log_l > best[0]:
             best = (log_l, *parts)
-    return best
+    if best is None:
+        return None
+    w2, mu2, cov2, lp, _, status, _ = em.em_loop(
+        xk, best[1], best[2], best[3], np.zeros(2, dtype=bool), False, reg_covar, tol, max_iter)
+    if status != em.STATUS_EMPTY:
+        best = (float(lp) * len(xk), w2, mu2, cov2)
+    _, single = component_of(xk, reg_covar)
+    return (best[0] - _hard_log_l([len(xk)], single[None], reg_covar), *best[1:])
 
 
-def _one_gauss(xk, reg_covar):
-    """(log L, weights (1,), means (1, 3), covariances (1, 3, 3)) of ``xk`` under its own
-    Gaussian."""
-    mean, cov = component_of(xk, reg_covar)
-    return (_hard_log_l([len(xk)], cov[None], reg_covar), np.ones(1), mean[None], cov[None])
+def _merge_losses(x, labels, k_n, pairs, reg_covar) -> np.ndarray:
+    """For each pair (i, j) of ``pairs`` (P, 2): the log-likelihood lost when the points
+    hard-assigned to i and j are described by one Gaussian instead of two (nats, <= 0 up to
+    the floor; -inf when either has fewer than 2 points)."""
+    counts = np.bincount(labels, minlength=k_n).astype(np.float64)
+    sums = np.stack([np.bincount(labels, x[:, a], k_n) for a in range(3)], axis=1)
+    outer = np.stack([np.bincount(labels, x[:, a] * x[:, b], k_n)
+                      for a in range(3) for b in range(3)], axis=1).reshape(k_n, 3, 3)
+    out = np.full(len(pairs), -np.inf)
+    eye = reg_covar * np.eye(3)
+    for p, (i, j) in enumerate(pairs):
+        n_i, n_j = counts[i], counts[j]
+        if min(n_i, n_j) < 2:
+            continue
+        covs = []
+        for idx, n_g in (((i,), n_i), ((j,), n_j), ((i, j), n_i + n_j)):
+            m = sums[list(idx)].sum(axis=0) / n_g
+            covs.append(outer[list(idx)].sum(axis=0) / n_g - np.outer(m, m) + eye)
+        covs = _symmetric(np.stack(covs))
+        out[p] = (_hard_log_l([n_i + n_j], covs[2:], reg_covar)
+                  - _hard_log_l([n_i, n_j], covs[:2], reg_covar))
+    return out
 
 
 def _partial_em(x, log_resp, cur: _State, gone, new_w, new_mu, new_cov, reg_covar, tol,
-                max_iter, mass):
-    """EM of the new components (replacing the components ``gone``) with every other
-    component held fixed, weights and all, on the points the replaced ones explain
-    (responsibility mass > ``mass``): the partial EM of SMEM.  Returns the new _State (the
-    kept components first, then the new ones; weights summing to 1) or None."""
+                max_iter, mass=PARTIAL_MASS):
+    """EM of new free components replacing the components ``gone`` of ``cur`` (no fixed
+    ones), with every other component held fixed, weights and all, on the points the replaced
+    ones explain (responsibility mass > ``mass``, from ``log_resp`` (N, K)): the partial EM
+    of SMEM; the new components share the replaced ones' total weight.  Returns the new
+    _State (the kept components first, then the new ones; weights summing to 1) or None when
+    a new component loses its points."""
     keep = np.ones(len(cur.weights), dtype=bool)
     keep[list(gone)] = False
     w_gone = float(cur.weights[~keep].sum())
@@ -983,112 +1018,75 @@ def _partial_em(x, log_resp, cur: _State, gone, new_w, new_mu, new_cov, reg_cova
 def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts,
             min_points, steps) -> _State:
     """Split-and-merge moves at fixed K on ``x`` (see ``refine`` of :func:`fit_mixture`)."""
-    rk = RK
-    em_opts = dict(opts, tol=tol, max_iter=max_iter)
     t0 = time.perf_counter()
-    cur = _State(cur.weights, cur.means, cur.covs, cur.fixed, np.full(len(cur.weights), np.nan))
-    if rk["init_em"]:
-        cur = _run_em(x, cur, **em_opts)
+    cur = _run_em(x, _State(cur.weights, cur.means, cur.covs, cur.fixed,
+                            np.full(len(cur.weights), np.nan)),
+                  **dict(opts, tol=tol, max_iter=min(max_iter, REFINE_START_ITER)))
     _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
     steps.append(_replace_accepted(FitStep("refine", len(cur.weights), cur.crit, cur.log_l,
                                            cur.n_iter, cur.converged, True,
                                            time.perf_counter() - t0)))
     k_n = len(cur.weights)
-    ids = list(range(k_n))  # identity of each component, kept across moves (cache keys)
+    min_drop = tol * n_total  # a move must lower the criterion by more than EM's own noise
+    ids = list(range(k_n))  # each component's identity, kept across moves (the cache's keys)
     next_id = k_n
-    split_cache: dict = {}
-    pair_cache: dict = {}
-    rejected: set = set()
+    gains: dict = {}  # id -> _split_gain of that component (computed once)
+    rejected: set = set()  # moves (as ids) tried and rejected
     while budget > 0:
         prec, log_det, _ = em.precision_cholesky(cur.covs)
         log_resp, _ = em.e_step(x, cur.weights, cur.means, prec, log_det)
         labels = log_resp.argmax(axis=1)
-        groups = [x[labels == k] for k in range(k_n)]
-        # split gains: the best two-means split of each component's points (hard log L)
-        splits = {}
         for k in range(k_n):
-            if ids[k] not in split_cache:
-                entry = None
-                if len(groups[k]) >= 2 * min_points:
-                    best = _best_split(groups[k], cur.means[k], cur.covs[k], reg_covar,
-                                       rk["axes"])
-                    if best is not None:
-                        entry = (best[0] - _one_gauss(groups[k], reg_covar)[0], best)
-                split_cache[ids[k]] = entry
-            if split_cache[ids[k]] is not None:
-                splits[k] = split_cache[ids[k]]
-        # the most overlapping pairs: merge loss, and the best re-split of their points
+            if ids[k] not in gains:
+                xk = x[labels == k]
+                gains[ids[k]] = None if len(xk) < 2 * min_points else _split_gain(
+                    xk, cur.means[k], cur.covs[k], reg_covar, tol, max_iter)
         resp = np.exp(log_resp)
         gram = resp.T @ resp
         norm = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-        overlap = gram / np.outer(norm, norm)
         iu, ju = np.triu_indices(k_n, 1)
+        top = np.argsort(-(gram / np.outer(norm, norm))[iu, ju], kind="stable")[:REFINE_PAIRS]
+        pairs = np.stack([iu[top], ju[top]], axis=1)
+        losses = _merge_losses(x, labels, k_n, pairs, reg_covar)
         cands = []
-        for p in np.argsort(-overlap[iu, ju], kind="stable")[:rk["pairs"]]:
-            i, j = int(iu[p]), int(ju[p])
-            key = (ids[i], ids[j])
-            if key not in pair_cache:
-                entry = None
-                if min(len(groups[i]), len(groups[j])) >= 2:
-                    xu = np.vstack([groups[i], groups[j]])
-                    now = _hard_log_l([len(groups[i]), len(groups[j])],
-                                      np.stack([component_of(groups[q], reg_covar)[1]
-                                                for q in (i, j)]), reg_covar)
-                    merged = _one_gauss(xu, reg_covar)
-                    mean_u, cov_u = merged[2][0], merged[3][0]
-                    best = _best_split(xu, mean_u, cov_u, reg_covar, rk["axes"])
-                    entry = (merged[0] - now, None if best is None else (best[0] - now, best))
-                pair_cache[key] = entry
-            entry = pair_cache[key]
-            if entry is None:
-                continue
-            merge_loss, resplit = entry
-            for k, (gain, best) in splits.items():
-                if k not in (i, j):
-                    cands.append((gain + merge_loss, (i, j, k), best))
-            if resplit is not None:
-                cands.append((resplit[0], (i, j), resplit[1]))
-        cands = [c for c in cands if c[0] > rk["min_est"] and tuple(ids[q] for q in c[1]) not in rejected]
+        for (i, j), loss in zip(pairs.tolist(), losses):
+            for k in range(k_n):
+                g = gains[ids[k]]
+                if g is None or k in (i, j) or (ids[i], ids[j], ids[k]) in rejected:
+                    continue
+                cands.append((g[0] + loss, i, j, k))
         cands.sort(key=lambda c: -c[0])
         improved = False
-        for est, move, best in cands[:rk["candidates"]]:
+        for _, i, j, k in cands[:REFINE_TRIES]:
             if budget <= 0:
                 break
-            t0 = time.perf_counter()
-            if len(move) == 3:
-                i, j, k = move
-                wm, mm, cm = _merged(cur, i, j)
-                new_w = np.concatenate([[wm], best[1] * cur.weights[k]])
-                new_mu = np.vstack([mm[None], best[2]])
-                new_cov = np.concatenate([cm[None], best[3]])
-            else:
-                new_w, new_mu, new_cov = best[1], best[2], best[3]
             budget -= 1
-            cand = _partial_em(x, log_resp, cur, move, new_w, new_mu, new_cov, reg_covar, tol,
-                               rk["partial_iter"], rk["mass"])
+            t0 = time.perf_counter()
+            g = gains[ids[k]]
+            wm, mm, cm = _merged(cur, i, j)
+            cand = _partial_em(x, log_resp, cur, (i, j, k),
+                               np.concatenate([[wm], g[1] * cur.weights[k]]),
+                               np.vstack([mm[None], g[2]]), np.concatenate([cm[None], g[3]]),
+                               reg_covar, tol, max_iter)
             ok = False
             if cand is not None:
-                if rk["settle"]:
-                    cand = _run_em(x, cand, **dict(em_opts, max_iter=rk["settle"]))
                 _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
-                ok = bool(len(cand.weights) == k_n
-                          and cand.crit < cur.crit - rk["min_gain"] * tol * n_total
+                ok = bool(len(cand.weights) == k_n and cand.crit < cur.crit - min_drop
                           and (n_total * cand.weights >= min_points).all())
-                name = "+".join(map(str, move[:2])) + (f"/{move[2]}" if len(move) == 3 else "")
-                steps.append(FitStep(f"refine {name}", len(cand.weights), cand.crit,
+                steps.append(FitStep(f"refine {i}+{j}/{k}", len(cand.weights), cand.crit,
                                      cand.log_l, cand.n_iter, cand.converged, ok,
                                      time.perf_counter() - t0))
             if not ok:
-                rejected.add(tuple(ids[q] for q in move))
+                rejected.add((ids[i], ids[j], ids[k]))
                 continue
-            gone = set(move)
-            ids = [ids[q] for q in range(k_n) if q not in gone] + list(
-                range(next_id, next_id + len(move)))
-            next_id += len(move)
+            ids = [ids[q] for q in range(k_n) if q not in (i, j, k)] + [next_id, next_id + 1,
+                                                                         next_id + 2]
+            next_id += 3
             cur, improved = cand, True
             break
         if not improved:
             return cur
+    return cur
     return cur
     return cur
     return cur
