@@ -936,16 +936,18 @@ def _hard_log_l(counts, covs, reg_covar) -> float:
 def _split_gain(xk, mean, cov, reg_covar, tol, max_iter):
     """How much splitting a component raises the log-likelihood of its points ``xk``.
 
-    Two-means splits seeded along the largest and along the smallest axis of ``cov`` (the
-    smallest separates two parallel sheets); the better by hard log-likelihood is refined by a
-    local EM of the two halves on ``xk`` (which also finds a thin sheet inside a thicker
-    spread, where no cut separates the two).  Returns ``(gain, weights (2,) summing to 1,
+    Two splits: the two-means seeded along the largest axis of ``cov`` (as the greedy
+    search's), and the plain cut through the mean across the smallest axis (no Lloyd steps:
+    on two parallel sheets of a wall's extent they would turn the cut back across the sheets,
+    as Euclidean two-means prefers); the better by hard log-likelihood is refined by a local EM
+    of the two halves on ``xk`` (which also finds a thin sheet inside a thicker spread, where
+    no cut separates the two).  Returns ``(gain, weights (2,) summing to 1,
     means (2, 3), covariances (2, 3, 3))`` -- the gain against the points' own single
     Gaussian, nats -- or None.
     """
     best = None
-    for axis in (-1, 0):
-        parts = _split_component(xk, mean, cov, 1.0, reg_covar, axis=axis)
+    for axis, n_lloyd in ((-1, 5), (0, 0)):
+        parts = _split_component(xk, mean, cov, 1.0, reg_covar, n_lloyd, axis)
         if parts is None:
             continue
         log_l = _hard_log_l(parts[0] * len(xk), parts[2], reg_covar)
@@ -963,26 +965,28 @@ def _split_gain(xk, mean, cov, reg_covar, tol, max_iter):
 
 def _merge_losses(x, labels, k_n, pairs, reg_covar) -> np.ndarray:
     """For each pair (i, j) of ``pairs`` (P, 2): the log-likelihood lost when the points
-    hard-assigned to i and j are described by one Gaussian instead of two (nats, <= 0 up to
-    the floor; -inf when either has fewer than 2 points)."""
+    hard-assigned to i and j are described by one Gaussian instead of two (:func:`_hard_log_l`
+    from each group's count, mean and scatter; nats, <= 0 up to the floor; -inf when either
+    has fewer than 2 points)."""
     counts = np.bincount(labels, minlength=k_n).astype(np.float64)
     sums = np.stack([np.bincount(labels, x[:, a], k_n) for a in range(3)], axis=1)
     outer = np.stack([np.bincount(labels, x[:, a] * x[:, b], k_n)
                       for a in range(3) for b in range(3)], axis=1).reshape(k_n, 3, 3)
-    out = np.full(len(pairs), -np.inf)
-    eye = reg_covar * np.eye(3)
-    for p, (i, j) in enumerate(pairs):
-        n_i, n_j = counts[i], counts[j]
-        if min(n_i, n_j) < 2:
-            continue
-        covs = []
-        for idx, n_g in (((i,), n_i), ((j,), n_j), ((i, j), n_i + n_j)):
-            m = sums[list(idx)].sum(axis=0) / n_g
-            covs.append(outer[list(idx)].sum(axis=0) / n_g - np.outer(m, m) + eye)
-        covs = _symmetric(np.stack(covs))
-        out[p] = (_hard_log_l([n_i + n_j], covs[2:], reg_covar)
-                  - _hard_log_l([n_i, n_j], covs[:2], reg_covar))
-    return out
+    i, j = pairs[:, 0], pairs[:, 1]
+    n = np.stack([counts[i], counts[j], counts[i] + counts[j]], axis=1)  # (P, 3)
+    ok = n[:, :2].min(axis=1) >= 2
+    n = np.maximum(n, 1.0)
+    s1 = np.stack([sums[i], sums[j], sums[i] + sums[j]], axis=1)  # (P, 3, 3)
+    s2 = np.stack([outer[i], outer[j], outer[i] + outer[j]], axis=1)  # (P, 3, 3, 3)
+    m = s1 / n[..., None]
+    covs = s2 / n[..., None, None] - m[..., :, None] * m[..., None, :] + reg_covar * np.eye(3)
+    covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    _, logdet = np.linalg.slogdet(covs)
+    tr = np.trace(np.linalg.inv(covs), axis1=-2, axis2=-1)
+    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)  # (P, 3)
+    share = np.log(n[:, :2] / n[:, 2:])
+    loss = n[:, 2] * per[:, 2] - (n[:, :2] * (share + per[:, :2])).sum(axis=1)
+    return np.where(ok, loss, -np.inf)
 
 
 def _partial_em(x, log_resp, cur: _State, gone, new_w, new_mu, new_cov, reg_covar, tol,
