@@ -573,19 +573,26 @@ def fit_mixture(
         None: the search uses every point (exact, about 5x slower on a room-sized cloud).
         Ignored when ``split`` is False.
     refine : int
-        Budget of split-and-merge moves at the K the search chose (Ueda et al., SMEM; 0: none;
-        see bench/bench_mixture_quality.py for what 12 gains).  Each round tries, in turn, merging one of the 3 most overlapping pairs
-        of components and splitting the component with the largest ``w_k J_k`` outside the
-        pair, runs EM (tolerance ``refine_tol``, at most ``refine_iter`` iterations) and keeps
-        the first result that lowers the criterion; rounds go on until no candidate helps or
-        ``refine`` moves were tried.  K does not change.  Skipped when starting from ``init`` or
-        with ``split`` False.  ``"refine"`` steps in the record.
+        Budget of split-and-merge moves at the K the search chose (Ueda et al.'s SMEM; 0: none;
+        bench/bench_mixture_quality.py measures what they gain).  A move merges two
+        components i, j and splits a third, k, so K does not change.  Each round ranks the
+        candidates by an estimated gain -- the log-likelihood a local EM of k's best split
+        adds to k's points (two-means along k's largest axis or a cut across its smallest),
+        minus what one Gaussian loses on the points of i and j, from hard assignments --
+        over the ``REFINE_PAIRS`` most overlapping pairs and every k, and tries the best
+        ``REFINE_TRIES`` in turn: a partial EM of the three new components with all others
+        held fixed, on the points the replaced ones explain, then the criterion on the
+        refinement subset.  The first that lowers it by more than ``refine_tol * N`` is kept
+        and a new round starts; the moves stop when a round keeps none or ``refine`` were
+        tried.  Skipped when starting from ``init`` or with ``split`` False.  ``"refine"``
+        steps in the record.
     refine_points : int, optional
-        The moves run on a fixed random subset of this many points (None or N smaller: all).
+        The moves run on a fixed random subset of this many points (None or N smaller: all),
+        after ``REFINE_START_ITER`` EM iterations there.
     refine_tol, refine_iter :
-        EM tolerance and iteration bound of each move (a tighter tolerance than ``tol``: a
-        move's gain shows only once EM has moved the neighbours; hitting ``refine_iter`` does
-        not warn).
+        EM tolerance and iteration bound of the local and partial EMs of the moves (a tighter
+        tolerance than ``tol``: a move's gain shows only once EM has moved its components;
+        hitting ``refine_iter`` does not warn).
 
     Returns
     -------
