@@ -227,6 +227,62 @@ def test_background_em_step_and_loop_match_numpy():
     np.testing.assert_allclose(cov3, tcov, rtol=1e-8, atol=1e-10)
 
 
+def test_background_loop_with_fixed_background_weight_matches_numpy():
+    # the partial EM of a split-and-merge move: the background keeps its total weight w_0,
+    # the free components share 1 - w_0 in proportion to their responsibility mass
+    x, _, log_bg, w, mu, cov = background_case(32, k=3)
+    w2, mu2, cov2, lp, n_iter, status, _ = em.em_loop_background(x, log_bg, w, mu, cov, 1e-4,
+                                                                 0.0, 5, True)
+    assert (n_iter, status) == (5, em.STATUS_MAX_ITER)
+    tw, tmu, tcov = w, mu, cov
+    for _ in range(5):
+        lr, lp_t = np_background_e_step(x, log_bg, tw, tmu, tcov)
+        nk_t, m_t, c_t = np_m_step(x, np.exp(lr), 1e-4)
+        tw = np.concatenate([w[:1], (1.0 - w[0]) * nk_t[1:] / nk_t[1:].sum()])
+        tmu, tcov = m_t[1:], c_t[1:]
+    assert w2[0] == w[0]
+    assert lp == pytest.approx(lp_t.mean(), rel=1e-10)
+    np.testing.assert_allclose(w2, tw, rtol=1e-9)
+    np.testing.assert_allclose(mu2, tmu, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(cov2, tcov, rtol=1e-8, atol=1e-10)
+
+
+def np_two_means(x, c0, c1, n_lloyd, reg):
+    """Twin of em.two_means: Lloyd's two-means, then each half's mean and ML covariance."""
+    cen = np.stack([c0, c1]).astype(np.float64)
+    for it in range(n_lloyd + 1):
+        side = np.linalg.norm(x - cen[1], axis=1) < np.linalg.norm(x - cen[0], axis=1)
+        if min(side.sum(), (~side).sum()) < 2:
+            return False, None, None, None
+        new = np.stack([x[~side].mean(axis=0), x[side].mean(axis=0)])
+        if it == n_lloyd or np.allclose(new, cen, rtol=0, atol=1e-15):
+            break
+        cen = new
+    halves = (x[~side], x[side])
+    counts = np.array([len(h) for h in halves], dtype=np.float64)
+    covs = np.stack([np.cov(h, rowvar=False, bias=True) + reg * np.eye(3) for h in halves])
+    return True, counts, new, covs
+
+
+@pytest.mark.parametrize("seed", [50, 51, 52])
+def test_two_means_matches_numpy(seed):
+    rng = np.random.default_rng(seed)
+    x = np.vstack([rng.normal(size=(300, 3)) * 0.2 + [3.0, 1.0, 2.0],
+                   rng.normal(size=(200, 3)) * 0.3 + [3.8, 1.2, 2.1]])
+    mean = x.mean(axis=0)
+    c0, c1 = mean - [0.3, 0.0, 0.0], mean + [0.3, 0.0, 0.0]
+    for n_lloyd in (0, 1, 5):
+        ok, counts, means, covs = em.two_means(x, c0, c1, n_lloyd, 1e-4)
+        ok2, counts2, means2, covs2 = np_two_means(x, c0, c1, n_lloyd, 1e-4)
+        assert ok and ok2
+        np.testing.assert_array_equal(counts, counts2)
+        np.testing.assert_allclose(means, means2, rtol=1e-12, atol=1e-13)
+        np.testing.assert_allclose(covs, covs2, rtol=1e-9, atol=1e-13)
+    # a half with fewer than two points: not ok
+    ok, *_ = em.two_means(x, mean, mean + [100.0, 0.0, 0.0], 5, 1e-4)
+    assert not ok and not np_two_means(x, mean, mean + [100.0, 0.0, 0.0], 5, 1e-4)[0]
+
+
 @pytest.mark.parametrize("seed", [40, 41, 42])
 def test_fit_over_background_is_fit_mixture_with_fixed_weights(seed):
     """The same fit as fit_mixture with the background's components fixed, weights and all."""
@@ -745,3 +801,22 @@ def test_refine_keeps_k_and_never_raises_the_criterion():
     # not run from a given mixture or without splitting
     fixed_k = fit_mixture(x, init=ref, split=False)
     assert not any(s.action.startswith("refine") for s in fixed_k.record.steps)
+
+
+def test_split_gain_separates_two_parallel_sheets():
+    # two 1 m x 1 m sheets 5 cm apart: the principal-axis two-means cuts across both; the
+    # refinement's split also tries the thinnest axis and keeps the better, the two sheets
+    from robot_change.mixture import model
+
+    rng = np.random.default_rng(60)
+    sheets = [np.column_stack([rng.uniform(0, 1, 1500), rng.uniform(0, 1, 1500),
+                               np.full(1500, z) + rng.normal(0, 0.002, 1500)])
+              for z in (0.0, 0.05)]
+    x = np.vstack(sheets)
+    reg = reg_covar_for_leaf(0.01)
+    mean, cov = x.mean(axis=0), np.cov(x, rowvar=False, bias=True) + reg * np.eye(3)
+    gain, w, mu, cov2 = model._split_gain(x, mean, cov, reg, 1e-4, 50)
+    assert gain > 0.5 * len(x)  # nats: far more than a component costs
+    assert w == pytest.approx([0.5, 0.5], abs=0.02)
+    assert sorted(mu[:, 2]) == pytest.approx([0.0, 0.05], abs=0.003)
+    np.testing.assert_allclose(mu[:, :2], 0.5, atol=0.03)

@@ -357,6 +357,65 @@ def _finish_cov(c, nk, reg_covar):
         c[a, a] += reg_covar
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate(x0, x1, x2, row, inv, means, nk, off, s1, s2):
+    """Add one point's M-step sums: responsibility ``r = row[k] * inv`` of every component k
+    (skipped when 0) into ``nk[off + k]``, and ``r d``, ``r d d^T`` (upper triangle), with
+    ``d = x - means[k]`` the offset from the *old* mean, into ``s1[k]`` (K, 3), ``s2[k]``
+    (K, 3, 3)."""
+    for k in range(means.shape[0]):
+        r = row[k] * inv
+        if r == 0.0:
+            continue
+        d0 = x0 - means[k, 0]
+        d1 = x1 - means[k, 1]
+        d2 = x2 - means[k, 2]
+        nk[off + k] += r
+        s1[k, 0] += r * d0
+        s1[k, 1] += r * d1
+        s1[k, 2] += r * d2
+        rd0 = r * d0
+        rd1 = r * d1
+        s2[k, 0, 0] += rd0 * d0
+        s2[k, 0, 1] += rd0 * d1
+        s2[k, 0, 2] += rd0 * d2
+        s2[k, 1, 1] += rd1 * d1
+        s2[k, 1, 2] += rd1 * d2
+        s2[k, 2, 2] += r * d2 * d2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _finish(means, nk, off, s1, s2, reg_covar):
+    """M-step from the sums of :func:`_accumulate`: adds 10 eps to ``nk[off + k]``, returns the
+    new means (K, 3) and turns ``s2`` in place into the new covariances (scatter about the old
+    mean corrected by the mean shift ``e``: ``S / nk - e e^T``, plus the floor)."""
+    k_n = means.shape[0]
+    new_means = np.empty((k_n, 3))
+    for k in range(k_n):
+        m = nk[off + k] + _EPS10
+        nk[off + k] = m
+        e0 = s1[k, 0] / m
+        e1 = s1[k, 1] / m
+        e2 = s1[k, 2] / m
+        new_means[k, 0] = means[k, 0] + e0
+        new_means[k, 1] = means[k, 1] + e1
+        new_means[k, 2] = means[k, 2] + e2
+        c = s2[k]
+        _finish_cov(c, m, 0.0)
+        c[0, 0] -= e0 * e0
+        c[0, 1] -= e0 * e1
+        c[0, 2] -= e0 * e2
+        c[1, 1] -= e1 * e1
+        c[1, 2] -= e1 * e2
+        c[2, 2] -= e2 * e2
+        c[1, 0] = c[0, 1]
+        c[2, 0] = c[0, 2]
+        c[2, 1] = c[1, 2]
+        for a in range(3):
+            c[a, a] += reg_covar
+    return new_means
+
+
 @njit(cache=True, nogil=True)
 def em_step(points, weights, means, prec_chol, log_det, reg_covar):
     """One fused EM iteration: E-step on the given parameters and the M-step statistics.
@@ -407,48 +466,8 @@ def em_step(points, weights, means, prec_chol, log_det, reg_covar):
                     row[k] = e
                     s += e
             total += best + math.log(s)
-            inv = 1.0 / s
-            for k in range(k_n):
-                r = row[k] * inv
-                if r == 0.0:
-                    continue
-                d0 = x0 - means[k, 0]
-                d1 = x1 - means[k, 1]
-                d2 = x2 - means[k, 2]
-                nk[k] += r
-                s1[k, 0] += r * d0
-                s1[k, 1] += r * d1
-                s1[k, 2] += r * d2
-                rd0 = r * d0
-                rd1 = r * d1
-                s2[k, 0, 0] += rd0 * d0
-                s2[k, 0, 1] += rd0 * d1
-                s2[k, 0, 2] += rd0 * d2
-                s2[k, 1, 1] += rd1 * d1
-                s2[k, 1, 2] += rd1 * d2
-                s2[k, 2, 2] += r * d2 * d2
-    new_means = np.empty((k_n, 3))
-    for k in range(k_n):
-        nk[k] += _EPS10
-        e0 = s1[k, 0] / nk[k]
-        e1 = s1[k, 1] / nk[k]
-        e2 = s1[k, 2] / nk[k]
-        new_means[k, 0] = means[k, 0] + e0
-        new_means[k, 1] = means[k, 1] + e1
-        new_means[k, 2] = means[k, 2] + e2
-        c = s2[k]
-        _finish_cov(c, nk[k], 0.0)
-        c[0, 0] -= e0 * e0
-        c[0, 1] -= e0 * e1
-        c[0, 2] -= e0 * e2
-        c[1, 1] -= e1 * e1
-        c[1, 2] -= e1 * e2
-        c[2, 2] -= e2 * e2
-        c[1, 0] = c[0, 1]
-        c[2, 0] = c[0, 2]
-        c[2, 1] = c[1, 2]
-        for a in range(3):
-            c[a, a] += reg_covar
+            _accumulate(x0, x1, x2, row, 1.0 / s, means, nk, 0, s1, s2)
+    new_means = _finish(means, nk, 0, s1, s2, reg_covar)
     return total / n, nk, new_means, s2
 
 
@@ -597,54 +616,15 @@ def em_step_background(points, log_bg, weights, means, prec_chol, log_det, reg_c
             total += best + math.log(s)
             inv = 1.0 / s
             nk[0] += e0 * inv
-            for k in range(k_n):
-                r = row[k] * inv
-                if r == 0.0:
-                    continue
-                d0 = x0 - means[k, 0]
-                d1 = x1 - means[k, 1]
-                d2 = x2 - means[k, 2]
-                nk[k + 1] += r
-                s1[k, 0] += r * d0
-                s1[k, 1] += r * d1
-                s1[k, 2] += r * d2
-                rd0 = r * d0
-                rd1 = r * d1
-                s2[k, 0, 0] += rd0 * d0
-                s2[k, 0, 1] += rd0 * d1
-                s2[k, 0, 2] += rd0 * d2
-                s2[k, 1, 1] += rd1 * d1
-                s2[k, 1, 2] += rd1 * d2
-                s2[k, 2, 2] += r * d2 * d2
+            _accumulate(x0, x1, x2, row, inv, means, nk, 1, s1, s2)
     nk[0] += _EPS10
-    new_means = np.empty((k_n, 3))
-    for k in range(k_n):
-        m = nk[k + 1] + _EPS10
-        nk[k + 1] = m
-        e0 = s1[k, 0] / m
-        e1 = s1[k, 1] / m
-        e2 = s1[k, 2] / m
-        new_means[k, 0] = means[k, 0] + e0
-        new_means[k, 1] = means[k, 1] + e1
-        new_means[k, 2] = means[k, 2] + e2
-        c = s2[k]
-        _finish_cov(c, m, 0.0)
-        c[0, 0] -= e0 * e0
-        c[0, 1] -= e0 * e1
-        c[0, 2] -= e0 * e2
-        c[1, 1] -= e1 * e1
-        c[1, 2] -= e1 * e2
-        c[2, 2] -= e2 * e2
-        c[1, 0] = c[0, 1]
-        c[2, 0] = c[0, 2]
-        c[2, 1] = c[1, 2]
-        for a in range(3):
-            c[a, a] += reg_covar
+    new_means = _finish(means, nk, 1, s1, s2, reg_covar)
     return total / n, nk, new_means, s2
 
 
 @njit(cache=True, nogil=True)
-def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, tol, max_iter):
+def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, tol, max_iter,
+                       fix_background=False):
     """:func:`em_loop` over a fixed background density (:func:`em_step_background`).
 
     The same iterations as :func:`em_loop` with the background's components fixed and
@@ -653,6 +633,11 @@ def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, t
     :func:`em_loop`, with ``weights`` (1 + K,) (the background's first) and ``means``,
     ``covariances`` those of the free components; ``empty`` is the index of a free component
     among them (0-based, without the background).
+
+    ``fix_background``: the background's total weight stays ``weights[0]`` too, and the free
+    components share ``1 - weights[0]`` in proportion to their responsibility mass -- the
+    partial EM of a split-and-merge move (Ueda et al.), which may then run on only the points
+    the free components explain.
     """
     n = points.shape[0]
     k_n = means.shape[0]
@@ -676,14 +661,20 @@ def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, t
         lp, nk, new_mu, new_cov = em_step_background(points, log_bg, w, mu, prec, log_det,
                                                      reg_covar)
         it += 1
+        free_mass = 0.0
         for k in range(k_n):
             if nk[k + 1] < EMPTY_MASS:
                 return w, mu, cov, lp, it, STATUS_EMPTY, k
             mu[k] = new_mu[k]
             cov[k] = new_cov[k]
-        for k in range(k_n + 1):
-            w[k] = nk[k] / n
-        w /= w.sum()
+            free_mass += nk[k + 1]
+        if fix_background:
+            for k in range(k_n):
+                w[k + 1] = (1.0 - weights[0]) * nk[k + 1] / free_mass
+        else:
+            for k in range(k_n + 1):
+                w[k] = nk[k] / n
+            w /= w.sum()
         if abs(lp - prev) < tol:
             return w, mu, cov, lp, it, STATUS_CONVERGED, -1
         prev = lp
@@ -723,3 +714,81 @@ def responsibilities_background(points, log_bg, weights, means, prec_chol, log_d
             for k in range(k_n):
                 resp[i, k + 1] = row[k] * inv
     return resp, log_prob
+
+
+@njit(cache=True, nogil=True)
+def two_means(points, c0, c1, n_lloyd, reg_covar):
+    """Lloyd's two-means from the centres ``c0``, ``c1``, and the Gaussian of each half.
+
+    At most ``n_lloyd`` updates of the centres (fewer when they stop moving); a point goes to
+    the nearer centre (``x . (c1 - c0) > (|c1|^2 - |c0|^2) / 2``: the second).
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    c0, c1 : array, shape (3,)
+    n_lloyd : int
+    reg_covar : float
+        Added to the diagonal of both covariances.
+
+    Returns
+    -------
+    ok : bool
+        False when a half is empty or has fewer than 2 points (the rest is then undefined).
+    counts : array, shape (2,)
+        Points per half (float).
+    means : array, shape (2, 3)
+    covariances : array, shape (2, 3, 3)
+        Maximum-likelihood covariance of each half plus ``reg_covar`` on the diagonal.
+    """
+    n = points.shape[0]
+    side = np.zeros(n, dtype=np.bool_)
+    cen = np.empty((2, 3))
+    cen[0] = c0
+    cen[1] = c1
+    counts = np.zeros(2)
+    means = np.zeros((2, 3))
+    covs = np.zeros((2, 3, 3))
+    for it in range(n_lloyd + 1):
+        d0 = cen[1, 0] - cen[0, 0]
+        d1 = cen[1, 1] - cen[0, 1]
+        d2 = cen[1, 2] - cen[0, 2]
+        thr = 0.5 * (cen[1, 0] * cen[1, 0] + cen[1, 1] * cen[1, 1] + cen[1, 2] * cen[1, 2]
+                     - cen[0, 0] * cen[0, 0] - cen[0, 1] * cen[0, 1] - cen[0, 2] * cen[0, 2])
+        counts[:] = 0.0
+        means[:, :] = 0.0
+        for i in range(n):
+            s = 1 if points[i, 0] * d0 + points[i, 1] * d1 + points[i, 2] * d2 > thr else 0
+            side[i] = s == 1
+            counts[s] += 1.0
+            for a in range(3):
+                means[s, a] += points[i, a]
+        if counts[0] < 2.0 or counts[1] < 2.0:
+            return False, counts, means, covs
+        for h in range(2):
+            for a in range(3):
+                means[h, a] /= counts[h]
+        if it == n_lloyd:
+            break
+        same = True
+        for h in range(2):
+            for a in range(3):
+                if means[h, a] != cen[h, a]:
+                    same = False
+                cen[h, a] = means[h, a]
+        if same:
+            break
+    for i in range(n):
+        h = 1 if side[i] else 0
+        e0 = points[i, 0] - means[h, 0]
+        e1 = points[i, 1] - means[h, 1]
+        e2 = points[i, 2] - means[h, 2]
+        covs[h, 0, 0] += e0 * e0
+        covs[h, 0, 1] += e0 * e1
+        covs[h, 0, 2] += e0 * e2
+        covs[h, 1, 1] += e1 * e1
+        covs[h, 1, 2] += e1 * e2
+        covs[h, 2, 2] += e2 * e2
+    for h in range(2):
+        _finish_cov(covs[h], counts[h], reg_covar)
+    return True, counts, means, covs

@@ -421,8 +421,8 @@ def gaussianity_deficiency(points: np.ndarray, blur: float, k: int = 4, n_querie
 
 
 def _split_component(x: np.ndarray, mean, cov, weight: float, reg_covar: float,
-                     n_lloyd: int = 5):
-    """Two-means split of one component's points along its principal axis.
+                     n_lloyd: int = 5, axis: int = -1):
+    """Two-means split of one component's points along one of its axes.
 
     Parameters
     ----------
@@ -431,33 +431,22 @@ def _split_component(x: np.ndarray, mean, cov, weight: float, reg_covar: float,
     mean : array, shape (3,)
     cov : array, shape (3, 3)
     weight : float
+    axis : int
+        Which eigenvector of ``cov`` the two seeds ``mean +- sqrt(lambda) v`` lie on, in
+        ``numpy.linalg.eigh``'s increasing order: -1 the principal axis, 0 the thinnest (it
+        separates two parallel sheets).
 
     Returns
     -------
     (weights (2,), means (2, 3), covariances (2, 3, 3)) or None when a half gets < 2 points.
     """
     lam, vec = np.linalg.eigh(cov)
-    step = math.sqrt(max(lam[-1], 0.0)) * vec[:, -1]
-    centres = np.stack([mean - step, mean + step])
-    for it in range(n_lloyd + 1):
-        # nearer to centres[1] <=> x . (c1 - c0) > (|c1|^2 - |c0|^2) / 2
-        side = x @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1]
-                                                     - centres[0] @ centres[0])
-        if side.all() or not side.any():
-            return None
-        if it == n_lloyd:
-            break
-        new = np.stack([x[~side].mean(axis=0), x[side].mean(axis=0)])
-        if np.array_equal(new, centres):
-            break
-        centres = new
-    halves = (x[~side], x[side])
-    if min(len(h) for h in halves) < 2:
+    step = math.sqrt(max(lam[axis], 0.0)) * vec[:, axis]
+    mean = np.asarray(mean, dtype=np.float64)
+    ok, counts, mus, covs = em.two_means(x, mean - step, mean + step, n_lloyd, reg_covar)
+    if not ok:
         return None
-    ws = np.array([len(h) for h in halves], dtype=np.float64) / len(x) * weight
-    mus = np.stack([h.mean(axis=0) for h in halves])
-    covs = np.stack([np.cov(h, rowvar=False, bias=True) + reg_covar * np.eye(3) for h in halves])
-    return ws, mus, covs
+    return counts / len(x) * weight, mus, covs
 
 
 # --------------------------------------------------------------------------- EM driver
@@ -584,19 +573,26 @@ def fit_mixture(
         None: the search uses every point (exact, about 5x slower on a room-sized cloud).
         Ignored when ``split`` is False.
     refine : int
-        Budget of split-and-merge moves at the K the search chose (Ueda et al., SMEM; 0: none;
-        see bench/bench_mixture_quality.py for what 12 gains).  Each round tries, in turn, merging one of the 3 most overlapping pairs
-        of components and splitting the component with the largest ``w_k J_k`` outside the
-        pair, runs EM (tolerance ``refine_tol``, at most ``refine_iter`` iterations) and keeps
-        the first result that lowers the criterion; rounds go on until no candidate helps or
-        ``refine`` moves were tried.  K does not change.  Skipped when starting from ``init`` or
-        with ``split`` False.  ``"refine"`` steps in the record.
+        Budget of split-and-merge moves at the K the search chose (Ueda et al.'s SMEM; 0: none;
+        bench/bench_mixture_quality.py measures what they gain).  A move merges two
+        components i, j and splits a third, k, so K does not change.  Each round ranks the
+        candidates by an estimated gain -- the log-likelihood a local EM of k's best split
+        adds to k's points (two-means along k's largest axis or a cut across its smallest),
+        minus what one Gaussian loses on the points of i and j, from hard assignments --
+        over the ``REFINE_PAIRS`` most overlapping pairs and every k, and tries the best
+        ``REFINE_TRIES`` in turn: a partial EM of the three new components with all others
+        held fixed, on the points the replaced ones explain, then the criterion on the
+        refinement subset.  The first that lowers it by more than ``refine_tol * N`` is kept
+        and a new round starts; the moves stop when a round keeps none or ``refine`` were
+        tried.  Skipped when starting from ``init`` or with ``split`` False.  ``"refine"``
+        steps in the record.
     refine_points : int, optional
-        The moves run on a fixed random subset of this many points (None or N smaller: all).
+        The moves run on a fixed random subset of this many points (None or N smaller: all),
+        after ``REFINE_START_ITER`` EM iterations there.
     refine_tol, refine_iter :
-        EM tolerance and iteration bound of each move (a tighter tolerance than ``tol``: a
-        move's gain shows only once EM has moved the neighbours; hitting ``refine_iter`` does
-        not warn).
+        EM tolerance and iteration bound of the local and partial EMs of the moves (a tighter
+        tolerance than ``tol``: a move's gain shows only once EM has moved its components;
+        hitting ``refine_iter`` does not warn).
 
     Returns
     -------
@@ -702,9 +698,7 @@ def fit_mixture(
         if refine_points is not None and n > refine_points:
             xr = x[np.sort(rng.choice(n, refine_points, replace=False))]
         cur = _refine(xr, cur, n, criterion, refine, float(refine_tol), int(refine_iter),
-                      reg_covar, opts,
-                      math.sqrt(12.0 * reg_covar) * math.sqrt(n / xr.shape[0]), entropy_k,
-                      entropy_subsample, min_points, rng, steps)
+                      reg_covar, opts, min_points, steps)
 
     n_pruned = 0
     if xs is not x or refined:
@@ -924,59 +918,186 @@ def _merged(cur: _State, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray]
     return w, mu, _symmetric(cov[None])[0]
 
 
-def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts, blur,
-            entropy_k, entropy_subsample, min_points, rng, steps, n_pairs: int = 3) -> _State:
+#: Split-and-merge moves (``refine`` of :func:`fit_mixture`): the most overlapping pairs
+#: considered for a merge in a round, the moves tried per round (largest estimated gain
+#: first), the EM iterations on the refinement subset before the moves, and the
+#: responsibility mass above which a point takes part in a move's partial EM.
+REFINE_PAIRS = 8
+REFINE_TRIES = 4
+REFINE_START_ITER = 5
+PARTIAL_MASS = 1e-3
+
+
+def _hard_log_l(counts, covs, reg_covar) -> float:
+    """Log-likelihood of points hard-partitioned into groups, each under its own Gaussian
+    (ML mean, ML covariance plus the floor: ``covs`` (G, 3, 3)) with the groups' shares as
+    weights: ``sum_g n_g (log(n_g / n) - 0.5 (3 log 2 pi + log det C_g + 3 - reg tr C_g^-1))``.
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    _, logdet = np.linalg.slogdet(covs)
+    tr = np.trace(np.linalg.inv(covs), axis1=1, axis2=2)
+    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)
+    return float((counts * (np.log(counts / counts.sum()) + per)).sum())
+
+
+def _split_gain(xk, mean, cov, reg_covar, tol, max_iter):
+    """How much splitting a component raises the log-likelihood of its points ``xk``.
+
+    Two splits: the two-means seeded along the largest axis of ``cov`` (as the greedy
+    search's), and the plain cut through the mean across the smallest axis (no Lloyd steps:
+    on two parallel sheets of a wall's extent they would turn the cut back across the sheets,
+    as Euclidean two-means prefers); the better by hard log-likelihood is refined by a local EM
+    of the two halves on ``xk`` (which also finds a thin sheet inside a thicker spread, where
+    no cut separates the two).  Returns ``(gain, weights (2,) summing to 1,
+    means (2, 3), covariances (2, 3, 3))`` -- the gain against the points' own single
+    Gaussian, nats -- or None.
+    """
+    best = None
+    for axis, n_lloyd in ((-1, 5), (0, 0)):
+        parts = _split_component(xk, mean, cov, 1.0, reg_covar, n_lloyd, axis)
+        if parts is None:
+            continue
+        log_l = _hard_log_l(parts[0] * len(xk), parts[2], reg_covar)
+        if best is None or log_l > best[0]:
+            best = (log_l, *parts)
+    if best is None:
+        return None
+    w2, mu2, cov2, lp, _, status, _ = em.em_loop(
+        xk, best[1], best[2], best[3], np.zeros(2, dtype=bool), False, reg_covar, tol, max_iter)
+    if status != em.STATUS_EMPTY:
+        best = (float(lp) * len(xk), w2, mu2, cov2)
+    _, single = component_of(xk, reg_covar)
+    return (best[0] - _hard_log_l([len(xk)], single[None], reg_covar), *best[1:])
+
+
+def _merge_losses(x, labels, k_n, pairs, reg_covar) -> np.ndarray:
+    """For each pair (i, j) of ``pairs`` (P, 2): the log-likelihood lost when the points
+    hard-assigned to i and j are described by one Gaussian instead of two (:func:`_hard_log_l`
+    from each group's count, mean and scatter; nats, <= 0 up to the floor; -inf when either
+    has fewer than 2 points)."""
+    counts = np.bincount(labels, minlength=k_n).astype(np.float64)
+    sums = np.stack([np.bincount(labels, x[:, a], k_n) for a in range(3)], axis=1)
+    outer = np.stack([np.bincount(labels, x[:, a] * x[:, b], k_n)
+                      for a in range(3) for b in range(3)], axis=1).reshape(k_n, 3, 3)
+    i, j = pairs[:, 0], pairs[:, 1]
+    n = np.stack([counts[i], counts[j], counts[i] + counts[j]], axis=1)  # (P, 3)
+    ok = n[:, :2].min(axis=1) >= 2
+    n = np.maximum(n, 1.0)
+    s1 = np.stack([sums[i], sums[j], sums[i] + sums[j]], axis=1)  # (P, 3, 3)
+    s2 = np.stack([outer[i], outer[j], outer[i] + outer[j]], axis=1)  # (P, 3, 3, 3)
+    m = s1 / n[..., None]
+    covs = s2 / n[..., None, None] - m[..., :, None] * m[..., None, :] + reg_covar * np.eye(3)
+    covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    _, logdet = np.linalg.slogdet(covs)
+    tr = np.trace(np.linalg.inv(covs), axis1=-2, axis2=-1)
+    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)  # (P, 3)
+    share = np.log(n[:, :2] / n[:, 2:])
+    loss = n[:, 2] * per[:, 2] - (n[:, :2] * (share + per[:, :2])).sum(axis=1)
+    return np.where(ok, loss, -np.inf)
+
+
+def _partial_em(x, log_resp, cur: _State, gone, new_w, new_mu, new_cov, reg_covar, tol,
+                max_iter, mass=PARTIAL_MASS):
+    """EM of new free components replacing the components ``gone`` of ``cur`` (no fixed
+    ones), with every other component held fixed, weights and all, on the points the replaced
+    ones explain (responsibility mass > ``mass``, from ``log_resp`` (N, K)): the partial EM
+    of SMEM; the new components share the replaced ones' total weight.  Returns the new
+    _State (the kept components first, then the new ones; weights summing to 1) or None when
+    a new component loses its points."""
+    keep = np.ones(len(cur.weights), dtype=bool)
+    keep[list(gone)] = False
+    w_gone = float(cur.weights[~keep].sum())
+    sel = np.exp(log_resp[:, ~keep]).sum(axis=1) > mass
+    xp = x[sel]
+    if len(xp) < 2 * len(new_w):
+        return None
+    wk = cur.weights[keep]
+    prec, log_det, _ = em.precision_cholesky(cur.covs[keep])
+    log_bg = em.log_prob_samples(xp, wk / wk.sum(), cur.means[keep], prec, log_det)
+    w0 = np.concatenate([[1.0 - w_gone], new_w / new_w.sum() * w_gone])
+    w2, mu2, cov2, _, n_it, status, _ = em.em_loop_background(
+        xp, log_bg, w0, new_mu, new_cov, reg_covar, tol, max_iter, True)
+    if status == em.STATUS_EMPTY:
+        return None
+    w = np.concatenate([wk, w2[1:]])
+    return _State(w / w.sum(), np.vstack([cur.means[keep], mu2]),
+                  np.concatenate([cur.covs[keep], cov2]),
+                  np.zeros(len(w), dtype=bool), np.full(len(w), np.nan), n_iter=int(n_it),
+                  converged=status == em.STATUS_CONVERGED)
+
+
+def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar, opts,
+            min_points, steps) -> _State:
     """Split-and-merge moves at fixed K on ``x`` (see ``refine`` of :func:`fit_mixture`)."""
-    em_opts = dict(opts, tol=tol, max_iter=max_iter)
     t0 = time.perf_counter()
-    cur = _run_em(x, _State(cur.weights, cur.means, cur.covs, cur.fixed, np.full(len(cur.weights),
-                                                                                  np.nan)),
-                  **em_opts)
-    labels = _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
+    cur = _run_em(x, _State(cur.weights, cur.means, cur.covs, cur.fixed,
+                            np.full(len(cur.weights), np.nan)),
+                  **dict(opts, tol=tol, max_iter=min(max_iter, REFINE_START_ITER)))
+    _evaluate(x, cur, criterion, opts["fix_weights"], n_total)
     steps.append(_replace_accepted(FitStep("refine", len(cur.weights), cur.crit, cur.log_l,
                                            cur.n_iter, cur.converged, True,
                                            time.perf_counter() - t0)))
     k_n = len(cur.weights)
-    while True:
+    min_drop = tol * n_total  # a move must lower the criterion by more than EM's own noise
+    ids = list(range(k_n))  # each component's identity, kept across moves (the cache's keys)
+    next_id = k_n
+    gains: dict = {}  # id -> _split_gain of that component (computed once)
+    rejected: set = set()  # moves (as ids) tried and rejected
+    while budget > 0:
         prec, log_det, _ = em.precision_cholesky(cur.covs)
         log_resp, _ = em.e_step(x, cur.weights, cur.means, prec, log_det)
+        labels = log_resp.argmax(axis=1)
+        for k in range(k_n):
+            if ids[k] not in gains:
+                xk = x[labels == k]
+                gains[ids[k]] = None if len(xk) < 2 * min_points else _split_gain(
+                    xk, cur.means[k], cur.covs[k], reg_covar, tol, max_iter)
         resp = np.exp(log_resp)
         gram = resp.T @ resp
         norm = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-        overlap = gram / np.outer(norm, norm)
         iu, ju = np.triu_indices(k_n, 1)
-        pairs = np.argsort(-overlap[iu, ju], kind="stable")[:n_pairs]
-        order = _split_order(x, labels, cur, min_points, entropy_k, entropy_subsample, blur, rng)
+        top = np.argsort(-(gram / np.outer(norm, norm))[iu, ju], kind="stable")[:REFINE_PAIRS]
+        pairs = np.stack([iu[top], ju[top]], axis=1)
+        losses = _merge_losses(x, labels, k_n, pairs, reg_covar)
+        cands = []
+        for (i, j), loss in zip(pairs.tolist(), losses):
+            for k in range(k_n):
+                g = gains[ids[k]]
+                if g is None or k in (i, j) or (ids[i], ids[j], ids[k]) in rejected:
+                    continue
+                cands.append((g[0] + loss, i, j, k))
+        cands.sort(key=lambda c: -c[0])
         improved = False
-        for p in pairs:
+        for _, i, j, k in cands[:REFINE_TRIES]:
             if budget <= 0:
-                return cur
-            budget -= 1
-            i, j = int(iu[p]), int(ju[p])
-            k = next((q for q in order if q not in (i, j)), None)
-            if k is None:
-                continue
-            t0 = time.perf_counter()
-            parts = _split_component(x[labels == k], cur.means[k], cur.covs[k], cur.weights[k],
-                                     reg_covar)
-            if parts is None:
-                continue
-            wm, mm, cm = _merged(cur, i, j)
-            keep = np.array([q not in (i, j, k) for q in range(k_n)])
-            start = _State(np.concatenate([cur.weights[keep], [wm], parts[0]]),
-                           np.vstack([cur.means[keep], mm[None], parts[1]]),
-                           np.concatenate([cur.covs[keep], cm[None], parts[2]]),
-                           np.zeros(k_n, dtype=bool),
-                           np.concatenate([cur.j[keep], [np.nan, np.nan, np.nan]]))
-            start.weights = start.weights / start.weights.sum()
-            cand = _run_em(x, start, **em_opts)
-            cand_labels = _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
-            ok = bool(len(cand.weights) == k_n and cand.crit < cur.crit
-                  and (n_total * cand.weights >= min_points).all())
-            steps.append(FitStep(f"refine {i}+{j}/{k}", len(cand.weights), cand.crit, cand.log_l,
-                                 cand.n_iter, cand.converged, ok, time.perf_counter() - t0))
-            if ok:
-                cur, labels, improved = cand, cand_labels, True
                 break
+            budget -= 1
+            t0 = time.perf_counter()
+            g = gains[ids[k]]
+            wm, mm, cm = _merged(cur, i, j)
+            cand = _partial_em(x, log_resp, cur, (i, j, k),
+                               np.concatenate([[wm], g[1] * cur.weights[k]]),
+                               np.vstack([mm[None], g[2]]), np.concatenate([cm[None], g[3]]),
+                               reg_covar, tol, max_iter)
+            ok = False
+            if cand is not None:
+                _evaluate(x, cand, criterion, opts["fix_weights"], n_total)
+                ok = bool(len(cand.weights) == k_n and cand.crit < cur.crit - min_drop
+                          and (n_total * cand.weights >= min_points).all())
+                steps.append(FitStep(f"refine {i}+{j}/{k}", len(cand.weights), cand.crit,
+                                     cand.log_l, cand.n_iter, cand.converged, ok,
+                                     time.perf_counter() - t0))
+            if not ok:
+                rejected.add((ids[i], ids[j], ids[k]))
+                continue
+            ids = [ids[q] for q in range(k_n) if q not in (i, j, k)] + [next_id, next_id + 1,
+                                                                         next_id + 2]
+            next_id += 3
+            cur, improved = cand, True
+            break
         if not improved:
             return cur
+    return cur
+    return cur
+    return cur
+    return cur
