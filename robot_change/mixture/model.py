@@ -1098,6 +1098,3 @@ def _refine(x, cur: _State, n_total, criterion, budget, tol, max_iter, reg_covar
         if not improved:
             return cur
     return cur
-    return cur
-    return cur
-    return cur
