@@ -79,6 +79,13 @@ _DANTZIG_PIVOTS_PER_NODE = 50
 _MAX_PIVOTS_PER_NODE = 100_000
 
 _OK, _ITER_LIMIT, _BAD_TREE, _NO_ENTERING, _CUT_OFF = 0, 1, 2, 3, 4
+#: Block search of the primal simplex: ``_BLOCK_FACTOR * sqrt(m n)`` cells, at least
+#: ``_MIN_BLOCK``.
+_BLOCK_FACTOR = 1.0
+_MIN_BLOCK = 10
+#: Rows of the primal simplex's tree array (:func:`_build_tree`).
+_PARENT, _PRED, _THREAD, _REV, _SUCC, _LAST, _HEAD, _STACK = 0, 1, 2, 3, 4, 5, 6, 7
+_ORDER = _HEAD  # the pivot's work row (the adjacency heads are only needed to build the tree)
 
 
 # --------------------------------------------------------------------------- kernels
@@ -243,13 +250,322 @@ def _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, best_j, 
 
 
 @njit(cache=True, nogil=True)
-def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, x):
-    """Primal transportation simplex from the feasible basis ``(bi, bj)``, in place.
+def _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+    """Rooted tree arrays, potentials and flows of the basis ``(bi, bj)`` (depth-first).
+
+    Nodes are rows ``0..m-1`` and columns ``m..m+n-1``; the root is row 0.
 
     Parameters
     ----------
-    ws_i : array of int64, shape (5, m + n + 1), work
-        head, order, parent, pedge, depth (see :func:`_rebuild`).
+    bi, bj : arrays of int64, shape (m + n - 1,)
+        Row and column of each basic cell (tree edge ``e``).
+    tree : array of int64, shape (>= 8, >= m + n), written
+        Rows ``_PARENT`` (-1 at the root), ``_PRED`` (edge to the parent), ``_THREAD`` (next
+        node in preorder, cyclic), ``_REV`` (previous node in preorder), ``_SUCC`` (subtree
+        size), ``_LAST`` (last node of the subtree in preorder); rows ``_HEAD`` (first
+        adjacency slot) and ``_STACK`` are work.
+    link : array of int64, shape (>= 2 (m + n - 1),), work
+    net : array, shape (m + n,), work
+    pot : array, shape (m + n,), written
+        ``u`` (rows) then ``v`` (columns), ``u_i + v_j = cost_ij`` on the tree, ``u_0 = 0``.
+    x : array, shape (m + n - 1,), written
+        Flow on each basic cell.
+
+    Returns
+    -------
+    ok : bool
+        False when the cells do not form a spanning tree.
+    """
+    nn = m + n
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last, head, stack = tree[_SUCC], tree[_LAST], tree[_HEAD], tree[_STACK]
+    for z in range(nn):
+        head[z] = -1
+        parent[z] = -2
+    for e in range(nn - 1):
+        r = bi[e]
+        c = m + bj[e]
+        link[2 * e] = head[r]
+        head[r] = 2 * e
+        link[2 * e + 1] = head[c]
+        head[c] = 2 * e + 1
+    # depth-first from the root: a node is appended to the preorder when popped
+    parent[0] = -1
+    pred[0] = -1
+    pot[0] = 0.0
+    stack[0] = 0
+    top = 1
+    prev = -1
+    count = 0
+    while top > 0:
+        top -= 1
+        z = stack[top]
+        if prev >= 0:
+            thread[prev] = z
+            rev[z] = prev
+        prev = z
+        count += 1
+        slot = head[z]
+        while slot >= 0:
+            e = slot >> 1
+            w = m + bj[e] if z < m else bi[e]
+            if parent[w] == -2:
+                parent[w] = z
+                pred[w] = e
+                pot[w] = cost[bi[e], bj[e]] - pot[z]
+                stack[top] = w
+                top += 1
+            elif w != parent[z]:
+                return False  # a cycle (or a repeated cell)
+            slot = link[slot]
+    if count != nn:
+        return False  # not connected
+    thread[prev] = 0
+    rev[0] = prev
+    _tree_flows(m, n, a, b, tree, net, x, True)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _tree_flows(m, n, a, b, tree, net, x, sizes):
+    """Flows of the tree (children before parents: reverse preorder), into ``x``; with
+    ``sizes`` also the subtree sizes and last nodes (rows ``_SUCC``, ``_LAST``)."""
+    nn = m + n
+    parent, pred, rev = tree[_PARENT], tree[_PRED], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
+    for z in range(m):
+        net[z] = a[z]
+    for z in range(n):
+        net[m + z] = -b[z]
+    if sizes:
+        for z in range(nn):
+            succ[z] = 1
+            last[z] = z
+    z = rev[0]
+    while z != 0:
+        x[pred[z]] = net[z] if z < m else -net[z]
+        w = parent[z]
+        net[w] += net[z]
+        if sizes:
+            succ[w] += succ[z]
+            if last[w] == w:  # z is w's last child in preorder
+                last[w] = last[z]
+        z = rev[z]
+
+
+@njit(cache=True, nogil=True)
+def _tree_potentials(m, bi, bj, cost, tree, pot):
+    """Potentials from scratch (parents before children: preorder), ``u_0 = 0``."""
+    parent, pred, thread = tree[_PARENT], tree[_PRED], tree[_THREAD]
+    pot[0] = 0.0
+    z = thread[0]
+    while z != 0:
+        e = pred[z]
+        pot[z] = cost[bi[e], bj[e]] - pot[parent[z]]
+        z = thread[z]
+
+
+@njit(cache=True, nogil=True)
+def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
+    """One primal pivot: cell ``(p, q)`` of reduced cost ``d < 0`` enters, in place.
+
+    The cycle is the entering cell plus the tree path between row ``p`` and column ``m + q``
+    (met at their deepest common ancestor, the *join*, found by climbing from the smaller
+    subtree).  The cells crossed column -> row lose flow; the leaving cell is the smallest of
+    them (flows <= ``_TOL_FLOW`` count as 0): with ``bland`` the smallest cell index among
+    ties, otherwise the last one met going round the cycle from the join (the strongly
+    feasible rule).  The subtree ``S`` cut off by the leaving cell is re-hung from the
+    entering cell: its potentials shift by ``+-d``, its preorder is rebuilt in ``O(|S|)``
+    (the parts hanging off the reversed path, in their old order), and only the path's and
+    the two cycle sides' ancestors' sizes change.
+
+    Parameters
+    ----------
+    p, q : int
+        Entering cell.
+    d : float
+        Its reduced cost ``cost[p, q] - pot[p] - pot[m + q]``.
+    bland : bool
+    bi, bj, tree, pot, x
+        As :func:`_build_tree`, updated.  The entering cell takes the leaving cell's slot.
+    order : array of int64, shape (>= m + n,), work
+
+    Returns
+    -------
+    theta : float
+        The flow moved (0 for a degenerate pivot).
+    """
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
+    P = p
+    Q = m + q
+    u = P
+    v = Q
+    while u != v:
+        if succ[u] < succ[v]:
+            u = parent[u]
+        else:
+            v = parent[v]
+    join = u
+    # leaving cell: on the row side the rows' parent cells lose flow (first minimum met from
+    # P); on the column side the columns' (last minimum met from Q, i.e. nearest the join)
+    theta = np.inf
+    u_out = -1
+    key_out = 0
+    w = P
+    while w != join:
+        if w < m:
+            e = pred[w]
+            xv = x[e] if x[e] > _TOL_FLOW else 0.0
+            key = bi[e] * n + bj[e]
+            if xv < theta or (bland and xv == theta and key < key_out):
+                theta = xv
+                u_out = w
+                key_out = key
+        w = parent[w]
+    w = Q
+    while w != join:
+        if w >= m:
+            e = pred[w]
+            xv = x[e] if x[e] > _TOL_FLOW else 0.0
+            key = bi[e] * n + bj[e]
+            if xv < theta or (xv == theta and (not bland or key < key_out)):
+                theta = xv
+                u_out = w
+                key_out = key
+        w = parent[w]
+    if theta > 0.0:
+        w = P
+        while w != join:
+            if w < m:
+                x[pred[w]] -= theta
+            else:
+                x[pred[w]] += theta
+            w = parent[w]
+        w = Q
+        while w != join:
+            if w >= m:
+                x[pred[w]] -= theta
+            else:
+                x[pred[w]] += theta
+            w = parent[w]
+    # u_in: the entering cell's end inside S (the side of the leaving cell)
+    on_row_side = False
+    w = P
+    while w != join:
+        if w == u_out:
+            on_row_side = True
+            break
+        w = parent[w]
+    if on_row_side:
+        u_in = P
+        v_in = Q
+        d_row = d
+    else:
+        u_in = Q
+        v_in = P
+        d_row = -d
+    d_col = -d_row
+    e_out = pred[u_out]
+    # new preorder of S (from the old arrays): for each path node s_0 = u_in .. s_k = u_out,
+    # its old subtree without s_(i-1)'s, in the old order; potentials shift on the way
+    cnt = 0
+    prev_s = -1
+    s = u_in
+    while True:
+        end = last[s]
+        if prev_s >= 0 and end == last[prev_s]:
+            end = rev[prev_s]
+        z = s
+        while True:
+            order[cnt] = z
+            cnt += 1
+            pot[z] += d_row if z < m else d_col
+            if z == end:
+                break
+            z = thread[z]
+            if z == prev_s:
+                z = thread[last[prev_s]]
+        if s == u_out:
+            break
+        prev_s = s
+        s = parent[s]
+    size = succ[u_out]
+    old_last = last[u_out]
+    before = rev[u_out]
+    after = thread[old_last]
+    w_out = parent[u_out]
+    new_last = order[size - 1]
+    # the path: reverse parents, new sizes (|S| minus the old size of the previous path node)
+    prev_size = 0
+    par_new = v_in
+    pred_new = e_out
+    s = u_in
+    while True:
+        old_size = succ[s]
+        succ[s] = size - prev_size
+        prev_size = old_size
+        last[s] = new_last
+        old_par = parent[s]
+        old_pred = pred[s]
+        parent[s] = par_new
+        pred[s] = pred_new
+        if s == u_out:
+            break
+        par_new = s
+        pred_new = old_pred
+        s = old_par
+    # cut S out of the thread, then in again right after v_in (as its first child)
+    thread[before] = after
+    rev[after] = before
+    nxt = thread[v_in]
+    z = v_in
+    for t in range(size):
+        y = order[t]
+        thread[z] = y
+        rev[y] = z
+        z = y
+    thread[new_last] = nxt
+    rev[nxt] = new_last
+    # ancestors: sizes change below the join only; last nodes where they ended S / at v_in
+    w = w_out
+    while w != join:
+        succ[w] -= size
+        w = parent[w]
+    w = v_in
+    while w != join:
+        succ[w] += size
+        w = parent[w]
+    w = w_out
+    while w >= 0 and last[w] == old_last:
+        last[w] = before
+        w = parent[w]
+    w = v_in
+    while w >= 0 and last[w] == v_in:
+        last[w] = new_last
+        w = parent[w]
+    bi[e_out] = p
+    bj[e_out] = q
+    x[e_out] = theta
+    return theta
+
+
+@njit(cache=True, nogil=True)
+def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, x):
+    """Primal network simplex from the feasible basis ``(bi, bj)``, in place.
+
+    Pricing: block search (``_BLOCK_FACTOR * sqrt(m n)`` cells, at least
+    ``_MIN_BLOCK``, continuing cyclically where the last block ended; the most negative reduced
+    cost of the first block holding one enters); after ``bland_after`` pivots Bland's rule (the
+    first improving cell in row-major order, ties of the leaving cell to the smallest index).
+    Potentials and flows are updated by :func:`_pivot`; optimality is only declared after a
+    full scan with potentials recomputed from scratch, and the final flows are recomputed from
+    scratch too (rounding of the updates never reaches the result).
+
+    Parameters
+    ----------
+    tree : array of int64, shape (8, m + n + 1), work (see :func:`_build_tree`); its row
+        ``_ORDER`` is the pivot's work.
     link : array of int64, shape (2 (m + n - 1),), work
     net, pot : arrays, shape (m + n,), work / written
     x : array, shape (m + n - 1,), written with the flows of the final basis.
@@ -260,60 +576,76 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, 
         0 optimal, 1 pivot bound reached, 2 the cells are not a spanning tree.
     n_pivots : int
     """
-    head, order, parent, pedge, depth = ws_i[0], ws_i[1], ws_i[2], ws_i[3], ws_i[4]
     nn = m + n
+    if not _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+        return _BAD_TREE, 0
+    order = tree[_ORDER]
+    cells = m * n
+    block = max(min(_MIN_BLOCK, cells), int(_BLOCK_FACTOR * np.sqrt(cells)))
     max_pivots = _MAX_PIVOTS_PER_NODE * nn
+    vpot = pot[m:]
     pivots = 0
+    fresh = True  # potentials just recomputed from scratch
+    ci = 0
+    cj = 0
     while True:
-        if not _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net,
-                        pot, x):
-            return _BAD_TREE, pivots
-        bland = pivots >= bland_after
         best = -tol_c
         p = -1
         q = -1
-        for i in range(m):
-            ui = pot[i]
-            for j in range(n):
-                d = cost[i, j] - ui - pot[m + j]
-                if d < best:
-                    best = d
-                    p = i
-                    q = j
-                    if bland:  # Bland: the first improving cell
+        if pivots >= bland_after:
+            for i in range(m):
+                ui = pot[i]
+                for j in range(n):
+                    d = cost[i, j] - ui - vpot[j]
+                    if d < best:
+                        best = d
+                        p = i
+                        q = j
                         break
-            if bland and p >= 0:
-                break
+                if p >= 0:
+                    break
+        else:
+            scanned = 0
+            in_block = 0
+            i = ci
+            j = cj
+            while scanned < cells:
+                lim = min(n - j, block - in_block, cells - scanned)
+                ui = pot[i]
+                for jj in range(j, j + lim):
+                    d = cost[i, jj] - ui - vpot[jj]
+                    if d < best:
+                        best = d
+                        p = i
+                        q = jj
+                scanned += lim
+                in_block += lim
+                j += lim
+                if j == n:
+                    j = 0
+                    i += 1
+                    if i == m:
+                        i = 0
+                if in_block == block:
+                    in_block = 0
+                    if p >= 0:
+                        break
+            ci = i
+            cj = j
         if p < 0:
-            return _OK, pivots
+            if fresh:
+                break
+            _tree_potentials(m, bi, bj, cost, tree, pot)
+            fresh = True
+            continue
         if pivots >= max_pivots:
             return _ITER_LIMIT, pivots
+        bland = pivots >= bland_after
         pivots += 1
-        # cycle: entering (p, q), then the tree path q -> p; cells traversed column -> row
-        # lose flow.  On the q side we walk child -> parent, on the p side parent -> child.
-        P = p
-        Q = m + q
-        theta = np.inf
-        leave = -1
-        leave_key = nn * nn
-        while P != Q:
-            if depth[P] >= depth[Q]:
-                e = pedge[P]
-                minus = P < m
-                P = parent[P]
-            else:
-                e = pedge[Q]
-                minus = Q >= m
-                Q = parent[Q]
-            if minus:
-                xv = x[e] if x[e] > _TOL_FLOW else 0.0
-                key = bi[e] * n + bj[e]
-                if xv < theta or (xv == theta and key < leave_key):
-                    theta = xv
-                    leave = e
-                    leave_key = key
-        bi[leave] = p
-        bj[leave] = q
+        fresh = False
+        _pivot(m, n, p, q, best, bland, bi, bj, tree, pot, x, order)
+    _tree_flows(m, n, a, b, tree, net, x, False)
+    return _OK, pivots
 
 
 @njit(cache=True, nogil=True)
@@ -432,20 +764,21 @@ def _tolerance(cost, rel_tol):
 @njit(cache=True, nogil=True)
 def _workspace(m, n):
     """Work arrays of one solve: (ws_i (7, m+n+1) int64, adj_edge, net, pot, x, sa, sb,
-    row_on, col_on)."""
+    row_on, col_on, tree (8, m+n+1) int64)."""
     nn = m + n
     return (np.zeros((7, nn + 1), dtype=np.int64), np.zeros(2 * nn, dtype=np.int64),
             np.zeros(nn), np.zeros(nn), np.zeros(nn), np.zeros(m), np.zeros(n),
-            np.zeros(m, dtype=np.bool_), np.zeros(n, dtype=np.bool_))
+            np.zeros(m, dtype=np.bool_), np.zeros(n, dtype=np.bool_),
+            np.zeros((8, nn + 1), dtype=np.int64))
 
 
 @njit(cache=True, nogil=True)
 def _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws):
     """Least-cost start then primal simplex; returns (status, n_pivots)."""
     m, n = cost.shape
-    ws_i, link, net, pot, x, sa, sb, row_on, col_on = ws
+    ws_i, link, net, pot, x, sa, sb, row_on, col_on, tree = ws
     _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, ws_i[5], net)
-    return _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, x)
+    return _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, x)
 
 
 @njit(cache=True, nogil=True)
@@ -454,7 +787,7 @@ def _warm_solve(a, b, cost, tol_c, cutoff, bland_after, bi, bj, ws):
     are the same); a cold solve if that fails.  Returns (status, n_pivots), status 4 when the
     optimum is above ``cutoff``."""
     m, n = cost.shape
-    ws_i, link, net, pot, x, sa, sb, row_on, col_on = ws
+    ws_i, link, net, pot, x = ws[0], ws[1], ws[2], ws[3], ws[4]
     status, piv = _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x)
     if status != _OK and status != _CUT_OFF:
         status, piv2 = _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws)
