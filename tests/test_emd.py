@@ -365,6 +365,59 @@ def test_emd_bad_input(a, b, cost, match):
         emd(a, b, cost)
 
 
+def test_emd_strided_list_and_scalar_inputs():
+    rng = np.random.default_rng(10)
+    a, b, cost = random_problem(rng, "points", 12, 14)
+    ref = emd(a[::2].copy(), b[::2].copy(), cost[::2, ::2].copy())
+    got = emd(a[::2], b[::2], cost[::2, ::2])          # non-contiguous views
+    assert got.distance == ref.distance
+    np.testing.assert_array_equal(got.flow, ref.flow)
+    lists = emd(a[::2].tolist(), b[::2].tolist(), cost[::2, ::2].tolist())
+    assert lists.distance == ref.distance
+    with pytest.raises(InputError, match="weights_a must have shape"):
+        emd(1.0, [1.0], [[1.0]])
+    with pytest.raises(InputError, match="cost must have shape"):
+        emd([1.0], [1.0], 1.0)
+
+
+@pytest.mark.parametrize("w", [
+    [0.2, 0.0, 3.0], [1e-300, 1e-300], [5.0], [0.0, np.nan], [np.inf, 1.0], [-1e-9, 1.0],
+    [0.0, 0.0], [1e308, 1e308], [1e308, 1e307],
+])
+def test_normalised_matches_numpy(w):
+    w = np.array(w)
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = w.sum()
+        valid = bool(np.isfinite(w).all() and (w >= 0).all() and 0 < total < np.inf)
+    got = E._normalised(w)
+    if valid:
+        np.testing.assert_allclose(got, w / total, rtol=1e-15, atol=0)
+    else:
+        assert got.shape == (0,)
+
+
+def test_checked_kernel_flags_exactly_what_the_python_checks_reject():
+    """Status _BAD_INPUT iff _check_weights / _check_cost raise; else the same EMD."""
+    rng = np.random.default_rng(18)
+    for _ in range(200):
+        a, b, cost = random_problem(rng, "float", int(rng.integers(1, 6)), int(rng.integers(1, 6)))
+        for arr in (a, b, cost.ravel()):
+            if rng.random() < 0.3:
+                arr[rng.integers(arr.size)] = rng.choice([np.nan, np.inf, -np.inf, -0.5, 0.0])
+        try:
+            E._check_weights(a, "a")
+            E._check_weights(b, "b")
+            E._check_cost(cost, len(a), len(b))
+            valid = True
+        except InputError:
+            valid = False
+        dist, _, status, _ = E._checked_emd_kernel(a, b, cost, E._REL_TOL_COST)
+        assert (status == E._BAD_INPUT) == (not valid)
+        if valid:
+            assert status == 0
+            assert abs(dist - lp_emd(a, b, cost)[0]) <= TOL
+
+
 # --------------------------------------------------------------------------- kernels
 
 

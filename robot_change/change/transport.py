@@ -79,6 +79,8 @@ _DANTZIG_PIVOTS_PER_NODE = 50
 _MAX_PIVOTS_PER_NODE = 100_000
 
 _OK, _ITER_LIMIT, _BAD_TREE, _NO_ENTERING, _CUT_OFF = 0, 1, 2, 3, 4
+#: Status of :func:`_checked_emd_kernel` for weights or costs that fail a check.
+_BAD_INPUT = 5
 #: Block search of the primal simplex: ``_BLOCK_FACTOR * sqrt(m n)`` cells, at least
 #: ``_MIN_BLOCK``.
 _BLOCK_FACTOR = 1.0
@@ -819,8 +821,13 @@ def _emd_kernel(a, b, cost, rel_tol, bland_after):
         0 optimal; else the solver failed (a bug).
     n_pivots : int
     """
+    return _solve_emd(a, b, cost, _tolerance(cost, rel_tol), bland_after)
+
+
+@njit(cache=True, nogil=True)
+def _solve_emd(a, b, cost, tol_c, bland_after):
+    """:func:`_emd_kernel` with the absolute tolerance ``tol_c`` given."""
     m, n = cost.shape
-    tol_c = _tolerance(cost, rel_tol)
     if bland_after < 0:
         bland_after = _DANTZIG_PIVOTS_PER_NODE * (m + n)
     ws = _workspace(m, n)
@@ -833,6 +840,41 @@ def _emd_kernel(a, b, cost, rel_tol, bland_after):
         if x[e] > 0.0:
             flow[bi[e], bj[e]] += x[e]
     return _objective(m, n, bi, bj, cost, x), flow, status, piv
+
+
+@njit(cache=True, nogil=True)
+def _normalised(w):
+    """``w / sum(w)``, shape (K,); shape (0,) unless every weight is finite and >= 0 and the
+    sum finite and > 0."""
+    total = 0.0
+    for v in w:
+        if not (v >= 0.0 and v < np.inf):  # negative, NaN or inf
+            return w[:0].copy()
+        total += v
+    if not (total > 0.0 and total < np.inf):
+        return w[:0].copy()
+    return w / total
+
+
+@njit(cache=True, nogil=True)
+def _checked_emd_kernel(weights_a, weights_b, cost, rel_tol):
+    """:func:`_emd_kernel` from raw weights: checks and normalises them, checks the cost is
+    finite (in the pass that finds ``max|cost|``).  Status ``_BAD_INPUT`` when a check fails
+    (the caller finds which, with the Python checks, for the message)."""
+    m, n = cost.shape
+    a = _normalised(weights_a)
+    b = _normalised(weights_b)
+    top = 0.0
+    for i in range(m):
+        for j in range(n):
+            v = abs(cost[i, j])
+            if not v < np.inf:
+                return 0.0, np.zeros((m, n)), _BAD_INPUT, 0
+            if v > top:
+                top = v
+    if a.shape[0] != m or b.shape[0] != n:
+        return 0.0, np.zeros((m, n)), _BAD_INPUT, 0
+    return _solve_emd(a, b, cost, rel_tol * top, -1)
 
 
 @njit(cache=True, nogil=True)
@@ -1100,13 +1142,36 @@ def emd(weights_a, weights_b, cost) -> EmdResult:
     InputError
         Wrong shapes, empty, NaN / inf, negative or all-zero weights.
     """
-    a = _check_weights(weights_a, "weights_a")
-    b = _check_weights(weights_b, "weights_b")
-    c = _check_cost(cost, a.shape[0], b.shape[0])
-    distance, flow, status, _ = _emd_kernel(a, b, c, _REL_TOL_COST, -1)
+    # fast path: conversions and shapes here, the value checks inside the kernel; the Python
+    # checks below only run to name what is wrong
+    try:
+        a = np.asarray(weights_a, dtype=np.float64)
+        b = np.asarray(weights_b, dtype=np.float64)
+        c = np.ascontiguousarray(cost, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = b = c = None
+    if (a is None or a.ndim != 1 or b.ndim != 1 or c.shape != (a.shape[0], b.shape[0])
+            or a.shape[0] == 0 or b.shape[0] == 0):
+        _raise_emd_input_error(weights_a, weights_b, cost)
+    if not a.flags.c_contiguous:
+        a = a.copy()
+    if not b.flags.c_contiguous:
+        b = b.copy()
+    distance, flow, status, _ = _checked_emd_kernel(a, b, c, _REL_TOL_COST)
+    if status == _BAD_INPUT:
+        _raise_emd_input_error(weights_a, weights_b, cost)
     if status != _OK:
         _raise_solver_failure(status, c.shape)
     return EmdResult(float(distance), flow)
+
+
+def _raise_emd_input_error(weights_a, weights_b, cost) -> None:
+    """The InputError :func:`emd`'s checks give for these inputs."""
+    a = _check_weights(weights_a, "weights_a")
+    b = _check_weights(weights_b, "weights_b")
+    _check_cost(cost, a.shape[0], b.shape[0])
+    raise SolverError("emd: the input checks of the kernel and of Python disagree; this is a bug "
+                      "in robot_change.change.transport")
 
 
 def greedy_emd(weights_fixed, weights_var, cost, candidates=None,
