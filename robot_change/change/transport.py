@@ -12,30 +12,48 @@ exactly, and the greedy loop removes the components of one mixture that lower th
   (:mod:`robot_change.change.detect`).
 - :func:`mixture_emd` is EMD between two :class:`~robot_change.mixture.model.Mixture`.
 
-The solver (all in numba) is the transportation simplex on spanning-tree bases.  A basis is
-``Ka + Kb - 1`` cells forming a spanning tree of the bipartite graph rows x columns; it always
+The solver (all in numba) is the network simplex on the bipartite graph rows x columns (the
+transportation simplex).  A basis is ``Ka + Kb - 1`` cells forming a spanning tree; it always
 holds exactly that many cells, zero flows included, so degenerate problems (ties, zero weights,
-Ka or Kb = 1) need no special case.  Given the cells, the flows and the dual potentials are
-recomputed from scratch on every pivot (one breadth-first pass over at most ~100 nodes), so
-rounding never accumulates.
+Ka or Kb = 1) need no special case.
 
-- Cold start: the least-cost rule, crossing out exactly one row or column per cell, so the
-  start is a feasible spanning tree.  Then primal pivots (MODI): the entering cell has the most
-  negative reduced cost; the leaving cell is the smallest flow on the cycle against the
-  entering direction, ties to the smallest cell index.  Degenerate (zero-step) pivots are
-  allowed; after ``_DANTZIG_PIVOTS_PER_NODE * (Ka + Kb)`` pivots the rule switches to Bland's
-  (first improving cell, smallest-index leaving cell), which cannot cycle.
+- Cold start (:func:`emd`, the greedy loop's first solve): the least-cost rule, crossing out
+  exactly one row or column per cell, so the start is a feasible spanning tree.  Then primal
+  pivots on a rooted tree (root row 0) kept as parent / edge-to-parent / thread (the cyclic
+  preorder) / reverse thread / subtree size / last node of the subtree arrays:
+
+  * pricing by block search: blocks of ``sqrt(Ka Kb)`` cells (at least 10) scanned cyclically
+    from where the last one ended; the most negative reduced cost of the first block that has
+    one enters;
+  * the cycle closes at the deepest common ancestor (climb from the smaller subtree); the
+    leaving cell is the smallest flow the cycle takes from, ties to the last one met going round
+    the cycle from that ancestor (the strongly feasible rule);
+  * the subtree cut off by the leaving cell is re-hung from the entering cell: its potentials
+    shift by the entering reduced cost, its preorder is rebuilt in O(subtree) (the parts hanging
+    off the reversed path, each in its old order), and only the path's and the cycle's
+    ancestors' sizes change.  Flows change on the cycle only;
+  * optimality is declared only after a full scan with the potentials recomputed from scratch,
+    and the final flows are recomputed from scratch from the tree, so the rounding of the
+    updates never reaches the result;
+  * after ``_DANTZIG_PIVOTS_PER_NODE * (Ka + Kb)`` pivots the rule switches to Bland's (first
+    improving cell in row-major order, smallest-index leaving cell), which cannot cycle.
+
+  :func:`emd` checks and normalises the inputs inside the same kernel call (the Python checks
+  only run to word the error), so a 10 x 10 call costs a few microseconds.
 - Warm start (greedy): removing a component only changes the column masses, so the previous
   optimal tree stays dual feasible (the costs are the same); dual simplex pivots (the most
   negative flow leaves, the crossing cell of least reduced cost enters, which keeps every
   reduced cost >= 0; Bland's rule after the same bound) restore primal feasibility, hence
-  optimality.  The dual objective is a lower bound that only rises, so a candidate removal is
-  abandoned as soon as its bound exceeds the best removal found so far in the round; the
-  candidates are tried in increasing order of their starting bound.  A failed warm solve
-  (pivot bound, rounding) falls back to a cold solve.
+  optimality.  These are few per solve (K ~ 30), and the dual pivots recompute the tree's flows
+  and potentials from scratch (one breadth-first pass, :func:`_rebuild`).  The dual objective
+  is a lower bound that only rises, so a candidate removal is abandoned as soon as its bound
+  exceeds the best removal found so far in the round; the candidates are tried in increasing
+  order of their starting bound.  A failed warm solve (pivot bound, rounding) falls back to a
+  cold solve.
 
 Tolerances: a reduced cost counts as negative below ``-1e-12 * max|cost|``; a flow counts as
-negative below ``-1e-13`` (the masses sum to 1); flows in ``(-1e-13, 0)`` are reported as 0.
+negative below ``-1e-13`` (the masses sum to 1) and flows up to ``1e-13`` count as 0 in the
+primal ratio test; flows in ``(-1e-13, 0)`` are reported as 0.
 
 Numeric module: arrays in, arrays out.  Every kernel is ``@njit(cache=True, nogil=True)`` with
 a plain NumPy/SciPy twin in ``tests/test_emd.py``.
@@ -73,7 +91,7 @@ _STOP_NO_IMPROVEMENT, _STOP_NO_CANDIDATE, _STOP_ZERO_MASS, _STOP_MAX_REMOVALS = 
 _REL_TOL_COST = 1e-12
 #: Flows below ``-_TOL_FLOW`` are negative (masses sum to 1).
 _TOL_FLOW = 1e-13
-#: Pivots with the greedy (Dantzig / most-infeasible) rules before switching to Bland's rule.
+#: Pivots with the fast rules (primal: block search; dual: most infeasible) before Bland's rule.
 _DANTZIG_PIVOTS_PER_NODE = 50
 #: Hard bound on pivots per solve; Bland's rule terminates far below it.
 _MAX_PIVOTS_PER_NODE = 100_000
