@@ -431,7 +431,7 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
         E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws[0][5], ws[2])
+                            ws[0][0], ws[2])
         assert len(set(zip(bi.tolist(), bj.tolist()))) == m + n - 1
         x, _ = tree_twin(m, n, bi, bj, a, b, cost)  # full rank: lstsq solves it exactly
         bal = np.zeros((m, n))
@@ -441,42 +441,6 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         assert (x >= -1e-12).all()
         # the very first cell is a cheapest one
         assert cost[bi[0], bj[0]] == cost.min()
-
-
-def test_rebuild_matches_dense_linear_algebra():
-    rng = np.random.default_rng(13)
-    for _ in range(100):
-        a, b, cost = random_problem(rng)
-        a, b = a / a.sum(), b / b.sum()
-        m, n = cost.shape
-        ws = E._workspace(m, n)
-        ws_i, link, net, pot, x = ws[:5]
-        bi = np.zeros(m + n - 1, np.int64)
-        bj = np.zeros(m + n - 1, np.int64)
-        E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws_i[5], net)
-        # a different (infeasible is fine) tree: solve with other masses
-        b2 = rng.random(n)
-        b2 /= b2.sum()
-        assert E._rebuild(m, n, bi, bj, a, b2, cost, ws_i[0], link, ws_i[1], ws_i[2],
-                          ws_i[3], ws_i[4], net, pot, x)
-        x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
-        np.testing.assert_allclose(x[:m + n - 1], x_ref, atol=1e-12)
-        np.testing.assert_allclose(pot, pot_ref, atol=1e-12)
-        parent = ws_i[2][:m + n]
-        assert parent[0] == -1 and (parent[1:] >= 0).all()
-
-
-def test_rebuild_rejects_a_non_tree():
-    m, n = 2, 2
-    a = b = np.array([0.5, 0.5])
-    cost = np.ones((2, 2))
-    ws = E._workspace(m, n)
-    ws_i, link, net, pot, x = ws[:5]
-    bi = np.array([0, 0, 0], np.int64)   # cell (0, 0) twice, row 1 unreached
-    bj = np.array([0, 1, 0], np.int64)
-    assert not E._rebuild(m, n, bi, bj, a, b, cost, ws_i[0], link, ws_i[1], ws_i[2],
-                          ws_i[3], ws_i[4], net, pot, x)
 
 
 def tree_arrays_twin(m, n, bi, bj):
@@ -542,7 +506,7 @@ def test_build_tree_matches_numpy_twins():
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
         E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws[0][5], net)
+                            ws[0][0], net)
         b2 = rng.random(n)  # other masses: any flows, negative ones included
         b2 /= b2.sum()
         assert E._build_tree(m, n, bi, bj, a, b2, cost, tree, link, net, pot, x)
@@ -585,7 +549,7 @@ def test_pivots_keep_tree_potentials_and_flows_exact(kind):
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
         E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws[0][5], net)
+                            ws[0][0], net)
         assert E._build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x)
         bland = bool(trial % 3 == 0)
         tol = 1e-12 * np.abs(cost).max()
@@ -635,8 +599,14 @@ def test_dual_warm_start_matches_linprog():
             b2[0] = 1.0
         b2 /= b2.sum()
         bland = int(rng.integers(0, 2)) * 100
-        status, _ = E._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5])
+        status, _ = E._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5], ws[9])
         assert status == 0
+        check_tree_arrays(m, n, bi, bj, ws[9])
+        x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
+        np.testing.assert_allclose(ws[4][:m + n - 1], x_ref, atol=1e-12)
+        np.testing.assert_allclose(ws[3], pot_ref, atol=1e-12)
+        red = cost - pot_ref[:m, None] - pot_ref[None, m:]
+        assert red.min() >= -1e-12 and x_ref.min() >= -1e-12  # dual and primal feasible
         value = E._objective(m, n, bi, bj, cost, ws[4])
         assert abs(value - lp_emd(a, b2, cost)[0]) <= TOL
 
@@ -654,9 +624,9 @@ def test_dual_cutoff_stops_early_and_never_above_the_optimum():
     b2[np.argmax(b)] = 0.0
     b2 /= b2.sum()
     opt = lp_emd(a, b2, cost)[0]
-    status, _ = E._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5])
+    status, _ = E._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5], ws[9])
     assert status == E._CUT_OFF
-    status, _ = E._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5])
+    status, _ = E._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5], ws[9])
     assert status == 0
 
 

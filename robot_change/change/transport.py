@@ -44,8 +44,8 @@ Ka or Kb = 1) need no special case.
   optimal tree stays dual feasible (the costs are the same); dual simplex pivots (the most
   negative flow leaves, the crossing cell of least reduced cost enters, which keeps every
   reduced cost >= 0; Bland's rule after the same bound) restore primal feasibility, hence
-  optimality.  These are few per solve (K ~ 30), and the dual pivots recompute the tree's flows
-  and potentials from scratch (one breadth-first pass, :func:`_rebuild`).  The dual objective
+  optimality.  The tree is updated as in the primal; the pivots are few per solve (K ~ 30), so
+  flows and potentials are then recomputed from the tree (one preorder pass).  The dual objective
   is a lower bound that only rises, so a candidate removal is abandoned as soon as its bound
   exceeds the best removal found so far in the round; the candidates are tried in increasing
   order of their starting bound.  A failed warm solve (pivot bound, rounding) falls back to a
@@ -109,88 +109,6 @@ _ORDER = _HEAD  # the pivot's work row (the adjacency heads are only needed to b
 
 
 # --------------------------------------------------------------------------- kernels
-
-
-@njit(cache=True, nogil=True)
-def _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net, pot, x):
-    """Tree structure, flows and potentials of the basis ``(bi, bj)``.
-
-    Nodes are rows ``0..m-1`` and columns ``m..m+n-1``; the tree is rooted at row 0.
-
-    Parameters
-    ----------
-    m, n : int
-    bi, bj : array of int64, shape (m + n - 1,)
-        Row and column of each basic cell (edge ``e``).
-    a : array, shape (m,)
-        Row masses.
-    b : array, shape (n,)
-        Column masses.
-    cost : array, shape (m, n)
-    head : array of int64, shape (m + n,), work
-        First adjacency slot of each node (slot ``2e`` is edge e at its row, ``2e+1`` at its
-        column), -1 for none.
-    link : array of int64, shape (2 (m + n - 1),), work
-        Next adjacency slot of the same node, -1 at the end.
-    order, parent, pedge, depth : arrays of int64, shape (m + n,), written
-        Breadth-first order, parent node (-1 at the root), edge to the parent, depth.
-    net : array, shape (m + n,), work
-    pot : array, shape (m + n,), written
-        Potentials ``u`` (rows) then ``v`` (columns), ``u_i + v_j = cost_ij`` on the tree.
-    x : array, shape (m + n - 1,), written
-        Flow on each basic cell.
-
-    Returns
-    -------
-    ok : bool
-        False when the cells do not form a spanning tree.
-    """
-    nn = m + n
-    ne = nn - 1
-    for z in range(nn):
-        head[z] = -1
-        parent[z] = -2
-    for e in range(ne):
-        r = bi[e]
-        c = m + bj[e]
-        link[2 * e] = head[r]
-        head[r] = 2 * e
-        link[2 * e + 1] = head[c]
-        head[c] = 2 * e + 1
-    order[0] = 0
-    parent[0] = -1
-    pedge[0] = -1
-    depth[0] = 0
-    pot[0] = 0.0
-    tail = 1
-    for k in range(nn):
-        if k >= tail:
-            return False  # not connected
-        z = order[k]
-        slot = head[z]
-        while slot >= 0:
-            e = slot >> 1
-            w = m + bj[e] if z < m else bi[e]
-            if parent[w] == -2:
-                parent[w] = z
-                pedge[w] = e
-                depth[w] = depth[z] + 1
-                pot[w] = cost[bi[e], bj[e]] - pot[z]
-                order[tail] = w
-                tail += 1
-            slot = link[slot]
-    for z in range(m):
-        net[z] = a[z]
-    for z in range(n):
-        net[m + z] = -b[z]
-    for k in range(nn - 1, 0, -1):
-        z = order[k]
-        if z < m:
-            x[pedge[z]] = net[z]
-        else:
-            x[pedge[z]] = -net[z]
-        net[parent[z]] += net[z]
-    return True
 
 
 @njit(cache=True, nogil=True)
@@ -485,6 +403,35 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
         u_in = Q
         v_in = P
         d_row = -d
+    _rehang(m, p, q, d_row, u_in, v_in, u_out, join, bi, bj, tree, pot, order)
+    x[pred[u_in]] = theta
+    return theta
+
+
+@njit(cache=True, nogil=True)
+def _rehang(m, p, q, d_row, u_in, v_in, u_out, join, bi, bj, tree, pot, order):
+    """Tree update of a pivot: cell ``(p, q)`` replaces the cell joining ``u_out`` to its
+    parent (and takes its slot in ``bi, bj``); in place, flows untouched.
+
+    The subtree ``S`` of ``u_out`` (which holds ``u_in``, the entering cell's end on that side;
+    ``v_in`` is the other end, ``join`` the two ends' deepest common ancestor) is re-hung from
+    ``v_in`` as its first child, rooted at ``u_in``: the path ``u_in .. u_out`` is reversed,
+    the preorder of ``S`` is rebuilt in ``O(|S|)`` (for each path node, its old subtree without
+    the previous path node's, in the old order), the potentials of ``S`` shift by ``d_row``
+    (rows) and ``-d_row`` (columns), and sizes / last nodes change on the path and on the two
+    cycle sides' ancestors only.
+
+    Parameters
+    ----------
+    d_row : float
+        The shift of the rows' potentials in ``S`` (the entering reduced cost, signed so that
+        ``pot[p] + pot[m + q] = cost[p, q]`` afterwards).
+    tree, pot
+        As :func:`_build_tree`, updated.
+    order : array of int64, shape (>= m + n,), work
+    """
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
     d_col = -d_row
     e_out = pred[u_out]
     # new preorder of S (from the old arrays): for each path node s_0 = u_in .. s_k = u_out,
@@ -566,8 +513,6 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
         w = parent[w]
     bi[e_out] = p
     bj[e_out] = q
-    x[e_out] = theta
-    return theta
 
 
 @njit(cache=True, nogil=True)
@@ -669,10 +614,16 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, 
 
 
 @njit(cache=True, nogil=True)
-def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x):
+def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x, tree):
     """Dual transportation simplex from a dual-feasible basis ``(bi, bj)``, in place.
 
-    Parameters as :func:`_primal`; ``ws_i`` has two more work rows (7, m + n + 1): the
+    Leaving: the most negative flow (Bland: the smallest cell index among the negative ones).
+    Entering: the cell of least reduced cost crossing the cut the leaving cell makes, from the
+    rows of the column's side to the columns of the row's side (ties to the smallest cell).  The
+    tree is updated as in the primal (:func:`_rehang`); flows and potentials are then recomputed
+    from the tree in O(m + n) (few pivots per solve: no rounding builds up).
+
+    Parameters as :func:`_primal`; ``ws_i`` (3, m + n + 1) int64: rows 1 and 2 are the
     subtree mark and the row / column lists.  ``cutoff``: stop as soon as the dual objective
     ``a @ u + b @ v`` (a lower bound of the optimum, non-decreasing over the pivots) exceeds it.
 
@@ -683,16 +634,16 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
         enter (the problem is infeasible to rounding), 4 cut off (the optimum > ``cutoff``).
     n_pivots : int
     """
-    head, order, parent, pedge, depth = ws_i[0], ws_i[1], ws_i[2], ws_i[3], ws_i[4]
-    insub, lists = ws_i[5], ws_i[6]
+    insub, lists = ws_i[1], ws_i[2]
+    parent, pred, thread, succ = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_SUCC]
+    order = tree[_ORDER]
     nn = m + n
     ne = nn - 1
     max_pivots = _MAX_PIVOTS_PER_NODE * nn
+    if not _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+        return _BAD_TREE, 0
     pivots = 0
     while True:
-        if not _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net,
-                        pot, x):
-            return _BAD_TREE, pivots
         if cutoff < np.inf:
             bound = 0.0
             for i in range(m):
@@ -721,17 +672,13 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
             return _ITER_LIMIT, pivots
         pivots += 1
         i = bi[le]
-        z = i if pedge[i] == le else m + bj[le]
-        # subtree of z (z's side of the leaving cell); entering cells cross from the rows of
-        # the column's side to the columns of the row's side
-        for k in range(nn):
-            w = order[k]
-            if w == z:
-                insub[w] = 1
-            elif k == 0:
-                insub[w] = 0
-            else:
-                insub[w] = insub[parent[w]]
+        z = i if pred[i] == le else m + bj[le]  # the leaving cell's end below the other
+        for w in range(nn):
+            insub[w] = 0
+        w = z
+        for _ in range(succ[z]):
+            insub[w] = 1
+            w = thread[w]
         want_rows = 0 if z < m else 1
         n_rows = 0
         n_cols = 0
@@ -758,8 +705,21 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
                     q = c
         if p < 0:
             return _NO_ENTERING, pivots
-        bi[le] = p
-        bj[le] = q
+        d = cost[p, q] - pot[p] - pot[m + q]
+        if z < m:  # the column end is inside the subtree of z
+            u_in, v_in, d_row = m + q, p, -d
+        else:
+            u_in, v_in, d_row = p, m + q, d
+        u = p
+        v = m + q
+        while u != v:
+            if succ[u] < succ[v]:
+                u = parent[u]
+            else:
+                v = parent[v]
+        _rehang(m, p, q, d_row, u_in, v_in, z, u, bi, bj, tree, pot, order)
+        _tree_flows(m, n, a, b, tree, net, x, False)
+        _tree_potentials(m, bi, bj, cost, tree, pot)
 
 
 @njit(cache=True, nogil=True)
@@ -783,10 +743,11 @@ def _tolerance(cost, rel_tol):
 
 @njit(cache=True, nogil=True)
 def _workspace(m, n):
-    """Work arrays of one solve: (ws_i (7, m+n+1) int64, adj_edge, net, pot, x, sa, sb,
-    row_on, col_on, tree (8, m+n+1) int64)."""
+    """Work arrays of one solve: (ws_i (3, m+n+1) int64: the least-cost start's best columns,
+    the dual's subtree mark and lists; link, net, pot, x, sa, sb, row_on, col_on, tree (8,
+    m+n+1) int64: see :func:`_build_tree`)."""
     nn = m + n
-    return (np.zeros((7, nn + 1), dtype=np.int64), np.zeros(2 * nn, dtype=np.int64),
+    return (np.zeros((3, nn + 1), dtype=np.int64), np.zeros(2 * nn, dtype=np.int64),
             np.zeros(nn), np.zeros(nn), np.zeros(nn), np.zeros(m), np.zeros(n),
             np.zeros(m, dtype=np.bool_), np.zeros(n, dtype=np.bool_),
             np.zeros((8, nn + 1), dtype=np.int64))
@@ -797,7 +758,7 @@ def _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws):
     """Least-cost start then primal simplex; returns (status, n_pivots)."""
     m, n = cost.shape
     ws_i, link, net, pot, x, sa, sb, row_on, col_on, tree = ws
-    _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, ws_i[5], net)
+    _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, ws_i[0], net)
     return _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, x)
 
 
@@ -807,8 +768,9 @@ def _warm_solve(a, b, cost, tol_c, cutoff, bland_after, bi, bj, ws):
     are the same); a cold solve if that fails.  Returns (status, n_pivots), status 4 when the
     optimum is above ``cutoff``."""
     m, n = cost.shape
-    ws_i, link, net, pot, x = ws[0], ws[1], ws[2], ws[3], ws[4]
-    status, piv = _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x)
+    ws_i, link, net, pot, x, tree = ws[0], ws[1], ws[2], ws[3], ws[4], ws[9]
+    status, piv = _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x,
+                        tree)
     if status != _OK and status != _CUT_OFF:
         status, piv2 = _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws)
         piv += piv2
@@ -939,7 +901,7 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
     if bland_after < 0:
         bland_after = _DANTZIG_PIVOTS_PER_NODE * (m + n)
     ws = _workspace(m, n)
-    ws_i, link, net, pot, x = ws[0], ws[1], ws[2], ws[3], ws[4]
+    link, net, pot, x, tree = ws[1], ws[2], ws[3], ws[4], ws[9]
     cur_bi = np.zeros(ne, dtype=np.int64)
     cur_bj = np.zeros(ne, dtype=np.int64)
     try_bi = np.zeros(ne, dtype=np.int64)
@@ -966,8 +928,7 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
     stop = _STOP_MAX_REMOVALS
     while steps < n_max:
         # potentials of the current optimum: dual feasible for every candidate
-        _rebuild(m, n, cur_bi, cur_bj, a, b, cost, ws_i[0], link, ws_i[1], ws_i[2], ws_i[3],
-                 ws_i[4], net, pot, x)
+        _build_tree(m, n, cur_bi, cur_bj, a, b, cost, tree, link, net, pot, x)
         ua = 0.0
         for i in range(m):
             ua += a[i] * pot[i]
