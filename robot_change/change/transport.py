@@ -312,10 +312,8 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
     subtree).  The cells crossed column -> row lose flow; the leaving cell is the smallest of
     them (flows <= ``_TOL_FLOW`` count as 0): with ``bland`` the smallest cell index among
     ties, otherwise the last one met going round the cycle from the join (the strongly
-    feasible rule).  The subtree ``S`` cut off by the leaving cell is re-hung from the
-    entering cell: its potentials shift by ``+-d``, its preorder is rebuilt in ``O(|S|)``
-    (the parts hanging off the reversed path, in their old order), and only the path's and
-    the two cycle sides' ancestors' sizes change.
+    feasible rule).  Flows change on the cycle; the tree and the potentials as in
+    :func:`_rehang`.
 
     Parameters
     ----------
@@ -333,8 +331,7 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
     theta : float
         The flow moved (0 for a degenerate pivot).
     """
-    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
-    succ, last = tree[_SUCC], tree[_LAST]
+    parent, pred, succ = tree[_PARENT], tree[_PRED], tree[_SUCC]
     P = p
     Q = m + q
     u = P
