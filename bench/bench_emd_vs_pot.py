@@ -83,7 +83,8 @@ def time_size(ot, kind: str, m: int, n: int, runs: int, n_problems: int, warmup:
         for name in names[1:]:
             diff = abs(values["ours"] - values[name])
             max_diff = max(max_diff, diff)
-            assert diff <= 1e-9, f"{kind} {m}x{n}: ours {values['ours']!r} vs {name} {values[name]!r}"
+            assert diff <= 1e-9, (f"{kind} {m}x{n}: ours {values['ours']!r} vs {name} "
+                                  f"{values[name]!r}")
         pivots.append(transport._emd_kernel(a, b, c, transport._REL_TOL_COST, -1)[3])
         for _ in range(warmup):
             for fn in calls.values():
