@@ -8,6 +8,7 @@ linear algebra for the tree kernel.
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pytest
@@ -203,7 +204,7 @@ def test_emd_matches_linprog_on_random_problems(seed):
 @pytest.mark.parametrize("kind", ["float", "int_cost", "int_all", "zeros", "points"])
 @pytest.mark.parametrize("shape", [(1, 1), (1, 7), (7, 1), (3, 12), (12, 3), (30, 30)])
 def test_emd_matches_linprog_by_kind_and_shape(kind, shape):
-    rng = np.random.default_rng(hash((kind, shape)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(repr((kind, shape)).encode()))
     for _ in range(3):
         a, b, cost = random_problem(rng, kind, *shape)
         res = emd(a, b, cost)
@@ -246,7 +247,7 @@ def test_emd_matches_pot():
                                    (100, 100)])
 @pytest.mark.parametrize("kind", ["float", "int_all", "zeros", "points"])
 def test_emd_large_problems_match_linprog(kind, shape):
-    rng = np.random.default_rng(hash((kind, shape, "large")) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(repr((kind, shape, "large")).encode()))
     a, b, cost = random_problem(rng, kind, *shape)
     res = emd(a, b, cost)
     assert abs(res.distance - lp_emd(a, b, cost)[0]) <= TOL
@@ -562,7 +563,8 @@ def test_pivots_keep_tree_potentials_and_flows_exact(kind):
             if not red[p, q] < -tol:
                 break
             before = float(np.sum(cost[bi, bj] * x[:m + n - 1]))
-            theta = E._pivot(m, n, p, q, red[p, q], bland, bi, bj, tree, pot, x, tree[E._ORDER])
+            theta = E._pivot(m, n, p, q, red[p, q], bland, -1, bi, bj, tree, pot, x,
+                             tree[E._ORDER])
             check_tree_arrays(m, n, bi, bj, tree)
             x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b, cost)
             np.testing.assert_allclose(pot, pot_ref, atol=1e-12)

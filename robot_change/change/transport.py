@@ -304,16 +304,22 @@ def _tree_potentials(m, bi, bj, cost, tree, pot):
 
 
 @njit(cache=True, nogil=True)
-def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
-    """One primal pivot: cell ``(p, q)`` of reduced cost ``d < 0`` enters, in place.
+def _pivot(m, n, p, q, d, bland, u_leave, bi, bj, tree, pot, x, order):
+    """One pivot: cell ``(p, q)`` of reduced cost ``d`` enters, in place.
 
     The cycle is the entering cell plus the tree path between row ``p`` and column ``m + q``
     (met at their deepest common ancestor, the *join*, found by climbing from the smaller
-    subtree).  The cells crossed column -> row lose flow; the leaving cell is the smallest of
-    them (flows <= ``_TOL_FLOW`` count as 0): with ``bland`` the smallest cell index among
-    ties, otherwise the last one met going round the cycle from the join (the strongly
-    feasible rule).  Flows change on the cycle; the tree and the potentials as in
-    :func:`_rehang`.
+    subtree).  Primal (``u_leave < 0``): the cells crossed column -> row lose flow; the leaving
+    cell is the smallest of them (flows <= ``_TOL_FLOW`` count as 0): with ``bland`` the
+    smallest cell index among ties, otherwise the last one met going round the cycle from the
+    join (the strongly feasible rule); flows change on the cycle.  Dual (``u_leave >= 0``): the
+    cell joining ``u_leave`` to its parent leaves, flows are left to the caller.
+
+    The subtree ``S`` cut off by the leaving cell is re-hung from the entering cell's end
+    outside it, as its first child: the path from the end inside ``S`` to the old root of ``S``
+    is reversed; the preorder of ``S`` is rebuilt in ``O(|S|)`` (for each path node, its old
+    subtree without the previous path node's, in the old order); the potentials of ``S`` shift
+    by ``+-d``; sizes and last nodes change on the path and the cycle's ancestors only.
 
     Parameters
     ----------
@@ -322,6 +328,8 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
     d : float
         Its reduced cost ``cost[p, q] - pot[p] - pot[m + q]``.
     bland : bool
+    u_leave : int
+        -1 for the primal ratio test, else the node whose parent cell leaves.
     bi, bj, tree, pot, x
         As :func:`_build_tree`, updated.  The entering cell takes the leaving cell's slot.
     order : array of int64, shape (>= m + n,), work
@@ -329,9 +337,10 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
     Returns
     -------
     theta : float
-        The flow moved (0 for a degenerate pivot).
+        The flow moved (0 for a degenerate pivot; 0 in the dual case).
     """
-    parent, pred, succ = tree[_PARENT], tree[_PRED], tree[_SUCC]
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
     P = p
     Q = m + q
     u = P
@@ -342,48 +351,51 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
         else:
             v = parent[v]
     join = u
-    # leaving cell: on the row side the rows' parent cells lose flow (first minimum met from
-    # P); on the column side the columns' (last minimum met from Q, i.e. nearest the join)
-    theta = np.inf
-    u_out = -1
-    key_out = 0
-    w = P
-    while w != join:
-        if w < m:
-            e = pred[w]
-            xv = x[e] if x[e] > _TOL_FLOW else 0.0
-            key = bi[e] * n + bj[e]
-            if xv < theta or (bland and xv == theta and key < key_out):
-                theta = xv
-                u_out = w
-                key_out = key
-        w = parent[w]
-    w = Q
-    while w != join:
-        if w >= m:
-            e = pred[w]
-            xv = x[e] if x[e] > _TOL_FLOW else 0.0
-            key = bi[e] * n + bj[e]
-            if xv < theta or (xv == theta and (not bland or key < key_out)):
-                theta = xv
-                u_out = w
-                key_out = key
-        w = parent[w]
-    if theta > 0.0:
+    theta = 0.0
+    u_out = u_leave
+    if u_leave < 0:
+        # leaving cell: on the row side the rows' parent cells lose flow (first minimum met from
+        # P); on the column side the columns' (last minimum met from Q, i.e. nearest the join)
+        theta = np.inf
+        u_out = -1
+        key_out = 0
         w = P
         while w != join:
             if w < m:
-                x[pred[w]] -= theta
-            else:
-                x[pred[w]] += theta
+                e = pred[w]
+                xv = x[e] if x[e] > _TOL_FLOW else 0.0
+                key = bi[e] * n + bj[e]
+                if xv < theta or (bland and xv == theta and key < key_out):
+                    theta = xv
+                    u_out = w
+                    key_out = key
             w = parent[w]
         w = Q
         while w != join:
             if w >= m:
-                x[pred[w]] -= theta
-            else:
-                x[pred[w]] += theta
+                e = pred[w]
+                xv = x[e] if x[e] > _TOL_FLOW else 0.0
+                key = bi[e] * n + bj[e]
+                if xv < theta or (xv == theta and (not bland or key < key_out)):
+                    theta = xv
+                    u_out = w
+                    key_out = key
             w = parent[w]
+        if theta > 0.0:
+            w = P
+            while w != join:
+                if w < m:
+                    x[pred[w]] -= theta
+                else:
+                    x[pred[w]] += theta
+                w = parent[w]
+            w = Q
+            while w != join:
+                if w >= m:
+                    x[pred[w]] -= theta
+                else:
+                    x[pred[w]] += theta
+                w = parent[w]
     # u_in: the entering cell's end inside S (the side of the leaving cell)
     on_row_side = False
     w = P
@@ -400,35 +412,6 @@ def _pivot(m, n, p, q, d, bland, bi, bj, tree, pot, x, order):
         u_in = Q
         v_in = P
         d_row = -d
-    _rehang(m, p, q, d_row, u_in, v_in, u_out, join, bi, bj, tree, pot, order)
-    x[pred[u_in]] = theta
-    return theta
-
-
-@njit(cache=True, nogil=True)
-def _rehang(m, p, q, d_row, u_in, v_in, u_out, join, bi, bj, tree, pot, order):
-    """Tree update of a pivot: cell ``(p, q)`` replaces the cell joining ``u_out`` to its
-    parent (and takes its slot in ``bi, bj``); in place, flows untouched.
-
-    The subtree ``S`` of ``u_out`` (which holds ``u_in``, the entering cell's end on that side;
-    ``v_in`` is the other end, ``join`` the two ends' deepest common ancestor) is re-hung from
-    ``v_in`` as its first child, rooted at ``u_in``: the path ``u_in .. u_out`` is reversed,
-    the preorder of ``S`` is rebuilt in ``O(|S|)`` (for each path node, its old subtree without
-    the previous path node's, in the old order), the potentials of ``S`` shift by ``d_row``
-    (rows) and ``-d_row`` (columns), and sizes / last nodes change on the path and on the two
-    cycle sides' ancestors only.
-
-    Parameters
-    ----------
-    d_row : float
-        The shift of the rows' potentials in ``S`` (the entering reduced cost, signed so that
-        ``pot[p] + pot[m + q] = cost[p, q]`` afterwards).
-    tree, pot
-        As :func:`_build_tree`, updated.
-    order : array of int64, shape (>= m + n,), work
-    """
-    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
-    succ, last = tree[_SUCC], tree[_LAST]
     d_col = -d_row
     e_out = pred[u_out]
     # new preorder of S (from the old arrays): for each path node s_0 = u_in .. s_k = u_out,
@@ -510,6 +493,9 @@ def _rehang(m, p, q, d_row, u_in, v_in, u_out, join, bi, bj, tree, pot, order):
         w = parent[w]
     bi[e_out] = p
     bj[e_out] = q
+    if u_leave < 0:
+        x[e_out] = theta
+    return theta
 
 
 @njit(cache=True, nogil=True)
@@ -605,7 +591,7 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, 
         bland = pivots >= bland_after
         pivots += 1
         fresh = False
-        _pivot(m, n, p, q, best, bland, bi, bj, tree, pot, x, order)
+        _pivot(m, n, p, q, best, bland, -1, bi, bj, tree, pot, x, order)
     _tree_flows(m, n, a, b, tree, net, x, False)
     return _OK, pivots
 
@@ -617,7 +603,7 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
     Leaving: the most negative flow (Bland: the smallest cell index among the negative ones).
     Entering: the cell of least reduced cost crossing the cut the leaving cell makes, from the
     rows of the column's side to the columns of the row's side (ties to the smallest cell).  The
-    tree is updated as in the primal (:func:`_rehang`); flows and potentials are then recomputed
+    tree is updated as in the primal (:func:`_pivot`); flows and potentials are then recomputed
     from the tree in O(m + n) (few pivots per solve: no rounding builds up).
 
     Parameters as :func:`_primal`; ``ws_i`` (3, m + n + 1) int64: rows 1 and 2 are the
@@ -702,19 +688,8 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
                     q = c
         if p < 0:
             return _NO_ENTERING, pivots
-        d = cost[p, q] - pot[p] - pot[m + q]
-        if z < m:  # the column end is inside the subtree of z
-            u_in, v_in, d_row = m + q, p, -d
-        else:
-            u_in, v_in, d_row = p, m + q, d
-        u = p
-        v = m + q
-        while u != v:
-            if succ[u] < succ[v]:
-                u = parent[u]
-            else:
-                v = parent[v]
-        _rehang(m, p, q, d_row, u_in, v_in, z, u, bi, bj, tree, pot, order)
+        _pivot(m, n, p, q, cost[p, q] - pot[p] - pot[m + q], bland, z, bi, bj, tree, pot, x,
+               order)
         _tree_flows(m, n, a, b, tree, net, x, False)
         _tree_potentials(m, bi, bj, cost, tree, pot)
 
