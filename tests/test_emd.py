@@ -8,6 +8,7 @@ linear algebra for the tree kernel.
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pytest
@@ -47,8 +48,11 @@ def lp_emd(a, b, cost):
         a_eq[i, i * n:(i + 1) * n] = 1.0
     for j in range(n):
         a_eq[m + j, j::n] = 1.0
+    # HiGHS' default feasibility tolerances (1e-7) let the marginals drift by ~1e-7, and the
+    # optimum by a few 1e-9 on 100 x 100 problems: tightened to 1e-10
     res = linprog(cost.ravel(), A_eq=a_eq, b_eq=np.concatenate([a, b]), bounds=(0, None),
-                  method="highs")
+                  method="highs", options=dict(primal_feasibility_tolerance=1e-10,
+                                               dual_feasibility_tolerance=1e-10))
     assert res.status == 0, res.message
     return float(res.fun), res.x.reshape(m, n)
 
@@ -203,7 +207,7 @@ def test_emd_matches_linprog_on_random_problems(seed):
 @pytest.mark.parametrize("kind", ["float", "int_cost", "int_all", "zeros", "points"])
 @pytest.mark.parametrize("shape", [(1, 1), (1, 7), (7, 1), (3, 12), (12, 3), (30, 30)])
 def test_emd_matches_linprog_by_kind_and_shape(kind, shape):
-    rng = np.random.default_rng(hash((kind, shape)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(repr((kind, shape)).encode()))
     for _ in range(3):
         a, b, cost = random_problem(rng, kind, *shape)
         res = emd(a, b, cost)
@@ -240,6 +244,30 @@ def test_emd_matches_pot():
         a, b = a / a.sum(), b / b.sum()
         ref = ot.emd2(a, b, cost, numItermax=1_000_000)
         assert abs(emd(a, b, cost).distance - ref) <= TOL
+
+
+@pytest.mark.parametrize("shape", [(1, 100), (100, 1), (16, 40), (40, 16), (70, 50),
+                                   (100, 100)])
+@pytest.mark.parametrize("kind", ["float", "int_all", "zeros", "points"])
+def test_emd_large_problems_match_linprog(kind, shape):
+    rng = np.random.default_rng(zlib.crc32(repr((kind, shape, "large")).encode()))
+    a, b, cost = random_problem(rng, kind, *shape)
+    res = emd(a, b, cost)
+    assert abs(res.distance - lp_emd(a, b, cost)[0]) <= TOL
+    check_flow(res, a, b, cost)
+
+
+def test_emd_matches_pot_up_to_100x100():
+    ot = pytest.importorskip("ot", reason="POT (the `pot` test extra) not installed")
+    rng = np.random.default_rng(70)
+    for trial in range(60):
+        m, n = (int(k) for k in rng.integers(1, 101, 2))
+        kind = ["float", "int_cost", "int_all", "zeros", "points"][trial % 5]
+        a, b, cost = random_problem(rng, kind, m, n)
+        a, b = a / a.sum(), b / b.sum()
+        res = emd(a, b, cost)
+        assert abs(res.distance - ot.emd2(a, b, cost, numItermax=10_000_000)) <= TOL
+        check_flow(res, a, b, cost)
 
 
 def test_bland_rule_path_matches_linprog():
@@ -341,6 +369,59 @@ def test_emd_bad_input(a, b, cost, match):
         emd(a, b, cost)
 
 
+def test_emd_strided_list_and_scalar_inputs():
+    rng = np.random.default_rng(10)
+    a, b, cost = random_problem(rng, "points", 12, 14)
+    ref = emd(a[::2].copy(), b[::2].copy(), cost[::2, ::2].copy())
+    got = emd(a[::2], b[::2], cost[::2, ::2])          # non-contiguous views
+    assert got.distance == ref.distance
+    np.testing.assert_array_equal(got.flow, ref.flow)
+    lists = emd(a[::2].tolist(), b[::2].tolist(), cost[::2, ::2].tolist())
+    assert lists.distance == ref.distance
+    with pytest.raises(InputError, match="weights_a must have shape"):
+        emd(1.0, [1.0], [[1.0]])
+    with pytest.raises(InputError, match="cost must have shape"):
+        emd([1.0], [1.0], 1.0)
+
+
+@pytest.mark.parametrize("w", [
+    [0.2, 0.0, 3.0], [1e-300, 1e-300], [5.0], [0.0, np.nan], [np.inf, 1.0], [-1e-9, 1.0],
+    [0.0, 0.0], [1e308, 1e308], [1e308, 1e307],
+])
+def test_normalised_matches_numpy(w):
+    w = np.array(w)
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = w.sum()
+        valid = bool(np.isfinite(w).all() and (w >= 0).all() and 0 < total < np.inf)
+    got = E._normalised(w)
+    if valid:
+        np.testing.assert_allclose(got, w / total, rtol=1e-15, atol=0)
+    else:
+        assert got.shape == (0,)
+
+
+def test_checked_kernel_flags_exactly_what_the_python_checks_reject():
+    """Status _BAD_INPUT iff _check_weights / _check_cost raise; else the same EMD."""
+    rng = np.random.default_rng(18)
+    for _ in range(200):
+        a, b, cost = random_problem(rng, "float", int(rng.integers(1, 6)), int(rng.integers(1, 6)))
+        for arr in (a, b, cost.ravel()):
+            if rng.random() < 0.3:
+                arr[rng.integers(arr.size)] = rng.choice([np.nan, np.inf, -np.inf, -0.5, 0.0])
+        try:
+            E._check_weights(a, "a")
+            E._check_weights(b, "b")
+            E._check_cost(cost, len(a), len(b))
+            valid = True
+        except InputError:
+            valid = False
+        dist, _, status, _ = E._checked_emd_kernel(a, b, cost, E._REL_TOL_COST)
+        assert (status == E._BAD_INPUT) == (not valid)
+        if valid:
+            assert status == 0
+            assert abs(dist - lp_emd(a, b, cost)[0]) <= TOL
+
+
 # --------------------------------------------------------------------------- kernels
 
 
@@ -354,7 +435,7 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
         E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws[0][5], ws[2])
+                            ws[0][0], ws[2])
         assert len(set(zip(bi.tolist(), bj.tolist()))) == m + n - 1
         x, _ = tree_twin(m, n, bi, bj, a, b, cost)  # full rank: lstsq solves it exactly
         bal = np.zeros((m, n))
@@ -366,40 +447,145 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         assert cost[bi[0], bj[0]] == cost.min()
 
 
-def test_rebuild_matches_dense_linear_algebra():
-    rng = np.random.default_rng(13)
-    for _ in range(100):
+def tree_arrays_twin(m, n, bi, bj):
+    """Parent, edge to the parent and subtree size of every node of the basis, rooted at row 0
+    (breadth-first in plain Python); None when the cells are not a spanning tree."""
+    nn = m + n
+    adj = [[] for _ in range(nn)]
+    for e, (i, j) in enumerate(zip(bi.tolist(), bj.tolist())):
+        adj[i].append((m + j, e))
+        adj[m + j].append((i, e))
+    parent = np.full(nn, -2)
+    pred = np.full(nn, -1)
+    parent[0] = -1
+    queue = [0]
+    for z in queue:
+        for w, e in adj[z]:
+            if parent[w] == -2:
+                parent[w], pred[w] = z, e
+                queue.append(w)
+    if len(queue) != nn:
+        return None
+    size = np.ones(nn, np.int64)
+    for z in reversed(queue[1:]):
+        size[parent[z]] += size[z]
+    return parent, pred, size
+
+
+def check_tree_arrays(m, n, bi, bj, tree):
+    """The kernel's parent / pred / thread / rev / succ / last against their definitions."""
+    nn = m + n
+    twin = tree_arrays_twin(m, n, bi, bj)
+    assert twin is not None, "the basic cells are not a spanning tree"
+    parent, pred, size = twin
+    np.testing.assert_array_equal(tree[E._PARENT][:nn], parent)
+    np.testing.assert_array_equal(tree[E._PRED][:nn], pred)
+    np.testing.assert_array_equal(tree[E._SUCC][:nn], size)
+    seq = [0]
+    while len(seq) <= nn and tree[E._THREAD][seq[-1]] != 0:
+        seq.append(int(tree[E._THREAD][seq[-1]]))
+    assert sorted(seq) == list(range(nn)), "the thread is not one cycle through every node"
+    for k, z in enumerate(seq):
+        assert tree[E._REV][z] == seq[k - 1]
+    pos = {z: k for k, z in enumerate(seq)}
+    for z in range(nn):  # preorder: a node's subtree is the segment starting at it
+        segment = seq[pos[z]:pos[z] + size[z]]
+        for w in segment:
+            y = w
+            while y != z:
+                y = parent[y]
+                assert y != -1, f"{w} in the segment of {z} is not below it"
+        assert tree[E._LAST][z] == segment[-1]
+
+
+def test_build_tree_matches_numpy_twins():
+    rng = np.random.default_rng(16)
+    for _ in range(150):
         a, b, cost = random_problem(rng)
         a, b = a / a.sum(), b / b.sum()
         m, n = cost.shape
         ws = E._workspace(m, n)
-        ws_i, link, net, pot, x = ws[:5]
+        _, link, net, pot, x = ws[:5]
+        tree = ws[9]
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
         E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
-                            ws_i[5], net)
-        # a different (infeasible is fine) tree: solve with other masses
-        b2 = rng.random(n)
+                            ws[0][0], net)
+        b2 = rng.random(n)  # other masses: any flows, negative ones included
         b2 /= b2.sum()
-        assert E._rebuild(m, n, bi, bj, a, b2, cost, ws_i[0], link, ws_i[1], ws_i[2],
-                          ws_i[3], ws_i[4], net, pot, x)
+        assert E._build_tree(m, n, bi, bj, a, b2, cost, tree, link, net, pot, x)
+        check_tree_arrays(m, n, bi, bj, tree)
         x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
         np.testing.assert_allclose(x[:m + n - 1], x_ref, atol=1e-12)
         np.testing.assert_allclose(pot, pot_ref, atol=1e-12)
-        parent = ws_i[2][:m + n]
-        assert parent[0] == -1 and (parent[1:] >= 0).all()
 
 
-def test_rebuild_rejects_a_non_tree():
-    m, n = 2, 2
+def test_build_tree_rejects_a_non_tree():
     a = b = np.array([0.5, 0.5])
-    cost = np.ones((2, 2))
+    ws = E._workspace(2, 2)
+    _, link, net, pot, x = ws[:5]
+    for bi, bj in (([0, 0, 0], [0, 1, 0]),     # cell (0, 0) twice, row 1 unreached
+                   ([0, 0, 1], [0, 1, 1])):    # fine: a path
+        ok = E._build_tree(2, 2, np.array(bi), np.array(bj), a, b, np.ones((2, 2)), ws[9],
+                           link, net, pot, x)
+        assert ok == (tree_arrays_twin(2, 2, np.array(bi), np.array(bj)) is not None)
+    m, n = 3, 3  # a cycle (0,0)-(0,1)-(1,1)-(1,0) and row 2 / column 2 cut off
     ws = E._workspace(m, n)
-    ws_i, link, net, pot, x = ws[:5]
-    bi = np.array([0, 0, 0], np.int64)   # cell (0, 0) twice, row 1 unreached
-    bj = np.array([0, 1, 0], np.int64)
-    assert not E._rebuild(m, n, bi, bj, a, b, cost, ws_i[0], link, ws_i[1], ws_i[2],
-                          ws_i[3], ws_i[4], net, pot, x)
+    bi = np.array([0, 0, 1, 1, 2])
+    bj = np.array([0, 1, 1, 0, 2])
+    assert not E._build_tree(m, n, bi, bj, np.ones(3) / 3, np.ones(3) / 3, np.ones((3, 3)),
+                             ws[9], ws[1], ws[2], ws[3], ws[4])
+
+
+@pytest.mark.parametrize("kind", ["float", "int_all", "zeros", "points"])
+def test_pivots_keep_tree_potentials_and_flows_exact(kind):
+    """Pivot by pivot (entering cell: the most negative reduced cost, by NumPy), the updated
+    tree arrays, potentials and flows equal the ones computed from scratch, the objective falls
+    by theta |d|, and the last basis is optimal (linprog)."""
+    rng = np.random.default_rng(17 + len(kind))
+    for trial in range(12):
+        m, n = int(rng.integers(1, 14)), int(rng.integers(1, 14))
+        a, b, cost = random_problem(rng, kind, m, n)
+        a, b = a / a.sum(), b / b.sum()
+        ws = E._workspace(m, n)
+        _, link, net, pot, x = ws[:5]
+        tree = ws[9]
+        bi = np.zeros(m + n - 1, np.int64)
+        bj = np.zeros(m + n - 1, np.int64)
+        E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
+                            ws[0][0], net)
+        assert E._build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x)
+        bland = bool(trial % 3 == 0)
+        tol = 1e-12 * np.abs(cost).max()
+        for _ in range(10 * (m + n) ** 2):
+            red = cost - pot[:m, None] - pot[None, m:m + n]
+            p, q = np.unravel_index(np.argmin(red), red.shape)
+            if bland:
+                hits = np.argwhere(red < -tol)
+                p, q = hits[0] if len(hits) else (p, q)
+            if not red[p, q] < -tol:
+                break
+            before = float(np.sum(cost[bi, bj] * x[:m + n - 1]))
+            theta = E._pivot(m, n, p, q, red[p, q], bland, -1, bi, bj, tree, pot, x,
+                             tree[E._ORDER])
+            check_tree_arrays(m, n, bi, bj, tree)
+            x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b, cost)
+            np.testing.assert_allclose(pot, pot_ref, atol=1e-12)
+            np.testing.assert_allclose(x[:m + n - 1], x_ref, atol=1e-12)
+            assert (x_ref >= -1e-12).all()
+            after = float(np.sum(cost[bi, bj] * x[:m + n - 1]))
+            assert after == pytest.approx(before + theta * red[p, q], abs=1e-12)
+            pot_fresh = pot.copy()
+            E._tree_potentials(m, bi, bj, cost, tree, pot_fresh)
+            np.testing.assert_allclose(pot_fresh, pot_ref, atol=1e-12)
+        else:
+            pytest.fail("no optimum within the pivot bound")
+        x_fresh = x.copy()
+        E._tree_flows(m, n, a, b, tree, net, x_fresh, False)
+        np.testing.assert_allclose(x_fresh[:m + n - 1], tree_twin(m, n, bi, bj, a, b, cost)[0],
+                                   atol=1e-12)
+        value = float(np.sum(cost[bi, bj] * np.maximum(x_fresh[:m + n - 1], 0.0)))
+        assert abs(value - lp_emd(a, b, cost)[0]) <= TOL
 
 
 def test_dual_warm_start_matches_linprog():
@@ -418,8 +604,14 @@ def test_dual_warm_start_matches_linprog():
             b2[0] = 1.0
         b2 /= b2.sum()
         bland = int(rng.integers(0, 2)) * 100
-        status, _ = E._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5])
+        status, _ = E._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5], ws[9])
         assert status == 0
+        check_tree_arrays(m, n, bi, bj, ws[9])
+        x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
+        np.testing.assert_allclose(ws[4][:m + n - 1], x_ref, atol=1e-12)
+        np.testing.assert_allclose(ws[3], pot_ref, atol=1e-12)
+        red = cost - pot_ref[:m, None] - pot_ref[None, m:]
+        assert red.min() >= -1e-12 and x_ref.min() >= -1e-12  # dual and primal feasible
         value = E._objective(m, n, bi, bj, cost, ws[4])
         assert abs(value - lp_emd(a, b2, cost)[0]) <= TOL
 
@@ -437,9 +629,9 @@ def test_dual_cutoff_stops_early_and_never_above_the_optimum():
     b2[np.argmax(b)] = 0.0
     b2 /= b2.sum()
     opt = lp_emd(a, b2, cost)[0]
-    status, _ = E._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5])
+    status, _ = E._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5], ws[9])
     assert status == E._CUT_OFF
-    status, _ = E._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5])
+    status, _ = E._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5], ws[9])
     assert status == 0
 
 

@@ -12,30 +12,48 @@ exactly, and the greedy loop removes the components of one mixture that lower th
   (:mod:`robot_change.change.detect`).
 - :func:`mixture_emd` is EMD between two :class:`~robot_change.mixture.model.Mixture`.
 
-The solver (all in numba) is the transportation simplex on spanning-tree bases.  A basis is
-``Ka + Kb - 1`` cells forming a spanning tree of the bipartite graph rows x columns; it always
+The solver (all in numba) is the network simplex on the bipartite graph rows x columns (the
+transportation simplex).  A basis is ``Ka + Kb - 1`` cells forming a spanning tree; it always
 holds exactly that many cells, zero flows included, so degenerate problems (ties, zero weights,
-Ka or Kb = 1) need no special case.  Given the cells, the flows and the dual potentials are
-recomputed from scratch on every pivot (one breadth-first pass over at most ~100 nodes), so
-rounding never accumulates.
+Ka or Kb = 1) need no special case.
 
-- Cold start: the least-cost rule, crossing out exactly one row or column per cell, so the
-  start is a feasible spanning tree.  Then primal pivots (MODI): the entering cell has the most
-  negative reduced cost; the leaving cell is the smallest flow on the cycle against the
-  entering direction, ties to the smallest cell index.  Degenerate (zero-step) pivots are
-  allowed; after ``_DANTZIG_PIVOTS_PER_NODE * (Ka + Kb)`` pivots the rule switches to Bland's
-  (first improving cell, smallest-index leaving cell), which cannot cycle.
+- Cold start (:func:`emd`, the greedy loop's first solve): the least-cost rule, crossing out
+  exactly one row or column per cell, so the start is a feasible spanning tree.  Then primal
+  pivots on a rooted tree (root row 0) kept as parent / edge-to-parent / thread (the cyclic
+  preorder) / reverse thread / subtree size / last node of the subtree arrays:
+
+  * pricing by block search: blocks of ``sqrt(Ka Kb)`` cells (at least 10) scanned cyclically
+    from where the last one ended; the most negative reduced cost of the first block that has
+    one enters;
+  * the cycle closes at the deepest common ancestor (climb from the smaller subtree); the
+    leaving cell is the smallest flow the cycle takes from, ties to the last one met going round
+    the cycle from that ancestor (the strongly feasible rule);
+  * the subtree cut off by the leaving cell is re-hung from the entering cell: its potentials
+    shift by the entering reduced cost, its preorder is rebuilt in O(subtree) (the parts hanging
+    off the reversed path, each in its old order), and only the path's and the cycle's
+    ancestors' sizes change.  Flows change on the cycle only;
+  * optimality is declared only after a full scan with the potentials recomputed from scratch,
+    and the final flows are recomputed from scratch from the tree, so the rounding of the
+    updates never reaches the result;
+  * after ``_DANTZIG_PIVOTS_PER_NODE * (Ka + Kb)`` pivots the rule switches to Bland's (first
+    improving cell in row-major order, smallest-index leaving cell), which cannot cycle.
+
+  :func:`emd` checks and normalises the inputs inside the same kernel call (the Python checks
+  only run to word the error), so a 10 x 10 call costs a few microseconds.
 - Warm start (greedy): removing a component only changes the column masses, so the previous
   optimal tree stays dual feasible (the costs are the same); dual simplex pivots (the most
   negative flow leaves, the crossing cell of least reduced cost enters, which keeps every
   reduced cost >= 0; Bland's rule after the same bound) restore primal feasibility, hence
-  optimality.  The dual objective is a lower bound that only rises, so a candidate removal is
-  abandoned as soon as its bound exceeds the best removal found so far in the round; the
-  candidates are tried in increasing order of their starting bound.  A failed warm solve
-  (pivot bound, rounding) falls back to a cold solve.
+  optimality.  The tree is updated as in the primal; the pivots are few per solve (K ~ 30), so
+  flows and potentials are then recomputed from the tree (one preorder pass).  The dual objective
+  is a lower bound that only rises, so a candidate removal is abandoned as soon as its bound
+  exceeds the best removal found so far in the round; the candidates are tried in increasing
+  order of their starting bound.  A failed warm solve (pivot bound, rounding) falls back to a
+  cold solve.
 
 Tolerances: a reduced cost counts as negative below ``-1e-12 * max|cost|``; a flow counts as
-negative below ``-1e-13`` (the masses sum to 1); flows in ``(-1e-13, 0)`` are reported as 0.
+negative below ``-1e-13`` (the masses sum to 1) and flows up to ``1e-13`` count as 0 in the
+primal ratio test; flows in ``(-1e-13, 0)`` are reported as 0.
 
 Numeric module: arrays in, arrays out.  Every kernel is ``@njit(cache=True, nogil=True)`` with
 a plain NumPy/SciPy twin in ``tests/test_emd.py``.
@@ -73,97 +91,24 @@ _STOP_NO_IMPROVEMENT, _STOP_NO_CANDIDATE, _STOP_ZERO_MASS, _STOP_MAX_REMOVALS = 
 _REL_TOL_COST = 1e-12
 #: Flows below ``-_TOL_FLOW`` are negative (masses sum to 1).
 _TOL_FLOW = 1e-13
-#: Pivots with the greedy (Dantzig / most-infeasible) rules before switching to Bland's rule.
+#: Pivots with the fast rules (primal: block search; dual: most infeasible) before Bland's rule.
 _DANTZIG_PIVOTS_PER_NODE = 50
 #: Hard bound on pivots per solve; Bland's rule terminates far below it.
 _MAX_PIVOTS_PER_NODE = 100_000
 
 _OK, _ITER_LIMIT, _BAD_TREE, _NO_ENTERING, _CUT_OFF = 0, 1, 2, 3, 4
+#: Status of :func:`_checked_emd_kernel` for weights or costs that fail a check.
+_BAD_INPUT = 5
+#: Block search of the primal simplex: ``_BLOCK_FACTOR * sqrt(m n)`` cells, at least
+#: ``_MIN_BLOCK``.
+_BLOCK_FACTOR = 1.0
+_MIN_BLOCK = 10
+#: Rows of the primal simplex's tree array (:func:`_build_tree`).
+_PARENT, _PRED, _THREAD, _REV, _SUCC, _LAST, _HEAD, _STACK = 0, 1, 2, 3, 4, 5, 6, 7
+_ORDER = _HEAD  # the pivot's work row (the adjacency heads are only needed to build the tree)
 
 
 # --------------------------------------------------------------------------- kernels
-
-
-@njit(cache=True, nogil=True)
-def _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net, pot, x):
-    """Tree structure, flows and potentials of the basis ``(bi, bj)``.
-
-    Nodes are rows ``0..m-1`` and columns ``m..m+n-1``; the tree is rooted at row 0.
-
-    Parameters
-    ----------
-    m, n : int
-    bi, bj : array of int64, shape (m + n - 1,)
-        Row and column of each basic cell (edge ``e``).
-    a : array, shape (m,)
-        Row masses.
-    b : array, shape (n,)
-        Column masses.
-    cost : array, shape (m, n)
-    head : array of int64, shape (m + n,), work
-        First adjacency slot of each node (slot ``2e`` is edge e at its row, ``2e+1`` at its
-        column), -1 for none.
-    link : array of int64, shape (2 (m + n - 1),), work
-        Next adjacency slot of the same node, -1 at the end.
-    order, parent, pedge, depth : arrays of int64, shape (m + n,), written
-        Breadth-first order, parent node (-1 at the root), edge to the parent, depth.
-    net : array, shape (m + n,), work
-    pot : array, shape (m + n,), written
-        Potentials ``u`` (rows) then ``v`` (columns), ``u_i + v_j = cost_ij`` on the tree.
-    x : array, shape (m + n - 1,), written
-        Flow on each basic cell.
-
-    Returns
-    -------
-    ok : bool
-        False when the cells do not form a spanning tree.
-    """
-    nn = m + n
-    ne = nn - 1
-    for z in range(nn):
-        head[z] = -1
-        parent[z] = -2
-    for e in range(ne):
-        r = bi[e]
-        c = m + bj[e]
-        link[2 * e] = head[r]
-        head[r] = 2 * e
-        link[2 * e + 1] = head[c]
-        head[c] = 2 * e + 1
-    order[0] = 0
-    parent[0] = -1
-    pedge[0] = -1
-    depth[0] = 0
-    pot[0] = 0.0
-    tail = 1
-    for k in range(nn):
-        if k >= tail:
-            return False  # not connected
-        z = order[k]
-        slot = head[z]
-        while slot >= 0:
-            e = slot >> 1
-            w = m + bj[e] if z < m else bi[e]
-            if parent[w] == -2:
-                parent[w] = z
-                pedge[w] = e
-                depth[w] = depth[z] + 1
-                pot[w] = cost[bi[e], bj[e]] - pot[z]
-                order[tail] = w
-                tail += 1
-            slot = link[slot]
-    for z in range(m):
-        net[z] = a[z]
-    for z in range(n):
-        net[m + z] = -b[z]
-    for k in range(nn - 1, 0, -1):
-        z = order[k]
-        if z < m:
-            x[pedge[z]] = net[z]
-        else:
-            x[pedge[z]] = -net[z]
-        net[parent[z]] += net[z]
-    return True
 
 
 @njit(cache=True, nogil=True)
@@ -243,13 +188,332 @@ def _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, best_j, 
 
 
 @njit(cache=True, nogil=True)
-def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, x):
-    """Primal transportation simplex from the feasible basis ``(bi, bj)``, in place.
+def _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+    """Rooted tree arrays, potentials and flows of the basis ``(bi, bj)`` (depth-first).
+
+    Nodes are rows ``0..m-1`` and columns ``m..m+n-1``; the root is row 0.
 
     Parameters
     ----------
-    ws_i : array of int64, shape (5, m + n + 1), work
-        head, order, parent, pedge, depth (see :func:`_rebuild`).
+    bi, bj : arrays of int64, shape (m + n - 1,)
+        Row and column of each basic cell (tree edge ``e``).
+    tree : array of int64, shape (>= 8, >= m + n), written
+        Rows ``_PARENT`` (-1 at the root), ``_PRED`` (edge to the parent), ``_THREAD`` (next
+        node in preorder, cyclic), ``_REV`` (previous node in preorder), ``_SUCC`` (subtree
+        size), ``_LAST`` (last node of the subtree in preorder); rows ``_HEAD`` (first
+        adjacency slot) and ``_STACK`` are work.
+    link : array of int64, shape (>= 2 (m + n - 1),), work
+    net : array, shape (m + n,), work
+    pot : array, shape (m + n,), written
+        ``u`` (rows) then ``v`` (columns), ``u_i + v_j = cost_ij`` on the tree, ``u_0 = 0``.
+    x : array, shape (m + n - 1,), written
+        Flow on each basic cell.
+
+    Returns
+    -------
+    ok : bool
+        False when the cells do not form a spanning tree.
+    """
+    nn = m + n
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last, head, stack = tree[_SUCC], tree[_LAST], tree[_HEAD], tree[_STACK]
+    for z in range(nn):
+        head[z] = -1
+        parent[z] = -2
+    for e in range(nn - 1):
+        r = bi[e]
+        c = m + bj[e]
+        link[2 * e] = head[r]
+        head[r] = 2 * e
+        link[2 * e + 1] = head[c]
+        head[c] = 2 * e + 1
+    # depth-first from the root: a node is appended to the preorder when popped
+    parent[0] = -1
+    pred[0] = -1
+    pot[0] = 0.0
+    stack[0] = 0
+    top = 1
+    prev = -1
+    count = 0
+    while top > 0:
+        top -= 1
+        z = stack[top]
+        if prev >= 0:
+            thread[prev] = z
+            rev[z] = prev
+        prev = z
+        count += 1
+        slot = head[z]
+        while slot >= 0:
+            e = slot >> 1
+            w = m + bj[e] if z < m else bi[e]
+            if parent[w] == -2:
+                parent[w] = z
+                pred[w] = e
+                pot[w] = cost[bi[e], bj[e]] - pot[z]
+                stack[top] = w
+                top += 1
+            elif w != parent[z]:
+                return False  # a cycle (or a repeated cell)
+            slot = link[slot]
+    if count != nn:
+        return False  # not connected
+    thread[prev] = 0
+    rev[0] = prev
+    _tree_flows(m, n, a, b, tree, net, x, True)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _tree_flows(m, n, a, b, tree, net, x, sizes):
+    """Flows of the tree (children before parents: reverse preorder), into ``x``; with
+    ``sizes`` also the subtree sizes and last nodes (rows ``_SUCC``, ``_LAST``)."""
+    nn = m + n
+    parent, pred, rev = tree[_PARENT], tree[_PRED], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
+    for z in range(m):
+        net[z] = a[z]
+    for z in range(n):
+        net[m + z] = -b[z]
+    if sizes:
+        for z in range(nn):
+            succ[z] = 1
+            last[z] = z
+    z = rev[0]
+    while z != 0:
+        x[pred[z]] = net[z] if z < m else -net[z]
+        w = parent[z]
+        net[w] += net[z]
+        if sizes:
+            succ[w] += succ[z]
+            if last[w] == w:  # z is w's last child in preorder
+                last[w] = last[z]
+        z = rev[z]
+
+
+@njit(cache=True, nogil=True)
+def _tree_potentials(m, bi, bj, cost, tree, pot):
+    """Potentials from scratch (parents before children: preorder), ``u_0 = 0``."""
+    parent, pred, thread = tree[_PARENT], tree[_PRED], tree[_THREAD]
+    pot[0] = 0.0
+    z = thread[0]
+    while z != 0:
+        e = pred[z]
+        pot[z] = cost[bi[e], bj[e]] - pot[parent[z]]
+        z = thread[z]
+
+
+@njit(cache=True, nogil=True)
+def _pivot(m, n, p, q, d, bland, u_leave, bi, bj, tree, pot, x, order):
+    """One pivot: cell ``(p, q)`` of reduced cost ``d`` enters, in place.
+
+    The cycle is the entering cell plus the tree path between row ``p`` and column ``m + q``
+    (met at their deepest common ancestor, the *join*, found by climbing from the smaller
+    subtree).  Primal (``u_leave < 0``): the cells crossed column -> row lose flow; the leaving
+    cell is the smallest of them (flows <= ``_TOL_FLOW`` count as 0): with ``bland`` the
+    smallest cell index among ties, otherwise the last one met going round the cycle from the
+    join (the strongly feasible rule); flows change on the cycle.  Dual (``u_leave >= 0``): the
+    cell joining ``u_leave`` to its parent leaves, flows are left to the caller.
+
+    The subtree ``S`` cut off by the leaving cell is re-hung from the entering cell's end
+    outside it, as its first child: the path from the end inside ``S`` to the old root of ``S``
+    is reversed; the preorder of ``S`` is rebuilt in ``O(|S|)`` (for each path node, its old
+    subtree without the previous path node's, in the old order); the potentials of ``S`` shift
+    by ``+-d``; sizes and last nodes change on the path and the cycle's ancestors only.
+
+    Parameters
+    ----------
+    p, q : int
+        Entering cell.
+    d : float
+        Its reduced cost ``cost[p, q] - pot[p] - pot[m + q]``.
+    bland : bool
+    u_leave : int
+        -1 for the primal ratio test, else the node whose parent cell leaves.
+    bi, bj, tree, pot, x
+        As :func:`_build_tree`, updated.  The entering cell takes the leaving cell's slot.
+    order : array of int64, shape (>= m + n,), work
+
+    Returns
+    -------
+    theta : float
+        The flow moved (0 for a degenerate pivot; 0 in the dual case).
+    """
+    parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
+    succ, last = tree[_SUCC], tree[_LAST]
+    P = p
+    Q = m + q
+    u = P
+    v = Q
+    while u != v:
+        if succ[u] < succ[v]:
+            u = parent[u]
+        else:
+            v = parent[v]
+    join = u
+    theta = 0.0
+    u_out = u_leave
+    if u_leave < 0:
+        # leaving cell: on the row side the rows' parent cells lose flow (first minimum met from
+        # P); on the column side the columns' (last minimum met from Q, i.e. nearest the join)
+        theta = np.inf
+        u_out = -1
+        key_out = 0
+        w = P
+        while w != join:
+            if w < m:
+                e = pred[w]
+                xv = x[e] if x[e] > _TOL_FLOW else 0.0
+                key = bi[e] * n + bj[e]
+                if xv < theta or (bland and xv == theta and key < key_out):
+                    theta = xv
+                    u_out = w
+                    key_out = key
+            w = parent[w]
+        w = Q
+        while w != join:
+            if w >= m:
+                e = pred[w]
+                xv = x[e] if x[e] > _TOL_FLOW else 0.0
+                key = bi[e] * n + bj[e]
+                if xv < theta or (xv == theta and (not bland or key < key_out)):
+                    theta = xv
+                    u_out = w
+                    key_out = key
+            w = parent[w]
+        if theta > 0.0:
+            w = P
+            while w != join:
+                if w < m:
+                    x[pred[w]] -= theta
+                else:
+                    x[pred[w]] += theta
+                w = parent[w]
+            w = Q
+            while w != join:
+                if w >= m:
+                    x[pred[w]] -= theta
+                else:
+                    x[pred[w]] += theta
+                w = parent[w]
+    # u_in: the entering cell's end inside S (the side of the leaving cell)
+    on_row_side = False
+    w = P
+    while w != join:
+        if w == u_out:
+            on_row_side = True
+            break
+        w = parent[w]
+    if on_row_side:
+        u_in = P
+        v_in = Q
+        d_row = d
+    else:
+        u_in = Q
+        v_in = P
+        d_row = -d
+    d_col = -d_row
+    e_out = pred[u_out]
+    # new preorder of S (from the old arrays): for each path node s_0 = u_in .. s_k = u_out,
+    # its old subtree without s_(i-1)'s, in the old order; potentials shift on the way
+    cnt = 0
+    prev_s = -1
+    s = u_in
+    while True:
+        end = last[s]
+        if prev_s >= 0 and end == last[prev_s]:
+            end = rev[prev_s]
+        z = s
+        while True:
+            order[cnt] = z
+            cnt += 1
+            pot[z] += d_row if z < m else d_col
+            if z == end:
+                break
+            z = thread[z]
+            if z == prev_s:
+                z = thread[last[prev_s]]
+        if s == u_out:
+            break
+        prev_s = s
+        s = parent[s]
+    size = succ[u_out]
+    old_last = last[u_out]
+    before = rev[u_out]
+    after = thread[old_last]
+    w_out = parent[u_out]
+    new_last = order[size - 1]
+    # the path: reverse parents, new sizes (|S| minus the old size of the previous path node)
+    prev_size = 0
+    par_new = v_in
+    pred_new = e_out
+    s = u_in
+    while True:
+        old_size = succ[s]
+        succ[s] = size - prev_size
+        prev_size = old_size
+        last[s] = new_last
+        old_par = parent[s]
+        old_pred = pred[s]
+        parent[s] = par_new
+        pred[s] = pred_new
+        if s == u_out:
+            break
+        par_new = s
+        pred_new = old_pred
+        s = old_par
+    # cut S out of the thread, then in again right after v_in (as its first child)
+    thread[before] = after
+    rev[after] = before
+    nxt = thread[v_in]
+    z = v_in
+    for t in range(size):
+        y = order[t]
+        thread[z] = y
+        rev[y] = z
+        z = y
+    thread[new_last] = nxt
+    rev[nxt] = new_last
+    # ancestors: sizes change below the join only; last nodes where they ended S / at v_in
+    w = w_out
+    while w != join:
+        succ[w] -= size
+        w = parent[w]
+    w = v_in
+    while w != join:
+        succ[w] += size
+        w = parent[w]
+    w = w_out
+    while w >= 0 and last[w] == old_last:
+        last[w] = before
+        w = parent[w]
+    w = v_in
+    while w >= 0 and last[w] == v_in:
+        last[w] = new_last
+        w = parent[w]
+    bi[e_out] = p
+    bj[e_out] = q
+    if u_leave < 0:
+        x[e_out] = theta
+    return theta
+
+
+@njit(cache=True, nogil=True)
+def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, x):
+    """Primal network simplex from the feasible basis ``(bi, bj)``, in place.
+
+    Pricing: block search (``_BLOCK_FACTOR * sqrt(m n)`` cells, at least
+    ``_MIN_BLOCK``, continuing cyclically where the last block ended; the most negative reduced
+    cost of the first block holding one enters); after ``bland_after`` pivots Bland's rule (the
+    first improving cell in row-major order, ties of the leaving cell to the smallest index).
+    Potentials and flows are updated by :func:`_pivot`; optimality is only declared after a
+    full scan with potentials recomputed from scratch, and the final flows are recomputed from
+    scratch too (rounding of the updates never reaches the result).
+
+    Parameters
+    ----------
+    tree : array of int64, shape (8, m + n + 1), work (see :func:`_build_tree`); its row
+        ``_ORDER`` is the pivot's work.
     link : array of int64, shape (2 (m + n - 1),), work
     net, pot : arrays, shape (m + n,), work / written
     x : array, shape (m + n - 1,), written with the flows of the final basis.
@@ -260,67 +524,89 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, 
         0 optimal, 1 pivot bound reached, 2 the cells are not a spanning tree.
     n_pivots : int
     """
-    head, order, parent, pedge, depth = ws_i[0], ws_i[1], ws_i[2], ws_i[3], ws_i[4]
     nn = m + n
+    if not _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+        return _BAD_TREE, 0
+    order = tree[_ORDER]
+    cells = m * n
+    block = max(min(_MIN_BLOCK, cells), int(_BLOCK_FACTOR * np.sqrt(cells)))
     max_pivots = _MAX_PIVOTS_PER_NODE * nn
+    vpot = pot[m:]
     pivots = 0
+    fresh = True  # potentials just recomputed from scratch
+    ci = 0
+    cj = 0
     while True:
-        if not _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net,
-                        pot, x):
-            return _BAD_TREE, pivots
-        bland = pivots >= bland_after
         best = -tol_c
         p = -1
         q = -1
-        for i in range(m):
-            ui = pot[i]
-            for j in range(n):
-                d = cost[i, j] - ui - pot[m + j]
-                if d < best:
-                    best = d
-                    p = i
-                    q = j
-                    if bland:  # Bland: the first improving cell
+        if pivots >= bland_after:
+            for i in range(m):
+                ui = pot[i]
+                for j in range(n):
+                    d = cost[i, j] - ui - vpot[j]
+                    if d < best:
+                        best = d
+                        p = i
+                        q = j
                         break
-            if bland and p >= 0:
-                break
+                if p >= 0:
+                    break
+        else:
+            scanned = 0
+            in_block = 0
+            i = ci
+            j = cj
+            while scanned < cells:
+                lim = min(n - j, block - in_block, cells - scanned)
+                ui = pot[i]
+                for jj in range(j, j + lim):
+                    d = cost[i, jj] - ui - vpot[jj]
+                    if d < best:
+                        best = d
+                        p = i
+                        q = jj
+                scanned += lim
+                in_block += lim
+                j += lim
+                if j == n:
+                    j = 0
+                    i += 1
+                    if i == m:
+                        i = 0
+                if in_block == block:
+                    in_block = 0
+                    if p >= 0:
+                        break
+            ci = i
+            cj = j
         if p < 0:
-            return _OK, pivots
+            if fresh:
+                break
+            _tree_potentials(m, bi, bj, cost, tree, pot)
+            fresh = True
+            continue
         if pivots >= max_pivots:
             return _ITER_LIMIT, pivots
+        bland = pivots >= bland_after
         pivots += 1
-        # cycle: entering (p, q), then the tree path q -> p; cells traversed column -> row
-        # lose flow.  On the q side we walk child -> parent, on the p side parent -> child.
-        P = p
-        Q = m + q
-        theta = np.inf
-        leave = -1
-        leave_key = nn * nn
-        while P != Q:
-            if depth[P] >= depth[Q]:
-                e = pedge[P]
-                minus = P < m
-                P = parent[P]
-            else:
-                e = pedge[Q]
-                minus = Q >= m
-                Q = parent[Q]
-            if minus:
-                xv = x[e] if x[e] > _TOL_FLOW else 0.0
-                key = bi[e] * n + bj[e]
-                if xv < theta or (xv == theta and key < leave_key):
-                    theta = xv
-                    leave = e
-                    leave_key = key
-        bi[leave] = p
-        bj[leave] = q
+        fresh = False
+        _pivot(m, n, p, q, best, bland, -1, bi, bj, tree, pot, x, order)
+    _tree_flows(m, n, a, b, tree, net, x, False)
+    return _OK, pivots
 
 
 @njit(cache=True, nogil=True)
-def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x):
+def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x, tree):
     """Dual transportation simplex from a dual-feasible basis ``(bi, bj)``, in place.
 
-    Parameters as :func:`_primal`; ``ws_i`` has two more work rows (7, m + n + 1): the
+    Leaving: the most negative flow (Bland: the smallest cell index among the negative ones).
+    Entering: the cell of least reduced cost crossing the cut the leaving cell makes, from the
+    rows of the column's side to the columns of the row's side (ties to the smallest cell).  The
+    tree is updated as in the primal (:func:`_pivot`); flows and potentials are then recomputed
+    from the tree in O(m + n) (few pivots per solve: no rounding builds up).
+
+    Parameters as :func:`_primal`; ``ws_i`` (3, m + n + 1) int64: rows 1 and 2 are the
     subtree mark and the row / column lists.  ``cutoff``: stop as soon as the dual objective
     ``a @ u + b @ v`` (a lower bound of the optimum, non-decreasing over the pivots) exceeds it.
 
@@ -331,16 +617,16 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
         enter (the problem is infeasible to rounding), 4 cut off (the optimum > ``cutoff``).
     n_pivots : int
     """
-    head, order, parent, pedge, depth = ws_i[0], ws_i[1], ws_i[2], ws_i[3], ws_i[4]
-    insub, lists = ws_i[5], ws_i[6]
+    insub, lists = ws_i[1], ws_i[2]
+    parent, pred, thread, succ = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_SUCC]
+    order = tree[_ORDER]
     nn = m + n
     ne = nn - 1
     max_pivots = _MAX_PIVOTS_PER_NODE * nn
+    if not _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
+        return _BAD_TREE, 0
     pivots = 0
     while True:
-        if not _rebuild(m, n, bi, bj, a, b, cost, head, link, order, parent, pedge, depth, net,
-                        pot, x):
-            return _BAD_TREE, pivots
         if cutoff < np.inf:
             bound = 0.0
             for i in range(m):
@@ -369,17 +655,13 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
             return _ITER_LIMIT, pivots
         pivots += 1
         i = bi[le]
-        z = i if pedge[i] == le else m + bj[le]
-        # subtree of z (z's side of the leaving cell); entering cells cross from the rows of
-        # the column's side to the columns of the row's side
-        for k in range(nn):
-            w = order[k]
-            if w == z:
-                insub[w] = 1
-            elif k == 0:
-                insub[w] = 0
-            else:
-                insub[w] = insub[parent[w]]
+        z = i if pred[i] == le else m + bj[le]  # the leaving cell's end below the other
+        for w in range(nn):
+            insub[w] = 0
+        w = z
+        for _ in range(succ[z]):
+            insub[w] = 1
+            w = thread[w]
         want_rows = 0 if z < m else 1
         n_rows = 0
         n_cols = 0
@@ -406,8 +688,10 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
                     q = c
         if p < 0:
             return _NO_ENTERING, pivots
-        bi[le] = p
-        bj[le] = q
+        _pivot(m, n, p, q, cost[p, q] - pot[p] - pot[m + q], bland, z, bi, bj, tree, pot, x,
+               order)
+        _tree_flows(m, n, a, b, tree, net, x, False)
+        _tree_potentials(m, bi, bj, cost, tree, pot)
 
 
 @njit(cache=True, nogil=True)
@@ -431,21 +715,23 @@ def _tolerance(cost, rel_tol):
 
 @njit(cache=True, nogil=True)
 def _workspace(m, n):
-    """Work arrays of one solve: (ws_i (7, m+n+1) int64, adj_edge, net, pot, x, sa, sb,
-    row_on, col_on)."""
+    """Work arrays of one solve: (ws_i (3, m+n+1) int64: the least-cost start's best columns,
+    the dual's subtree mark and lists; link, net, pot, x, sa, sb, row_on, col_on, tree (8,
+    m+n+1) int64: see :func:`_build_tree`)."""
     nn = m + n
-    return (np.zeros((7, nn + 1), dtype=np.int64), np.zeros(2 * nn, dtype=np.int64),
+    return (np.zeros((3, nn + 1), dtype=np.int64), np.zeros(2 * nn, dtype=np.int64),
             np.zeros(nn), np.zeros(nn), np.zeros(nn), np.zeros(m), np.zeros(n),
-            np.zeros(m, dtype=np.bool_), np.zeros(n, dtype=np.bool_))
+            np.zeros(m, dtype=np.bool_), np.zeros(n, dtype=np.bool_),
+            np.zeros((8, nn + 1), dtype=np.int64))
 
 
 @njit(cache=True, nogil=True)
 def _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws):
     """Least-cost start then primal simplex; returns (status, n_pivots)."""
     m, n = cost.shape
-    ws_i, link, net, pot, x, sa, sb, row_on, col_on = ws
-    _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, ws_i[5], net)
-    return _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, ws_i, link, net, pot, x)
+    ws_i, link, net, pot, x, sa, sb, row_on, col_on, tree = ws
+    _least_cost_start(m, n, a, b, cost, bi, bj, sa, sb, row_on, col_on, ws_i[0], net)
+    return _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, x)
 
 
 @njit(cache=True, nogil=True)
@@ -454,8 +740,9 @@ def _warm_solve(a, b, cost, tol_c, cutoff, bland_after, bi, bj, ws):
     are the same); a cold solve if that fails.  Returns (status, n_pivots), status 4 when the
     optimum is above ``cutoff``."""
     m, n = cost.shape
-    ws_i, link, net, pot, x, sa, sb, row_on, col_on = ws
-    status, piv = _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x)
+    ws_i, link, net, pot, x, tree = ws[0], ws[1], ws[2], ws[3], ws[4], ws[9]
+    status, piv = _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x,
+                        tree)
     if status != _OK and status != _CUT_OFF:
         status, piv2 = _cold_solve(a, b, cost, tol_c, bland_after, bi, bj, ws)
         piv += piv2
@@ -486,8 +773,13 @@ def _emd_kernel(a, b, cost, rel_tol, bland_after):
         0 optimal; else the solver failed (a bug).
     n_pivots : int
     """
+    return _solve_emd(a, b, cost, _tolerance(cost, rel_tol), bland_after)
+
+
+@njit(cache=True, nogil=True)
+def _solve_emd(a, b, cost, tol_c, bland_after):
+    """:func:`_emd_kernel` with the absolute tolerance ``tol_c`` given."""
     m, n = cost.shape
-    tol_c = _tolerance(cost, rel_tol)
     if bland_after < 0:
         bland_after = _DANTZIG_PIVOTS_PER_NODE * (m + n)
     ws = _workspace(m, n)
@@ -500,6 +792,41 @@ def _emd_kernel(a, b, cost, rel_tol, bland_after):
         if x[e] > 0.0:
             flow[bi[e], bj[e]] += x[e]
     return _objective(m, n, bi, bj, cost, x), flow, status, piv
+
+
+@njit(cache=True, nogil=True)
+def _normalised(w):
+    """``w / sum(w)``, shape (K,); shape (0,) unless every weight is finite and >= 0 and the
+    sum finite and > 0."""
+    total = 0.0
+    for v in w:
+        if not (v >= 0.0 and v < np.inf):  # negative, NaN or inf
+            return w[:0].copy()
+        total += v
+    if not (total > 0.0 and total < np.inf):
+        return w[:0].copy()
+    return w / total
+
+
+@njit(cache=True, nogil=True)
+def _checked_emd_kernel(weights_a, weights_b, cost, rel_tol):
+    """:func:`_emd_kernel` from raw weights: checks and normalises them, checks the cost is
+    finite (in the pass that finds ``max|cost|``).  Status ``_BAD_INPUT`` when a check fails
+    (the caller finds which, with the Python checks, for the message)."""
+    m, n = cost.shape
+    a = _normalised(weights_a)
+    b = _normalised(weights_b)
+    top = 0.0
+    for i in range(m):
+        for j in range(n):
+            v = abs(cost[i, j])
+            if not v < np.inf:
+                return 0.0, np.zeros((m, n)), _BAD_INPUT, 0
+            if v > top:
+                top = v
+    if a.shape[0] != m or b.shape[0] != n:
+        return 0.0, np.zeros((m, n)), _BAD_INPUT, 0
+    return _solve_emd(a, b, cost, rel_tol * top, -1)
 
 
 @njit(cache=True, nogil=True)
@@ -546,7 +873,7 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
     if bland_after < 0:
         bland_after = _DANTZIG_PIVOTS_PER_NODE * (m + n)
     ws = _workspace(m, n)
-    ws_i, link, net, pot, x = ws[0], ws[1], ws[2], ws[3], ws[4]
+    link, net, pot, x, tree = ws[1], ws[2], ws[3], ws[4], ws[9]
     cur_bi = np.zeros(ne, dtype=np.int64)
     cur_bj = np.zeros(ne, dtype=np.int64)
     try_bi = np.zeros(ne, dtype=np.int64)
@@ -573,8 +900,7 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
     stop = _STOP_MAX_REMOVALS
     while steps < n_max:
         # potentials of the current optimum: dual feasible for every candidate
-        _rebuild(m, n, cur_bi, cur_bj, a, b, cost, ws_i[0], link, ws_i[1], ws_i[2], ws_i[3],
-                 ws_i[4], net, pot, x)
+        _build_tree(m, n, cur_bi, cur_bj, a, b, cost, tree, link, net, pot, x)
         ua = 0.0
         for i in range(m):
             ua += a[i] * pot[i]
@@ -767,13 +1093,36 @@ def emd(weights_a, weights_b, cost) -> EmdResult:
     InputError
         Wrong shapes, empty, NaN / inf, negative or all-zero weights.
     """
-    a = _check_weights(weights_a, "weights_a")
-    b = _check_weights(weights_b, "weights_b")
-    c = _check_cost(cost, a.shape[0], b.shape[0])
-    distance, flow, status, _ = _emd_kernel(a, b, c, _REL_TOL_COST, -1)
+    # fast path: conversions and shapes here, the value checks inside the kernel; the Python
+    # checks below only run to name what is wrong
+    try:
+        a = np.asarray(weights_a, dtype=np.float64)
+        b = np.asarray(weights_b, dtype=np.float64)
+        c = np.ascontiguousarray(cost, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = b = c = None
+    if (a is None or a.ndim != 1 or b.ndim != 1 or c.shape != (a.shape[0], b.shape[0])
+            or a.shape[0] == 0 or b.shape[0] == 0):
+        _raise_emd_input_error(weights_a, weights_b, cost)
+    if not a.flags.c_contiguous:
+        a = a.copy()
+    if not b.flags.c_contiguous:
+        b = b.copy()
+    distance, flow, status, _ = _checked_emd_kernel(a, b, c, _REL_TOL_COST)
+    if status == _BAD_INPUT:
+        _raise_emd_input_error(weights_a, weights_b, cost)
     if status != _OK:
         _raise_solver_failure(status, c.shape)
     return EmdResult(float(distance), flow)
+
+
+def _raise_emd_input_error(weights_a, weights_b, cost) -> None:
+    """The InputError :func:`emd`'s checks give for these inputs."""
+    a = _check_weights(weights_a, "weights_a")
+    b = _check_weights(weights_b, "weights_b")
+    _check_cost(cost, a.shape[0], b.shape[0])
+    raise SolverError("emd: the input checks of the kernel and of Python disagree; this is a bug "
+                      "in robot_change.change.transport")
 
 
 def greedy_emd(weights_fixed, weights_var, cost, candidates=None,
