@@ -186,8 +186,12 @@ class Mixture:
         return np.exp(self.log_responsibilities(points))
 
     def predict(self, points) -> np.ndarray:
-        """Index of the most probable component for each point, shape (N,), int64."""
-        return self.log_responsibilities(points).argmax(axis=1)
+        """Index of the most probable component for each point, shape (N,), int64 (the first
+        on ties)."""
+        x = _check_points(points)
+        prec, log_det = self._prec
+        return em.log_prob_labels(x, np.asarray(self.weights), np.asarray(self.means), prec,
+                                  log_det)[1]
 
     def transformed(self, transform: np.ndarray) -> Mixture:
         """The mixture moved by the (4, 4) rigid ``transform``: means ``R mu + t``,
