@@ -13,6 +13,7 @@ import numba
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change.arrays import readonly_view
 from robot_change.change.epoch import Epoch
 from robot_change.change.params import ChangeParams
 from robot_change.cloud.chain import CloudParams
@@ -72,9 +73,8 @@ def _window_filter(depth, radius, take_min):
     """Square-window min (``take_min``: readings > 0 only, 0 where the window has none) or
     max of a (H, W) uint16 depth image, window (2 radius + 1)^2, separable: columns, then
     rows (as the columns of the transpose)."""
-    src = depth
+    src = depth.copy()  # a read-only image and a writable one: one type of src
     if take_min:  # no reading (0) never wins a min: 65535 until the end
-        src = depth.copy()
         for r in range(src.shape[0]):
             for c in range(src.shape[1]):
                 if src[r, c] == 0:
@@ -192,7 +192,7 @@ def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
     farthest within ``hole_radius``), both (H, W) uint16 mm, and its :func:`sensing_window`
     as a (4,) int64 array.  A function of the image alone: a reference's is computed once
     (:func:`free_and_observed` keeps it in the epoch's ``derived``)."""
-    other = np.ascontiguousarray(other_depth)
+    other = readonly_view(np.ascontiguousarray(other_depth))
     near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
     far = _window_filter(other, int(hole_radius), False) if hole_radius > 0 else other
     return near, far, np.array(sensing_window(other), dtype=np.int64)
@@ -244,8 +244,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
         raise InputError("other_from_own must be a finite (4, 4) rigid transform")
     near, far, window = views if views is not None else other_views(other_depth, pose_radius,
                                                                     hole_radius)
-    own = np.ascontiguousarray(own_depth)
-    pv = np.ascontiguousarray(pixel_voxel, dtype=np.int32)
+    own = readonly_view(np.ascontiguousarray(own_depth))
+    pv = readonly_view(np.ascontiguousarray(pixel_voxel, dtype=np.int32))
     if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
         target = np.where(own.ravel() > 0, np.arange(own.size), -1)
         z_other = own.ravel() * 0.001

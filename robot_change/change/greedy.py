@@ -88,9 +88,10 @@ def posteriors(mix: Mixture, points: np.ndarray, rows: np.ndarray | None,
         return post
     k0, log_bg = background
     weights = np.concatenate([[mix.weights[:k0].sum()], mix.weights[k0:]])
-    prec, log_det, _ = em.precision_cholesky(np.ascontiguousarray(mix.covariances[k0:]))
+    # writable copies: the array types the fit gives these kernels (one compile)
+    prec, log_det, _ = em.precision_cholesky(np.array(mix.covariances[k0:]))
     resp, _ = em.responsibilities_background(
         np.ascontiguousarray(points[sel], dtype=np.float64), np.ascontiguousarray(log_bg[sel]),
-        weights, np.ascontiguousarray(mix.means[k0:]), prec, log_det)
+        weights, np.array(mix.means[k0:]), prec, log_det)
     post[sel, k0:] = resp[:, 1:]
     return post

@@ -51,6 +51,7 @@ from scipy import ndimage
 
 from hw.depth import Intrinsics
 from robot_change import validate
+from robot_change.arrays import readonly_view
 from robot_change.errors import InputError
 
 __all__ = [
@@ -750,7 +751,7 @@ def _levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParam
     min_mm = int(math.ceil(params.min_depth_m * 1000.0))
     max_mm = int(math.floor(params.max_depth_m * 1000.0))
     finest = int(params.levels[-1])
-    vertex, count = _vertex_level(depth, finest, intrinsics.fx, intrinsics.fy, intrinsics.cx,
+    vertex, count = _vertex_level(readonly_view(depth), finest, intrinsics.fx, intrinsics.fy, intrinsics.cx,
                                   intrinsics.cy, min_mm, max_mm, params.band_m,
                                   params.band_slope)
     out = []
@@ -969,15 +970,15 @@ class _Pairs:
 
     def associate(self, rl: _Level, cl: _Level, T: np.ndarray, max_dist: float, min_cos: float
                   ) -> int:
-        return _associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], T[:3, 3],
-                          rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, self.res, self.jac,
-                          self.zs)
+        return _associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                          T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos,
+                          self.res, self.jac, self.zs)
 
     def count_inliers(self, rl: _Level, cl: _Level, T: np.ndarray, max_dist: float,
                       min_cos: float, sigmas: float) -> int:
-        return _count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3], T[:3, 3],
-                              rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos, sigmas, self.res,
-                              self.jac, self.zs)
+        return _count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                              T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos,
+                              sigmas, self.res, self.jac, self.zs)
 
     def inliers(self, n: int, sigmas: float) -> np.ndarray:
         """(n,) bool: pairs whose residual is within ``sigmas`` depth-noise sigmas."""

@@ -132,7 +132,7 @@ class Mixture:
         if (asym > 1e-12 * np.maximum(scale, 1e-300)).any():
             raise InputError("covariances must be symmetric; symmetrise them "
                              "(0.5 * (C + C.transpose(0, 2, 1)))")
-        _, _, ok = em.precision_cholesky(cov)
+        _, _, ok = em.precision_cholesky(np.array(cov))  # writable: one compiled type
         if not ok.all():
             bad = np.flatnonzero(~ok).tolist()
             raise InputError(f"covariances of components {bad} are not positive definite; "
@@ -147,11 +147,12 @@ class Mixture:
         return int(self.weights.shape[0])
 
     @cached_property
-    def _prec(self) -> tuple[np.ndarray, np.ndarray]:
-        prec, log_det, _ = em.precision_cholesky(self.covariances)
-        prec.setflags(write=False)
-        log_det.setflags(write=False)
-        return prec, log_det
+    def _kernel_args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(weights, means, precision Cholesky factors, their log-determinants): private
+        writable copies, the array types the fit's own calls give the kernels (a read-only
+        array would be another compile)."""
+        prec, log_det, _ = em.precision_cholesky(np.array(self.covariances))
+        return np.array(self.weights), np.array(self.means), prec, log_det
 
     def score_samples(self, points) -> np.ndarray:
         """Log density of each point under the mixture.
@@ -164,10 +165,7 @@ class Mixture:
         -------
         log_prob : array, shape (N,)
         """
-        x = _check_points(points)
-        prec, log_det = self._prec
-        return em.log_prob_samples(x, np.asarray(self.weights), np.asarray(self.means), prec,
-                                   log_det)
+        return em.log_prob_samples(_check_points(points), *self._kernel_args)
 
     def score(self, points) -> float:
         """Mean log-likelihood per point (scikit-learn's ``GaussianMixture.score``)."""
@@ -175,10 +173,7 @@ class Mixture:
 
     def log_responsibilities(self, points) -> np.ndarray:
         """``log p(k | x_n)``, shape (N, K)."""
-        x = _check_points(points)
-        prec, log_det = self._prec
-        log_resp, _ = em.e_step(x, np.asarray(self.weights), np.asarray(self.means), prec,
-                                log_det)
+        log_resp, _ = em.e_step(_check_points(points), *self._kernel_args)
         return log_resp
 
     def responsibilities(self, points) -> np.ndarray:
@@ -188,10 +183,7 @@ class Mixture:
     def predict(self, points) -> np.ndarray:
         """Index of the most probable component for each point, shape (N,), int64 (the first
         on ties)."""
-        x = _check_points(points)
-        prec, log_det = self._prec
-        return em.log_prob_labels(x, np.asarray(self.weights), np.asarray(self.means), prec,
-                                  log_det)[1]
+        return em.log_prob_labels(_check_points(points), *self._kernel_args)[1]
 
     def transformed(self, transform: np.ndarray) -> Mixture:
         """The mixture moved by the (4, 4) rigid ``transform``: means ``R mu + t``,
@@ -798,7 +790,8 @@ def fit_over_background(points, background: Mixture, log_background, weights, me
     log_l = float(log_bg.sum())  # with no free component left: the background alone
     while len(mu):
         w2, mu2, cov2, lp, n_it, status, empty = em.em_loop_background(
-            x, log_bg, w, mu, cov, float(reg_covar), float(tol), max(max_iter - total_iter, 1))
+            x, log_bg, w, mu, cov, float(reg_covar), float(tol), max(max_iter - total_iter, 1),
+            False)
         total_iter += n_it
         if status != em.STATUS_EMPTY:
             w, mu, cov, log_l = w2, mu2, cov2, float(lp) * n

@@ -1,9 +1,10 @@
 """Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY.
 
 On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
-process (``python -m robot_change.service.warmup --helper``) compiles the registration's and
-the transport's kernels into the cache while this process compiles the cloud's, the
-mixture's and the free-space check's; then the whole capture-and-check path runs here once,
+process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
+transport's, the free-space check's and the regions' kernels into the cache while this process
+compiles the cloud's and the mixture's (the two shares take about as long: 23-24 s each on
+the 2-core test machine); then the whole capture-and-check path runs here once,
 loading what the helper left.  A kernel the helper did not leave (another argument type, or
 the helper failed) is compiled here then: the split only saves time, it is never needed.
 The helper is started only when this process's share is still running after
@@ -63,8 +64,8 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
-    check: a read-only reference image, a writable current one) and the transport's (exact
-    and greedy EMD on mixture-sized problems)."""
+    check: a read-only reference image, a writable current one), the transport's (exact
+    and greedy EMD on mixture-sized problems), the free-space check's and the regions'."""
     from robot_change.change import registration
     from robot_change.change.transport import emd, greedy_emd, ground_distance
 
@@ -74,6 +75,7 @@ def _helper_share() -> None:
         reference.setflags(write=False)
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
+    _free_space_and_region_kernels(cam, rooms)
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -87,19 +89,38 @@ def _helper_share() -> None:
         greedy_emd(weights_a, weights_b, cost, candidates, 2)
 
 
+def _free_space_and_region_kernels(cam: Intrinsics, rooms) -> None:
+    """The free-space check's and the regions' kernels, with the argument types a reference's
+    cloud gives them (a read-only (H, W) int32 pixel -> point map, uint16 depth images, int64
+    voxel keys), on the synthetic rooms without cleaning them (those kernels are the other
+    share's)."""
+    from robot_change.change.free_space import free_space_votes
+    from robot_change.change.regions import label_voxel_components
+
+    offset = np.eye(4)
+    offset[:3, 3] = (0.01, 0.0, 0.0)
+    for before, after in (rooms, rooms[::-1]):
+        valid = before > 0
+        pixel_voxel = np.full(before.shape, -1, np.int32)
+        pixel_voxel[valid] = np.arange(int(valid.sum())) // 4
+        pixel_voxel.setflags(write=False)
+        n_points = int(pixel_voxel.max()) + 1
+        free_space_votes(pixel_voxel, after, before.copy(), n_points, 0.03, 0.004, 3, 5, True,
+                         intrinsics=cam, other_from_own=offset)
+        keys = np.arange(n_points, dtype=np.int64) * 3
+        keys.setflags(write=False)
+        label_voxel_components(keys, 1)
+
+
 def _own_share(config: Config) -> None:
     """This process's share while the helper runs: the cloud's and the mixture's kernels (a
-    reference built, the current's mixture, the novelty fit over a background) and the
-    free-space check's, without registration or EMD."""
-    from robot_change.change.free_space import free_space_votes
+    reference built, the current's mixture, the novelty fit over a background), without
+    registration, EMD, the free-space check or regions."""
     from robot_change.change.greedy import posteriors
-    from robot_change.change.regions import label_voxel_components
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
     cam, rooms = _tiny_scene()
     params = config.scene_params()
-    offset = np.eye(4)
-    offset[:3, 3] = (0.01, 0.0, 0.0)
     for before, after in (rooms, rooms[::-1]):
         try:
             reference = build_scene(np.stack([before] * 2), params, intrinsics=cam)
@@ -113,9 +134,6 @@ def _own_share(config: Config) -> None:
         novelty = fit_over_background(points, mix, log_bg, seed_w, mix.means[:1],
                                       mix.covariances[:1], leaf=params.cloud.leaf_m, tol=1e-2)
         posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
-        label_voxel_components(reference.cloud.keys, 1)
-        free_space_votes(reference.cloud.pixel_voxel, after, reference.depth, len(points),
-                         0.03, 0.004, 3, 5, True, intrinsics=cam, other_from_own=offset)
         del refit
 
 
