@@ -3,7 +3,7 @@
 On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
 process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
 transport's, the free-space check's and the regions' kernels into the cache while this process
-compiles the cloud's and the mixture's (the two shares take about as long: 23-24 s each on
+compiles the cloud's and the mixture's (the two shares take about as long: ~25 s each on
 the 2-core test machine); then the whole capture-and-check path runs here once,
 loading what the helper left.  A kernel the helper did not leave (another argument type, or
 the helper failed) is compiled here then: the split only saves time, it is never needed.
