@@ -591,7 +591,8 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, 
         bland = pivots >= bland_after
         pivots += 1
         fresh = False
-        _pivot(m, n, p, q, best, bland, -1, bi, bj, tree, pot, x, order)
+        _pivot(m, n, np.int64(p), np.int64(q), best, bland, np.int64(-1), bi, bj, tree, pot,
+               x, order)  # typed ints: no literal specialisation of _pivot to compile
     _tree_flows(m, n, a, b, tree, net, x, False)
     return _OK, pivots
 
@@ -688,8 +689,8 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
                     q = c
         if p < 0:
             return _NO_ENTERING, pivots
-        _pivot(m, n, p, q, cost[p, q] - pot[p] - pot[m + q], bland, z, bi, bj, tree, pot, x,
-               order)
+        _pivot(m, n, np.int64(p), np.int64(q), cost[p, q] - pot[p] - pot[m + q], bland,
+               np.int64(z), bi, bj, tree, pot, x, order)
         _tree_flows(m, n, a, b, tree, net, x, False)
         _tree_potentials(m, bi, bj, cost, tree, pot)
 
