@@ -96,7 +96,7 @@ def _depth_voxel_kernel(depth, fx, fy, cx, cy, min_mm, max_mm, inv_leaf, tbits, 
     lo = np.float64(-_KEY_OFFSET)
     hi = np.float64(_KEY_OFFSET - 1)
     first = 0
-    p = 0
+    p = np.int64(0)  # typed: no literal-0 specialisation of the kernels it goes to
     kept = 0
     for v in range(height):
         if p - first > limit - width:

@@ -379,7 +379,7 @@ def _voxel_kernel(points, inv_leaf, chunk, tbits, limit):
     ys = np.empty(min(n, chunk), dtype=np.float64)
     zs = np.empty(min(n, chunk), dtype=np.float64)
     first = 0
-    p = 0
+    p = np.int64(0)  # typed: no literal-0 specialisation of the kernels it goes to
     for start in range(0, n, chunk):
         if p - first > limit - chunk:
             first = p
