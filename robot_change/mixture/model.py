@@ -925,15 +925,20 @@ REFINE_START_ITER = 5
 PARTIAL_MASS = 1e-3
 
 
+def _fitted_log_l_per_point(covs, reg_covar) -> np.ndarray:
+    """Mean log-likelihood per point of a group of points under its own Gaussian (ML mean, ML
+    covariance plus the floor: ``covs`` (..., 3, 3)): ``-0.5 (3 log 2 pi + log det C + 3 -
+    reg tr C^-1)``, shape (...)."""
+    _, logdet = np.linalg.slogdet(covs)
+    tr = np.trace(np.linalg.inv(covs), axis1=-2, axis2=-1)
+    return -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)
+
+
 def _hard_log_l(counts, covs, reg_covar) -> float:
     """Log-likelihood of points hard-partitioned into groups, each under its own Gaussian
-    (ML mean, ML covariance plus the floor: ``covs`` (G, 3, 3)) with the groups' shares as
-    weights: ``sum_g n_g (log(n_g / n) - 0.5 (3 log 2 pi + log det C_g + 3 - reg tr C_g^-1))``.
-    """
+    (``covs`` (G, 3, 3), :func:`_fitted_log_l_per_point`) with the groups' shares as weights."""
     counts = np.asarray(counts, dtype=np.float64)
-    _, logdet = np.linalg.slogdet(covs)
-    tr = np.trace(np.linalg.inv(covs), axis1=1, axis2=2)
-    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)
+    per = _fitted_log_l_per_point(covs, reg_covar)
     return float((counts * (np.log(counts / counts.sum()) + per)).sum())
 
 
@@ -985,9 +990,7 @@ def _merge_losses(x, labels, k_n, pairs, reg_covar) -> np.ndarray:
     m = s1 / n[..., None]
     covs = s2 / n[..., None, None] - m[..., :, None] * m[..., None, :] + reg_covar * np.eye(3)
     covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
-    _, logdet = np.linalg.slogdet(covs)
-    tr = np.trace(np.linalg.inv(covs), axis1=-2, axis2=-1)
-    per = -0.5 * (3.0 * math.log(2.0 * math.pi) + logdet + 3.0 - reg_covar * tr)  # (P, 3)
+    per = _fitted_log_l_per_point(covs, reg_covar)  # (P, 3)
     share = np.log(n[:, :2] / n[:, 2:])
     loss = n[:, 2] * per[:, 2] - (n[:, :2] * (share + per[:, :2])).sum(axis=1)
     return np.where(ok, loss, -np.inf)
