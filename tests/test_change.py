@@ -230,7 +230,8 @@ def test_baselines(models):
 def test_params_are_validated():
     for bad in (dict(novelty_quantile=0.0), dict(ground_distance="l1"), dict(greedy=1),
                 dict(posterior_threshold=1.5), dict(region_connectivity=0),
-                dict(free_space_margin_m=-0.01), dict(novelty_seed="x")):
+                dict(free_space_margin_m=-0.01), dict(novelty_seed="x"),
+                dict(gone_component_share=1.5), dict(gone_component_share="half")):
         with pytest.raises(InputError, match="ChangeParams"):
             ChangeParams(**bad)
     with pytest.raises(InputError):
