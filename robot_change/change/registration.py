@@ -751,8 +751,8 @@ def _levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParam
     min_mm = int(math.ceil(params.min_depth_m * 1000.0))
     max_mm = int(math.floor(params.max_depth_m * 1000.0))
     finest = int(params.levels[-1])
-    vertex, count = _vertex_level(readonly_view(depth), finest, intrinsics.fx, intrinsics.fy, intrinsics.cx,
-                                  intrinsics.cy, min_mm, max_mm, params.band_m,
+    vertex, count = _vertex_level(readonly_view(depth), finest, intrinsics.fx, intrinsics.fy,
+                                  intrinsics.cx, intrinsics.cy, min_mm, max_mm, params.band_m,
                                   params.band_slope)
     out = []
     for f in reversed(params.levels):
