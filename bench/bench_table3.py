@@ -139,7 +139,7 @@ def fit_once(points: np.ndarray, criterion: str, leaf: float, max_components: in
     why = ("bound" if stop.startswith("K reached") else
            "crit" if stop.startswith("no split lowers") else
            "pts" if stop.startswith("no component") else stop)
-    accepted = [s for s in rec.steps if s.accepted and s.action != "polish"]
+    accepted = [s for s in rec.steps if s.accepted and not s.action.startswith("polish")]
     gain = None
     if len(accepted) >= 2:
         d_log_l = accepted[-1].log_likelihood - accepted[-2].log_likelihood

@@ -49,6 +49,14 @@ N_PARAMS_COMPONENT = 9
 #: Default voxel leaf (m) the covariance floor is tied to when neither is given (the default
 #: leaf of robot_change.cloud.chain.CloudParams).
 DEFAULT_LEAF = 0.03
+#: Above this many free components (the default K bound) the fit changes gear, so that its work
+#: grows linearly with the bound, not quadratically: a round of the split search first tries
+#: splitting the K_free // SPLIT_BATCH_SHARE best-ranked components at once, and the final EM runs
+#: first on random subsets POLISH_GROWTH, POLISH_GROWTH**2, ... times the search subsample's
+#: size (while at most half the cloud), then on all points.
+LARGE_K = 16
+SPLIT_BATCH_SHARE = 8
+POLISH_GROWTH = 4
 
 
 def reg_covar_for_leaf(leaf: float) -> float:
@@ -261,12 +269,14 @@ class FitStep:
     """One EM run inside :func:`fit_mixture`.
 
     ``action`` is ``"start"`` (the initial EM), ``"split k"`` (component k of the current
-    mixture was split), ``"seed"`` (a novelty component was added), ``"refine"`` (EM on the
-    refinement subset before the split-and-merge moves) and ``"refine i+j/k"`` (components i and
-    j merged and k split, at the same K), ``"polish"`` (the final EM
-    on all points after a search on a subsample) or ``"prune"`` (free components left with
-    fewer than ``min_points`` points of mass by the polish were dropped and EM run again);
-    ``accepted`` says whether the result became the current mixture.
+    mixture was split; ``"split i,j,..."`` when several were split in one round), ``"seed"``
+    (a novelty component was added), ``"refine"`` (EM on the refinement subset before the
+    split-and-merge moves) and ``"refine i+j/k"`` (components i and j merged and k split, at
+    the same K), ``"polish m"`` (EM on a random subset of m points, coarse to fine, after the
+    search), ``"polish"`` (the final EM on all points after a search on a subsample) or
+    ``"prune"`` (free components left with fewer than ``min_points`` points of mass by the
+    polish were dropped and EM run again); ``accepted`` says whether the result became the
+    current mixture.
     """
 
     action: str
@@ -559,13 +569,20 @@ def fit_mixture(
         free components below it are dropped and EM is re-run (``"prune"`` steps; fixed
         components are never dropped).
     max_tries : int
-        Candidates tried per round (in order of w_k J_k) before the search stops.
+        Single splits tried per round (in order of w_k J_k) before the search stops.  Above
+        ``LARGE_K`` (16) free components, a round first splits the best-ranked
+        K_free // ``SPLIT_BATCH_SHARE`` (8) components at once (``"split i,j,..."`` steps),
+        so that the search's EM work grows linearly with ``max_components``, not
+        quadratically; the single splits follow when that batch does not lower the criterion.
     entropy_k, entropy_subsample : int
         k of the k-NN entropy estimate, and the most query points per component.
     search_points : int, optional
         If set and N is larger, the split search runs on a fixed random subset of this many
         points (log L scaled to N in the criterion, the entropy blur scaled by
         sqrt(N / search_points)), and a final EM on all points polishes the chosen mixture.
+        With more than ``LARGE_K`` free components it runs coarse to fine: first on random
+        subsets ``POLISH_GROWTH`` (4) times larger than the search's, and so on while at most
+        half the cloud (``"polish m"`` steps).
         None: the search uses every point (exact, about 5x slower on a room-sized cloud).
         Ignored when ``split`` is False.
     refine : int
@@ -673,12 +690,19 @@ def fit_mixture(
         if not order:
             stop = "no component has enough points to split"
             break
+        # A large mixture splits several components per round (its EM work then grows
+        # linearly with the bound, not quadratically); if the batch does not lower the
+        # criterion, single splits are tried as for a small one.
+        k_free = int((~cur.fixed).sum())
+        n_batch = min(k_free // SPLIT_BATCH_SHARE if k_free > LARGE_K else 1,
+                      max_components - len(cur.weights))
+        tries = ([order[:n_batch]] if n_batch > 1 else []) + [[k] for k in order[:max_tries]]
         improved = False
-        for k in order[:max_tries]:
-            start = _split_start(xs[labels == k], cur, k, reg_covar, opts)
+        for ks in tries:
+            start = _split_start(xs, labels, cur, ks, reg_covar, opts)
             if start is None:
                 continue
-            cand, cand_labels = run(start, f"split {k}")
+            cand, cand_labels = run(start, "split " + ",".join(str(k) for k in ks))
             free_mass = n * cand.weights[~cand.fixed]
             if cand.crit < cur.crit and (free_mass >= min_points).all():
                 accept()
@@ -698,6 +722,17 @@ def fit_mixture(
 
     n_pruned = 0
     if xs is not x or refined:
+        # Coarse to fine for a large mixture: EM on nested random subsets growing by
+        # POLISH_GROWTH before all points, so that most of the way from the search's fit
+        # (long with many components on a small search subsample) is made where an
+        # iteration is cheap.
+        if (~cur.fixed).sum() > LARGE_K:
+            perm = rng.permutation(n)
+            size = len(xs) * POLISH_GROWTH
+            while size <= n // 2:
+                cur, _ = run(cur, f"polish {size}", x[np.sort(perm[:size])])
+                accept()
+                size *= POLISH_GROWTH
         cur, _ = run(cur, "polish", x)
         accept()
         # The search kept every free component at >= min_points of mass on a subsample, but
@@ -866,27 +901,41 @@ def _seed_component(cur: _State, xs: np.ndarray, frac: float, reg_covar: float) 
                   np.append(cur.j, np.nan))
 
 
-def _split_start(xk: np.ndarray, cur: _State, k: int, reg_covar: float, opts) -> _State | None:
-    """Start of the EM after splitting component k (its points ``xk``), or None.
+def _split_start(xs: np.ndarray, labels: np.ndarray, cur: _State, ks, reg_covar: float,
+                 opts) -> _State | None:
+    """Start of the EM after splitting each component of ``ks`` (sequence of indices), or None
+    when none of them can be split.
 
-    Two-means along the principal axis, then a local EM of the two halves on ``xk`` alone
-    (cheap: n_k points, two components), so that the EM over all components starts close to
-    its optimum and needs few iterations.
+    Each is split by two-means along its principal axis, then a local EM of the two halves on
+    its hard-assigned points alone (cheap: n_k points, two components), so that the EM over
+    all components starts close to its optimum and needs few iterations.  The split
+    components' halves go last, in the order of ``ks``.
     """
-    parts = _split_component(xk, cur.means[k], cur.covs[k], cur.weights[k], reg_covar)
-    if parts is None:
+    split = np.zeros(len(cur.weights), dtype=bool)
+    ws, mus, covs = [], [], []
+    for k in ks:
+        xk = xs[labels == k]
+        parts = _split_component(xk, cur.means[k], cur.covs[k], cur.weights[k], reg_covar)
+        if parts is None:
+            continue
+        w2, mu2, cov2 = parts
+        lw, lmu, lcov, _, _, status, _ = em.em_loop(
+            xk, w2 / w2.sum(), mu2, cov2, np.zeros(2, dtype=bool), False, opts["reg_covar"],
+            opts["tol"], opts["max_iter"])
+        if status != em.STATUS_EMPTY:
+            w2, mu2, cov2 = lw * cur.weights[k], lmu, lcov
+        split[k] = True
+        ws.append(w2)
+        mus.append(mu2)
+        covs.append(cov2)
+    if not split.any():
         return None
-    ws, mus, covs = parts
-    lw, lmu, lcov, _, _, status, _ = em.em_loop(
-        xk, ws / ws.sum(), mus, covs, np.zeros(2, dtype=bool), False, opts["reg_covar"],
-        opts["tol"], opts["max_iter"])
-    if status != em.STATUS_EMPTY:
-        ws, mus, covs = lw * cur.weights[k], lmu, lcov
-    keep = np.arange(len(cur.weights)) != k
-    return _State(np.concatenate([cur.weights[keep], ws]), np.vstack([cur.means[keep], mus]),
-                  np.concatenate([cur.covs[keep], covs]),
-                  np.concatenate([cur.fixed[keep], [False, False]]),
-                  np.concatenate([cur.j[keep], [np.nan, np.nan]]))
+    keep = ~split
+    n_new = 2 * len(ws)
+    return _State(np.concatenate([cur.weights[keep], *ws]), np.vstack([cur.means[keep], *mus]),
+                  np.concatenate([cur.covs[keep], *covs]),
+                  np.concatenate([cur.fixed[keep], np.zeros(n_new, dtype=bool)]),
+                  np.concatenate([cur.j[keep], np.full(n_new, np.nan)]))
 
 
 def _split_order(x, labels, cur: _State, min_points, entropy_k, subsample, blur, rng):
