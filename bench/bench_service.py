@@ -508,11 +508,12 @@ def bench_soak(seconds: float) -> dict:
 
 
 def _readers(pid: int) -> list[int]:
-    """The daemon's OpenNI2 reader children (multiprocessing spawn; not its resource tracker)."""
+    """The daemon's OpenNI2 reader children (``python -c`` running hw.openni2's
+    ``_child_main``)."""
     out = []
     for child in _children(pid):
         try:
-            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+            if b"_child_main" in Path(f"/proc/{child}/cmdline").read_bytes():
                 out.append(child)
         except OSError:
             pass
