@@ -9,6 +9,8 @@ the service's own timeouts); the whole file runs in about half a minute.
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import io
 import json
 import os
@@ -626,6 +628,90 @@ def test_a_hang_is_told_to_the_base_as_a_stall(tmp_path: Path, scene_frames, mon
             assert told < limit + 1.5, told
         finally:
             hang.release.set()
+
+
+class ParkedHost:
+    """A WatchHost whose base is parked with the camera delivering; what the watch sends is
+    kept in ``sent``."""
+
+    parked = True
+    camera_ok = True
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[str, Any]] = []
+
+    def may_pause(self) -> bool:
+        return False
+
+    def send_fault(self, code, text) -> None:
+        self.sent.append(("fault", code))
+
+    def send_pause(self, cause) -> None:
+        self.sent.append(("pause", cause))
+
+    def send_report(self, station, changes) -> int:
+        self.sent.append(("report", station))
+        return 1
+
+    def send_no_change(self, station, changes) -> None:
+        self.sent.append(("no_change", station))
+
+
+class FirstCheckOnly(concurrent.futures.Executor):
+    """Runs the first check at once, in the caller's thread; every later one never starts
+    (a check stuck in native code)."""
+
+    def __init__(self) -> None:
+        self.ran = False
+        self.stuck: list[concurrent.futures.Future] = []
+
+    def submit(self, fn, /, *args, **kwargs) -> concurrent.futures.Future:
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        if self.ran:
+            self.stuck.append(future)
+            return future
+        self.ran = True
+        future.set_result(fn(*args, **kwargs))
+        return future
+
+
+def test_a_watch_check_that_hangs_is_named_as_the_detectors_stall(scene_frames) -> None:
+    """The watch part beats when a check starts, not only when a result comes: a check that
+    hangs is the detector's stall, told when that check is past the bound, whatever the
+    check interval left between the last result and the hung check's start (a race that made
+    the watch's silence fire first, 'watch: no progress', when checks were quick)."""
+    from hw.depth import DepthFrame
+    from robot_change.change.params import ChangeParams
+    from robot_change.change.scene import build_scene
+    from robot_change.service.liveness import Progress
+    from robot_change.service.watch import GateOptions
+    from sim_fixtures import load_scene
+
+    sc = load_scene(SCENE)
+    depth = sc.reference_frames()
+    reference = build_scene(depth, intrinsics=sc.intrinsics)
+    clock = [100.0]
+    progress = Progress(1.0, clock=lambda: clock[0])
+    pool, host = FirstCheckOnly(), ParkedHost()
+    watch = StationWatch("office", reference, host,
+                         {"watch_m": 3, "watch_n": 5, "check_interval_ms": 100}, ChangeParams(),
+                         GateOptions(), pool, progress, collections.Counter(),
+                         collections.deque(maxlen=10), lambda: None)
+    watch.frame(DepthFrame(depth[0], 0, 0, sc.intrinsics), 0)
+    assert watch.step()  # the first check: done at once
+    clock[0] += 0.05
+    watch.frame(DepthFrame(depth[1], 33_333, 1, sc.intrinsics), 1)
+    assert watch.step()  # its result taken (the watch beats at 100.05); the next not due yet
+    assert watch.checks == 1 and not pool.stuck and host.sent == []  # no change, no fault
+    time.sleep(0.15)  # the check interval, in real time
+    clock[0] += 0.45
+    assert watch.step()  # the second check starts at 100.5 and hangs
+    assert len(pool.stuck) == 1
+    clock[0] += 0.8  # 1.25 s since the last result (past the watch's 1.1 s), 0.8 s into it
+    assert progress.stalled() == ""
+    clock[0] += 0.25  # 1.05 s into the hung check
+    assert progress.stalled().startswith("detector: WATCH office: the check of frame 1 has "
+                                         "not finished"), progress.stalled()
 
 
 def test_a_watch_that_stops_checking_is_a_stall_even_with_frames_arriving(

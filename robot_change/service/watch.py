@@ -119,8 +119,10 @@ class StationWatch:
     ``watch_n``, ``check_interval_ms``) and ``change``: the check's ChangeParams, both replaced
     by :meth:`configure` when SET_PARAM or a reload changes them.  ``pool`` runs the checks;
     ``progress`` tracks each check as a unit of work (part "detector") and that checks keep
-    finishing (part "watch"); ``counters`` gets ``watch_checks`` and ``gate_triggers``;
-    ``history`` gets one entry per check (t, seq, frame_index, changed, changed_in_window,
+    coming (part "watch": it beats when a check starts and when its result is taken, so a
+    check that hangs is past the detector's bound before the watch is silent past its own,
+    and is named as the detector's stall); ``counters`` gets ``watch_checks`` and
+    ``gate_triggers``; ``history`` gets one entry per check (t, seq, frame_index, changed, changed_in_window,
     action "pause" / "report" / "clear" / "", check_ms); ``on_done`` is called when a check
     ends (it wakes the controller).
     """
@@ -203,6 +205,7 @@ class StationWatch:
         # that never ends is a stalled detector (robot_change.service.liveness)
         work = self._progress.begin("detector", f"WATCH {self.station}: the check of frame "
                                     f"{frame.index}")
+        self._progress.beat("watch")
 
         def done(_future: concurrent.futures.Future) -> None:
             self._progress.end(work)
