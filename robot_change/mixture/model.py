@@ -49,11 +49,11 @@ N_PARAMS_COMPONENT = 9
 #: Default voxel leaf (m) the covariance floor is tied to when neither is given (the default
 #: leaf of robot_change.cloud.chain.CloudParams).
 DEFAULT_LEAF = 0.03
-#: Above this many free components (the default K bound) the fit changes gear, so that its work
-#: grows linearly with the bound, not quadratically: a round of the split search first tries
-#: splitting the K_free // SPLIT_BATCH_SHARE best-ranked components at once, and the final EM runs
-#: first on random subsets POLISH_GROWTH, POLISH_GROWTH**2, ... times the search subsample's
-#: size (while at most half the cloud), then on all points.
+#: Above this many free components (the default K bound) the fit changes gear, so that its
+#: work grows linearly with the bound, not quadratically: a round of the split search first
+#: tries splitting the K_free // SPLIT_BATCH_SHARE best-ranked components at once, and the
+#: final EM runs first on random subsets POLISH_GROWTH, POLISH_GROWTH**2, ... times the search
+#: subsample's size (while at most half the cloud), then on all points.
 LARGE_K = 16
 SPLIT_BATCH_SHARE = 8
 POLISH_GROWTH = 4

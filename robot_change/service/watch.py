@@ -122,9 +122,9 @@ class StationWatch:
     coming (part "watch": it beats when a check starts and when its result is taken, so a
     check that hangs is past the detector's bound before the watch is silent past its own,
     and is named as the detector's stall); ``counters`` gets ``watch_checks`` and
-    ``gate_triggers``; ``history`` gets one entry per check (t, seq, frame_index, changed, changed_in_window,
-    action "pause" / "report" / "clear" / "", check_ms); ``on_done`` is called when a check
-    ends (it wakes the controller).
+    ``gate_triggers``; ``history`` gets one entry per check (t, seq, frame_index, changed,
+    changed_in_window, action "pause" / "report" / "clear" / "", check_ms); ``on_done`` is
+    called when a check ends (it wakes the controller).
     """
 
     def __init__(self, station: str, reference: SceneModel, host: WatchHost,
