@@ -152,6 +152,31 @@ def test_reports_wait_in_the_spool_while_no_broker_runs_and_then_go_in_order(tmp
         publisher.close(1.0)
 
 
+class _WatchedSpool(Spool):
+    """A spool that notes the publisher's sent count each time a message leaves it."""
+
+    publisher: Publisher
+    sent_at_remove: list[int]
+
+    def remove(self, seq: int) -> None:
+        self.sent_at_remove.append(self.publisher.sent)
+        super().remove(seq)
+
+
+def test_an_acknowledged_message_is_counted_sent_before_it_leaves_the_spool(tmp_path):
+    # A reader must never see a message in neither place (the spool emptied, the count short):
+    # that race made the spool test above fail once in CI.
+    spool = _WatchedSpool(tmp_path / "s", 1 << 20)
+    spool.sent_at_remove = []
+    publisher = Publisher(BrokerSettings("mqtt://127.0.0.1:1"), "r3", spool)
+    spool.publisher = publisher
+    seqs = [spool.append("robot_change/r3/checks/dock", b'{"n": %d}' % n) for n in range(3)]
+    for mid, seq in enumerate(seqs, start=1):
+        publisher._inflight[mid] = seq
+        publisher._on_publish(None, None, mid, None, None)
+    assert spool.sent_at_remove == [1, 2, 3] and len(spool) == 0
+
+
 def test_an_untrusted_broker_certificate_and_wrong_credentials_are_clear_errors(tmp_path):
     certs = Certificates(tmp_path / "pki")
     with Broker(tmp_path / "broker", tls=certs, accounts={"r1": "right"}) as broker:

@@ -415,9 +415,10 @@ class Publisher:
                     _properties: Any) -> None:
         seq = self._inflight.pop(mid, None)
         if seq is not None:
-            self.spool.remove(seq)
+            # counted before it leaves the spool, so a reader never sees it in neither
             with self._lock:
                 self.sent += 1
+            self.spool.remove(seq)
         elif mid == self._offline_mid:
             self._offline_acked.set()
 
