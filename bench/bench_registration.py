@@ -22,7 +22,9 @@ held-out table-top set of issue 12, looked at once after the choice).
 One thread each; the methods alternate per pair and per run, so they share the machine's load.
 ``--against REV`` adds method ``base``: registration.py as it is at git revision REV (loaded from
 ``git show`` beside this one, in the same process), for an A/B of speed and accuracy; the
-median over pairs of the per-pair time ratio ours / base is printed per group.
+median over pairs of the per-pair time ratio ours / base is printed per group.  For ours (and
+base) each group also counts the wrong estimates (beyond 1 cm / 0.5 deg) and the right ones
+that name weak directions (``Registration.weak``): a wrong pose should say so.
 Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
 """
 
@@ -59,7 +61,8 @@ def _cloud(depth, intrinsics):
 
 
 def ours(ref, cur, intrinsics):
-    return register_depth(ref, cur, intrinsics).T_ref_from_cur
+    got = register_depth(ref, cur, intrinsics)
+    return got.T_ref_from_cur, got.weak
 
 
 def open3d_icp(ref, cur, intrinsics):
@@ -108,7 +111,8 @@ def at_revision(rev: str):
     spec.loader.exec_module(module)
 
     def base(ref, cur, intrinsics):
-        return module.register_depth(ref, cur, intrinsics).T_ref_from_cur
+        got = module.register_depth(ref, cur, intrinsics)
+        return got.T_ref_from_cur, got.weak
 
     return base
 
@@ -243,10 +247,11 @@ def main(argv=None):
                 times[m].append((time.perf_counter() - t0) * 1e3)
         row = {"pair": name}
         for m in methods:
-            err = invert(truth) @ est[m]
+            T, weak = est[m] if isinstance(est[m], tuple) else (est[m], None)
+            err = invert(truth) @ T
             row[m] = {"err_mm": float(np.linalg.norm(err[:3, 3]) * 1e3),
                       "err_deg": rotation_angle_deg(err[:3, :3]),
-                      "ms": statistics.median(times[m])}
+                      "ms": statistics.median(times[m]), "weak": weak}
         rows.append(row)
         print(f"{name:40s} " + "  ".join(f"{m} {row[m]['err_mm']:7.1f} mm {row[m]['err_deg']:5.2f}"
                                           f" deg {row[m]['ms']:6.1f} ms" for m in methods),
@@ -270,6 +275,12 @@ def main(argv=None):
             print(f"{group:8s} {m:11s} within 1 cm / 0.5 deg {ok}/{len(sel)}; median "
                   f"{s['median_err_mm']:.1f} mm {s['median_err_deg']:.3f} deg, max "
                   f"{s['max_err_mm']:.1f} mm {s['max_err_deg']:.2f} deg; {s['median_ms']:.1f} ms")
+            if sel[0][m]["weak"] is not None:  # a method that says which directions are weak
+                wrong = [r for r in sel if not (r[m]["err_mm"] <= 10 and r[m]["err_deg"] <= 0.5)]
+                s["wrong_said_weak"] = sum(1 for r in wrong if r[m]["weak"])
+                s["right_said_weak"] = sum(1 for r in sel if r[m]["weak"]) - s["wrong_said_weak"]
+                print(f"{group:8s} {m:11s} weak directions said: {s['wrong_said_weak']} of the "
+                      f"{len(wrong)} wrong, {s['right_said_weak']} of the {ok} right")
         if "ours" in methods and "base" in methods:
             ratio = statistics.median(r["ours"]["ms"] / r["base"]["ms"] for r in sel)
             summary[group]["ratio_ours_to_base"] = ratio

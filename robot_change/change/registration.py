@@ -69,6 +69,8 @@ __all__ = [
 #: (rotation vector, then translation), camera optical frame: rotations about x (right),
 #: y (down), z (forward), translations along them.
 AXES = ("rot_x", "rot_y", "rot_z", "x", "y", "z")
+#: A cell within this distance of a view's table plane is on it (metres).
+_ON_PLANE_M = 0.01
 
 _num = functools.partial(validate.number, "RegistrationParams")
 _int = functools.partial(validate.whole, "RegistrationParams")
@@ -135,6 +137,14 @@ class RegistrationParams:
     # compromise; the table and the objects that stayed put are the static part.  0: none.
     trim_rounds: int = 2
     trim_conflict_share: float = 0.5
+    # On a table top, at the final estimate: when more than table_outline_holes of each view's
+    # table cells (within 1 cm of its plane) that land in the other image land on no reading
+    # there, the two views' tables do not overlap at that pose (a wrong pose, or outlines
+    # that differ, as when nothing on the table stayed put and the crop changed): the
+    # directions in the table's plane (two slides, the turn about its normal) are reported
+    # weak.  At the right pose it is 0.002-0.015 (dropouts and the field of view's edge;
+    # tuning sample), at the wrong ones 0.03-0.20.  0: not checked.
+    table_outline_holes: float = 0.02
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -197,6 +207,7 @@ class RegistrationParams:
         _num("table_hole_weight", self.table_hole_weight, 0.0, 100.0)
         _int("trim_rounds", self.trim_rounds, 0, 20)
         _num("trim_conflict_share", self.trim_conflict_share, 0.0, 1.0)
+        _num("table_outline_holes", self.table_outline_holes, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
@@ -230,7 +241,9 @@ class Registration:
     ``seen_through``: the larger of the two whole views' fractions seen through by the other
     (finest level, floor and table included).  ``weak``: names
     (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
-    there is the starting value).  ``eigenvalues`` (6,) of the scaled normal matrix per unit
+    there is the starting value), and on a table top whose two tables do not overlap at the
+    estimate, the directions in the table's plane (not to be trusted:
+    ``RegistrationParams.table_outline_holes``).  ``eigenvalues`` (6,) of the scaled normal matrix per unit
     weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells`` current cells at the
     finest level; ``iterations`` run; ``ms`` the time taken; ``converged``.
     """
@@ -942,7 +955,13 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     fitness, rmse, n_pairs, n_cells = _fitness(ref_levels[-1], cur_levels[-1], T, params,
                                                min_cos, pairs)
     through = _contradiction(ref_levels[-1], cur_levels[-1], T, params)
-    return Registration(T, fitness, rmse, _weak_names(lam_n, vec, params.weak_eigenvalue),
+    weak = _weak_names(lam_n, vec, params.weak_eigenvalue)
+    if planes is not None and params.table_outline_holes > 0 and min(
+            _table_holes(ref_levels[-1], cur_levels[-1], invert(T), planes[0], params),
+            _table_holes(cur_levels[-1], ref_levels[-1], T, planes[1], params)
+    ) > params.table_outline_holes:
+        weak = tuple(dict.fromkeys(weak + _in_plane_names(planes[1])))
+    return Registration(T, fitness, rmse, weak,
                         lam_n, n_pairs, n_cells, iterations, converged,
                         (time.perf_counter() - t0) * 1e3, through)
 
@@ -1066,7 +1085,7 @@ def _weak_search(rl: _Level, cl: _Level, T: np.ndarray, A: np.ndarray,
 # --------------------------------------------------------------------------- table-plane starts
 
 
-def _dominant_plane(level: _Level, max_dist_m: float = 0.01, min_cos: float = 0.95,
+def _dominant_plane(level: _Level, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
                     n_seeds: int = 64) -> tuple[np.ndarray, float, float]:
     """The plane holding most cells of ``level``: each of ``n_seeds`` cells with a normal,
     evenly spaced in image order, proposes the plane through it along its normal; a cell
@@ -1181,7 +1200,7 @@ def _table_planes(ref_levels: list[_Level], cur_levels: list[_Level],
         F = _plane_frame(n, d)
         v = level.vertex.reshape(-1, 3)
         q = (v[v[:, 2] > 0] - F[:3, 3]) @ F[:3, :3]
-        on = q[np.abs(q[:, 2]) < 0.01, :2]
+        on = q[np.abs(q[:, 2]) < _ON_PLANE_M, :2]
         lo, hi = np.percentile(on, 2, axis=0), np.percentile(on, 98, axis=0)
         if float((hi - lo).max()) > params.table_max_extent_m:
             return None  # a floor, not a table top
@@ -1287,6 +1306,29 @@ def _without_changed_objects(rl: _Level, cl: _Level, planes: tuple[_TablePlane, 
         normal[drop] = 0.0
         out.append(dataclasses.replace(own, normal=normal))
     return out[0], out[1]
+
+
+def _table_holes(own: _Level, other: _Level, M: np.ndarray, plane: _TablePlane,
+                 params: RegistrationParams) -> float:
+    """Of the cells of ``own`` on its table ``plane`` (within ``_ON_PLANE_M``) that land in the
+    image of ``other`` when moved by ``M`` (4, 4) other-from-own, the share that land on no
+    reading there (:func:`_seen_through`'s holes)."""
+    on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < _ON_PLANE_M)
+    table = np.where(on[:, :, None], own.vertex, 0.0)
+    _through, compared, holes = _seen_through(table, other.vertex, M[:3, :3].copy(),
+                                              M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                              other.cy, params.seen_through_margin_m,
+                                              params.seen_through_margin_per_m2)
+    return holes / (holes + compared) if holes + compared else 0.0
+
+
+def _in_plane_names(plane: _TablePlane) -> tuple[str, ...]:
+    """The :data:`AXES` names nearest to the motions that keep a view on its table ``plane``:
+    the slides along the plane's two axes and the turn about its normal (camera frame)."""
+    F = plane.frame
+    names = [AXES[3 + int(np.argmax(np.abs(F[:3, k])))] for k in (0, 1)]
+    names.append(AXES[int(np.argmax(np.abs(F[:3, 2])))])
+    return tuple(dict.fromkeys(names))
 
 
 def _fitness(rl: _Level, cl: _Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
