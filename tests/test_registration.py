@@ -522,8 +522,8 @@ def test_table_top_starts_put_one_start_near_the_truth():
 
 
 def test_tables_that_do_not_overlap_leave_the_table_plane_directions_weak():
-    """Every box moved away and the two views cut the table differently (a narrower and
-    deeper one against a wider one, as a crop that changed): whatever pose is estimated,
+    """Every box moved and the two views cut the table differently (a narrower and deeper
+    one against a wider one, as a crop that changed): whatever pose is estimated,
     each view's table lands on the other's no reading, so the slides in the table's plane and
     the turn about its normal are reported weak, never guessed (the normal equations alone
     flag one of them).  The same views with the same table leave nothing weak."""
@@ -545,12 +545,13 @@ def test_tables_that_do_not_overlap_leave_the_table_plane_directions_weak():
     assert set(in_plane) <= set(got.weak)
     off = register_depth(ref, cur, INTR, params.replace(table_outline_holes=0.0))
     assert set(off.weak) < set(got.weak)  # the check adds what the eigenvalues miss
-    same = register_depth(ref, _table_scene(W_cur), INTR)
-    assert same.weak == ()
+    same_cur = _table_scene(W_cur)
+    assert register_depth(ref, same_cur, INTR).weak == ()
     truth = invert(W_ref) @ W_cur
-    same_rl, same_cl = rl, reg_mod._levels(_table_scene(W_cur), INTR, params)
-    assert max(reg_mod._table_holes(same_rl[-1], same_cl[-1], invert(truth), planes[0], params),
-               reg_mod._table_holes(same_cl[-1], same_rl[-1], truth, planes[1], params)) < 0.02
+    same_cl = reg_mod._levels(same_cur, INTR, params)
+    same_planes = reg_mod._table_planes(rl, same_cl, params)
+    assert max(reg_mod._table_holes(rl[-1], same_cl[-1], invert(truth), same_planes[0], params),
+               reg_mod._table_holes(same_cl[-1], rl[-1], truth, same_planes[1], params)) < 0.02
 
 
 def test_room_views_are_not_table_tops(office_pair):

@@ -142,8 +142,9 @@ class RegistrationParams:
     # there, the two views' tables do not overlap at that pose (a wrong pose, or outlines
     # that differ, as when nothing on the table stayed put and the crop changed): the
     # directions in the table's plane (two slides, the turn about its normal) are reported
-    # weak.  At the right pose it is 0.002-0.015 (dropouts and the field of view's edge;
-    # tuning sample), at the wrong ones 0.03-0.20.  0: not checked.
+    # weak.  The smaller of the two views' shares was 0.001-0.015 at right poses (dropouts
+    # and the field of view's edge; one of 147 at 0.032) and 0.027-0.087 at 13 of 15 wrong
+    # ones on the table-top tuning sample (docs/benchmarks.md).  0: not checked.
     table_outline_holes: float = 0.02
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
@@ -243,9 +244,10 @@ class Registration:
     (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
     there is the starting value), and on a table top whose two tables do not overlap at the
     estimate, the directions in the table's plane (not to be trusted:
-    ``RegistrationParams.table_outline_holes``).  ``eigenvalues`` (6,) of the scaled normal matrix per unit
-    weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells`` current cells at the
-    finest level; ``iterations`` run; ``ms`` the time taken; ``converged``.
+    ``RegistrationParams.table_outline_holes``).  ``eigenvalues`` (6,) of the scaled normal
+    matrix per unit weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells``
+    current cells at the finest level; ``iterations`` run; ``ms`` the time taken;
+    ``converged``.
     """
 
     T_ref_from_cur: np.ndarray
