@@ -417,6 +417,9 @@ def test_bad_input_is_refused_with_typed_errors(office_pair):
         RegistrationParams(iterations=(1, 2))
     with pytest.raises(InputError, match="RegistrationParams"):
         ChangeParams(registration="yes")
+    for bad in (-0.1, 1.5, "0.02", float("nan")):
+        with pytest.raises(InputError, match="table_outline_holes"):
+            RegistrationParams(table_outline_holes=bad)
 
 
 # --------------------------------------------------------------------------- table-plane starts
