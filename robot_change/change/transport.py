@@ -941,8 +941,9 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
             mass = masses[idx]
             for j in range(n):
                 bb[j] = 0.0 if (j == k or removed[j]) else b[j] / mass
-            try_bi[:] = cur_bi
-            try_bj[:] = cur_bj
+            for e in range(try_bi.shape[0]):
+                try_bi[e] = cur_bi[e]
+                try_bj[e] = cur_bj[e]
             status, piv = _warm_solve(a, bb, cost, tol_c, cutoff, bland_after, try_bi, try_bj,
                                       ws)
             n_solves += 1
@@ -958,8 +959,9 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
             if value < best or (value == best and k < best_k):
                 best = value
                 best_k = k
-                best_bi[:] = try_bi
-                best_bj[:] = try_bj
+                for e in range(best_bi.shape[0]):
+                    best_bi[e] = try_bi[e]
+                    best_bj[e] = try_bj[e]
         if not (best_k >= 0 and best < threshold):
             stop = _STOP_NO_IMPROVEMENT
             break
@@ -968,8 +970,9 @@ def _greedy_kernel(a, b, cost, candidates, max_removals, compute_single, rel_tol
         steps += 1
         emd_after[steps] = best
         current = best
-        cur_bi[:] = best_bi
-        cur_bj[:] = best_bj
+        for e in range(cur_bi.shape[0]):
+            cur_bi[e] = best_bi[e]
+            cur_bj[e] = best_bj[e]
     return (order[:steps].copy(), emd_after[:steps + 1].copy(), emd_single, n_solves, n_pivots,
             stop, _OK)
 

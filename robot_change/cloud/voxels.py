@@ -186,7 +186,8 @@ def _radix_order(codes, bits):
         src, dst = dst, src
         shift += digit
     if passes % 2 == 1:
-        codes[:] = tmp_codes
+        for j in range(m):  # element by element: an array-to-slice copy costs ~2 s of compile
+            codes[j] = tmp_codes[j]
     return src, dst
 
 

@@ -540,8 +540,10 @@ def em_loop(points, weights, means, covariances, fixed, fix_weights, reg_covar, 
                 continue
             if nk[k] < EMPTY_MASS:
                 return w, mu, cov, lp, it, STATUS_EMPTY, k
-            mu[k] = new_mu[k]
-            cov[k] = new_cov[k]
+            for a in range(3):  # element by element: an array-to-slice copy costs ~2 s of compile
+                mu[k, a] = new_mu[k, a]
+                for b in range(3):
+                    cov[k, a, b] = new_cov[k, a, b]
         for k in range(k_n):
             if fixed[k] and fix_weights and fixed_w_total > 0.0:
                 w[k] = weights[k] / fixed_w_total * fixed_mass / n
@@ -665,8 +667,10 @@ def em_loop_background(points, log_bg, weights, means, covariances, reg_covar, t
         for k in range(k_n):
             if nk[k + 1] < EMPTY_MASS:
                 return w, mu, cov, lp, it, STATUS_EMPTY, k
-            mu[k] = new_mu[k]
-            cov[k] = new_cov[k]
+            for a in range(3):  # element by element: an array-to-slice copy costs ~2 s of compile
+                mu[k, a] = new_mu[k, a]
+                for b in range(3):
+                    cov[k, a, b] = new_cov[k, a, b]
             free_mass += nk[k + 1]
         if fix_background:
             for k in range(k_n):
@@ -744,8 +748,9 @@ def two_means(points, c0, c1, n_lloyd, reg_covar):
     n = points.shape[0]
     side = np.zeros(n, dtype=np.bool_)
     cen = np.empty((2, 3))
-    cen[0] = c0
-    cen[1] = c1
+    for a in range(3):  # element by element: an array-to-slice copy costs ~2 s of compile
+        cen[0, a] = c0[a]
+        cen[1, a] = c1[a]
     counts = np.zeros(2)
     means = np.zeros((2, 3))
     covs = np.zeros((2, 3, 3))

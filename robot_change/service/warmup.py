@@ -2,8 +2,8 @@
 
 On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
 process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
-transport's, the free-space check's and the regions' kernels into the cache while this process
-compiles the cloud's and the mixture's (the two shares take about as long: ~25 s each on
+transport's and the regions' kernels into the cache while this process compiles the cloud's,
+the mixture's and the free-space check's (the two shares take about as long: ~18-20 s each on
 the 2-core test machine); then the whole capture-and-check path runs here once,
 loading what the helper left.  A kernel the helper did not leave (another argument type, or
 the helper failed) is compiled here then: the split only saves time, it is never needed.
@@ -64,10 +64,11 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
-    check: a read-only reference image, a writable current one), the transport's (exact
-    and greedy EMD on mixture-sized problems), the free-space check's and the regions'."""
+    check: a read-only reference image, a writable current one), the transport's (the greedy
+    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path),
+    the free-space check's and the regions'."""
     from robot_change.change import registration
-    from robot_change.change.transport import emd, greedy_emd, ground_distance
+    from robot_change.change.transport import greedy_emd, ground_distance
 
     cam, rooms = _tiny_scene()
     for before, after in (rooms, rooms[::-1]):
@@ -75,7 +76,7 @@ def _helper_share() -> None:
         reference.setflags(write=False)
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
-    _free_space_and_region_kernels(cam, rooms)
+    _region_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -83,19 +84,16 @@ def _helper_share() -> None:
         covs_b = np.repeat(np.eye(3)[None] * 0.02, k + 2, axis=0)
         cost = ground_distance(means_a, means_b, covs_a, covs_b, kind="wasserstein2")
         weights_a, weights_b = rng.random(k) + 0.1, rng.random(k + 2) + 0.1
-        emd(weights_a, weights_b, cost)
         candidates = np.zeros(k + 2, dtype=bool)
         candidates[k:] = True
         greedy_emd(weights_a, weights_b, cost, candidates, 2)
 
 
-def _free_space_and_region_kernels(cam: Intrinsics, rooms) -> None:
-    """The free-space check's and the regions' kernels, with the argument types a reference's
-    cloud gives them (a read-only (H, W) int32 pixel -> point map, uint16 depth images, int64
-    voxel keys), on the synthetic rooms without cleaning them (those kernels are the other
-    share's)."""
+def _free_space_kernels(cam: Intrinsics, rooms) -> None:
+    """The free-space check's kernels, with the argument types a reference's cloud gives them
+    (a read-only (H, W) int32 pixel -> point map, uint16 depth images), on the synthetic rooms
+    without cleaning them."""
     from robot_change.change.free_space import free_space_votes
-    from robot_change.change.regions import label_voxel_components
 
     offset = np.eye(4)
     offset[:3, 3] = (0.01, 0.0, 0.0)
@@ -107,15 +105,22 @@ def _free_space_and_region_kernels(cam: Intrinsics, rooms) -> None:
         n_points = int(pixel_voxel.max()) + 1
         free_space_votes(pixel_voxel, after, before.copy(), n_points, 0.03, 0.004, 3, 5, True,
                          intrinsics=cam, other_from_own=offset)
-        keys = np.arange(n_points, dtype=np.int64) * 3
-        keys.setflags(write=False)
-        label_voxel_components(keys, 1)
+
+
+def _region_kernels() -> None:
+    """The regions' kernels, with the argument type a cloud gives them (read-only int64 voxel
+    keys)."""
+    from robot_change.change.regions import label_voxel_components
+
+    keys = np.arange(500, dtype=np.int64) * 3
+    keys.setflags(write=False)
+    label_voxel_components(keys, 1)
 
 
 def _own_share(config: Config) -> None:
-    """This process's share while the helper runs: the cloud's and the mixture's kernels (a
-    reference built, the current's mixture, the novelty fit over a background), without
-    registration, EMD, the free-space check or regions."""
+    """This process's share while the helper runs: the cloud's, the mixture's (a reference
+    built, the current's mixture, the novelty fit over a background) and the free-space
+    check's kernels, without registration, EMD or regions."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
@@ -135,6 +140,7 @@ def _own_share(config: Config) -> None:
                                       mix.covariances[:1], leaf=params.cloud.leaf_m, tol=1e-2)
         posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
         del refit
+    _free_space_kernels(cam, rooms)
 
 
 def _start_helper() -> subprocess.Popen | None:
