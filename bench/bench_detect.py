@@ -146,6 +146,8 @@ def main(argv=None) -> int:
     if args.worker:
         worker(scenes, args.threads)
         return 0
+    if args.ab is not None and not (args.ab / "robot_change").is_dir():
+        raise SystemExit(f"--ab {args.ab}: not a checkout of robot_change")
     workers = [Worker(root, scenes, args.threads)]
     if args.ab is not None:
         workers.append(Worker(args.ab.resolve(), scenes, args.ab_threads or args.threads))

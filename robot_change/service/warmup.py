@@ -65,8 +65,8 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
     check: a read-only reference image, a writable current one), the transport's (the greedy
-    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path),
-    the free-space check's and the regions'."""
+    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path)
+    and the regions'."""
     from robot_change.change import registration
     from robot_change.change.transport import greedy_emd, ground_distance
 
