@@ -40,7 +40,8 @@ def _python(code_or_args: list[str], cache: Path, timeout: float = 300.0):
 def test_the_helpers_kernels_are_the_ones_the_whole_path_loads(tmp_path):
     """After the helper's share alone has filled an empty cache, the capture-and-check path
     compiles nothing of registration's or transport's: the helper left exactly what it
-    needs (same argument types).  It compiles the cloud's and mixture's kernels itself."""
+    needs (same argument types).  It compiles the cloud's, mixture's and free-space check's
+    kernels itself, none of them with an array-to-slice copy."""
     cache = tmp_path / "cache"
     cache.mkdir()
     helper = _python(["-m", "robot_change.service.warmup", "--helper", str(os.getpid())],
