@@ -565,8 +565,9 @@ def test_tables_that_do_not_overlap_leave_the_table_plane_directions_weak():
 def test_a_table_where_no_object_stayed_put_leaves_the_table_plane_directions_weak():
     """Every box moved (the same table, the same outline): no object cell fits the other view
     at the estimate, so the pose in the table's plane rests on the outline alone and is
-    reported weak, as on a bare table.  With one box left where it was, its cells fit and
-    nothing is weak; ``table_static_share=0`` turns the check off."""
+    reported weak, as on a bare table.  With two boxes left where they were (one moved, one
+    taken away), their cells fit and nothing is weak; ``table_static_share=0`` turns the
+    check off."""
     W_ref = _camera_over_table(0.0, 0.0, 0.0)
     W_cur = _camera_over_table(0.03, -0.02, 1.5)
     truth = invert(W_ref) @ W_cur
