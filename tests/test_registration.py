@@ -625,6 +625,31 @@ def test_one_low_box_on_a_table_names_every_table_plane_direction_weak():
                                         min_cos) > params.table_static_share  # not that check
 
 
+def test_the_reference_says_whether_the_station_is_a_table_top():
+    """A big box (60 x 50 x 30 cm) put on the table leaves the table under
+    ``table_plane_fraction`` of the current's cells; the station is still a table top (the
+    reference says so) and the current's dominant plane is that table.  A current whose
+    dominant plane is turned further than ``max_rotation_deg`` from the reference's is not
+    the table seen again."""
+    W_ref = _camera_over_table(0.0, 0.0, 0.0)
+    W_cur = _camera_over_table(0.04, -0.03, 2.0)
+    params = RegistrationParams()
+    ref = _table_scene(W_ref)
+    cur = _table_scene(W_cur, boxes=_BOXES + ((0.0, 0.0, 0.6, 0.5, 0.3),))
+    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
+    assert reg_mod._dominant_plane(rl[0])[2] > params.table_plane_fraction
+    _n, d, frac = reg_mod._dominant_plane(cl[0])
+    assert frac < params.table_plane_fraction and d == pytest.approx(0.6, abs=0.01)
+    planes = reg_mod._table_planes(rl, cl, params)
+    assert planes is not None
+    got = register_depth(ref, cur, INTR)  # the box hides two of the three boxes that stayed
+    assert set(reg_mod._in_plane_names(planes[1])) <= set(got.weak), got.weak
+    tilted = W_cur.copy()
+    tilted[:3, :3] = W_cur[:3, :3] @ rpy_deg_to_rotation(params.max_rotation_deg + 5.0, 0, 0)
+    assert reg_mod._table_planes(rl, reg_mod._levels(_table_scene(tilted), INTR, params),
+                                 params) is None
+
+
 def test_room_views_are_not_table_tops(office_pair):
     """A room's floor is larger than a table top (table_max_extent_m): no table planes, so no
     starts and no trimming of objects."""

@@ -109,9 +109,10 @@ class RegistrationParams:
     # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
     # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
     wide_cut_m: float = 0.2
-    # Table-plane starts (0: none): when the dominant plane of the coarsest level holds at
-    # least table_plane_fraction of its cells and spans at most table_max_extent_m (a table
-    # top: 0.63-0.91 of the cells, 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
+    # Table-plane starts (0: none): when the dominant plane of the reference's coarsest level
+    # holds at least table_plane_fraction of its cells (a table top: 0.63-0.91 of the cells;
+    # the current's need only be that plane again), and both views' span at most
+    # table_max_extent_m (a table top 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
     # two views are drawn top-down on that plane (table_cell_m cells: +1 above it by more than
     # table_object_m, -1 on it, 0 unseen) and cross-correlated over in-plane shifts (FFT) for
     # yaws about its normal out to table_yaw_deg in table_yaw_step_deg steps; the
@@ -1197,15 +1198,21 @@ class _TablePlane:
 
 def _table_planes(ref_levels: list[_Level], cur_levels: list[_Level],
                   params: RegistrationParams) -> tuple[_TablePlane, _TablePlane] | None:
-    """The (reference, current) table planes when the views are of a table top, else None:
-    each view's dominant plane (:func:`_dominant_plane`, coarsest level) must hold
-    ``table_plane_fraction`` of its cells and its supporters (2-98 %) span no more than
-    ``table_max_extent_m`` in either plane direction (a room's floor is larger)."""
+    """The (reference, current) table planes when the views are of a table top, else None.
+    Each view's dominant plane (:func:`_dominant_plane`, coarsest level) must have its
+    supporters (2-98 %) span no more than ``table_max_extent_m`` in either plane direction (a
+    room's floor is larger).  Whether the station is a table top is the reference's to say:
+    its plane must hold ``table_plane_fraction`` of its cells.  The current's plane need only
+    be that table seen again, its normal within ``max_rotation_deg`` of the reference's: a
+    revisit displaced sideways sees less of the table and more of what lies beyond it."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
         n, d, frac = _dominant_plane(level)
-        if frac < params.table_plane_fraction:
+        if frac == 0.0 or (not planes and frac < params.table_plane_fraction):
             return None
+        if planes and float(n @ planes[0].frame[:3, 2]) < math.cos(
+                math.radians(params.max_rotation_deg)):
+            return None  # not the reference's table
         F = _plane_frame(n, d)
         v = level.vertex.reshape(-1, 3)
         q = (v[v[:, 2] > 0] - F[:3, 3]) @ F[:3, :3]
