@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.change import registration as reg_mod
+from robot_change.change.registration import agreement, icp, pyramid, table_top
 from robot_change.change.detect import detect_changes
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import (
@@ -152,12 +152,12 @@ def test_vertex_and_merge_levels_match_numpy(office_pair):
     crop = np.ascontiguousarray(ref[100:196, 200:328])  # (96, 128), edges and the floor
     intr = Intrinsics(128, 96, 525.0, 525.0, 319.5 - 200, 239.5 - 100)
     for f in (4, 8):
-        got_v, got_c = reg_mod._vertex_level(crop, f, intr.fx, intr.fy, intr.cx, intr.cy, 400,
+        got_v, got_c = pyramid._vertex_level(crop, f, intr.fx, intr.fy, intr.cx, intr.cy, 400,
                                              5000, 0.03, 2.0)
         want_v, want_c = _vertex_twin(crop, f, intr, 400, 5000, 0.03, 2.0)
         np.testing.assert_array_equal(got_c, want_c)
         np.testing.assert_allclose(got_v, want_v, rtol=1e-6, atol=1e-7)
-    got = reg_mod._merge_level(got_v, got_c, 0.03, 2.0 * 16 / 525.0)
+    got = pyramid._merge_level(got_v, got_c, 0.03, 2.0 * 16 / 525.0)
     want = _merge_twin(got_v, got_c, 0.03, 2.0 * 16 / 525.0)
     np.testing.assert_array_equal(got[1], want[1])
     np.testing.assert_allclose(got[0], want[0], rtol=1e-6, atol=1e-7)
@@ -167,14 +167,14 @@ def test_vertex_and_merge_levels_match_numpy(office_pair):
 def test_normal_map_and_association_match_numpy(office_pair):
     ref, cur, sc = office_pair
     params = RegistrationParams()
-    rl = reg_mod._levels(ref, INTR, params)[1]
-    cl = reg_mod._levels(cur, INTR, params)[1]
-    np.testing.assert_allclose(reg_mod._normal_map(rl.vertex, 8.0 * 8 / INTR.fx),
+    rl = pyramid.levels(ref, INTR, params)[1]
+    cl = pyramid.levels(cur, INTR, params)[1]
+    np.testing.assert_allclose(pyramid._normal_map(rl.vertex, 8.0 * 8 / INTR.fx),
                                _normal_twin(rl.vertex, 8.0 * 8 / INTR.fx), atol=1e-6)
     T = sc.T_ref_from_cur
     n_cells = cl.vertex.shape[0] * cl.vertex.shape[1]
     res, jac, zs = np.empty(n_cells), np.empty((n_cells, 6)), np.empty(n_cells)
-    n = reg_mod._associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+    n = icp._associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
                            T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8, res, jac, zs)
     w_res, w_jac, w_zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3],
                                          T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8)
@@ -182,7 +182,7 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(res[:n], w_res, atol=1e-6)
     np.testing.assert_allclose(jac[:n], w_jac, atol=1e-6)
     np.testing.assert_allclose(zs[:n], w_zs, atol=1e-6)
-    inliers = reg_mod._count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal,
+    inliers = icp.count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal,
                                      T[:3, :3].copy(), T[:3, 3].copy(), rl.fx, rl.fy, rl.cx,
                                      rl.cy, 0.1, 0.8, 3.0, res, jac, zs)
     sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
@@ -205,11 +205,11 @@ def _weighted_system_twin(res, jac, zs, c, min_cut_m):
 def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
     ref, cur, sc = office_pair
     params = RegistrationParams()
-    rl = reg_mod._levels(ref, INTR, params)[-1]
-    cl = reg_mod._levels(cur, INTR, params)[-1]
-    pairs = reg_mod._Pairs(cl)
+    rl = pyramid.levels(ref, INTR, params)[-1]
+    cl = pyramid.levels(cur, INTR, params)[-1]
+    pairs = icp.Pairs(cl)
     n = pairs.associate(rl, cl, np.eye(4), 0.1, 0.8)  # identity: many large residuals
-    A, b, wsum, radius = reg_mod._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
+    A, b, wsum, radius = icp._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
                                                   min_cut_m)
     wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
                                                    tukey_c, min_cut_m)
@@ -238,10 +238,10 @@ def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
 def test_seen_through_matches_numpy(office_pair):
     ref, cur, sc = office_pair
     params = RegistrationParams()
-    rl = reg_mod._levels(ref, INTR, params)[-1]
-    cl = reg_mod._levels(cur, INTR, params)[-1]
+    rl = pyramid.levels(ref, INTR, params)[-1]
+    cl = pyramid.levels(cur, INTR, params)[-1]
     T = sc.T_ref_from_cur
-    got = reg_mod._seen_through(cl.vertex, rl.vertex, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
+    got = agreement.seen_through(cl.vertex, rl.vertex, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
                                 rl.fy, rl.cx, rl.cy, 0.03, 0.004)
     want = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx,
                               rl.cy, 0.03, 0.004)
@@ -257,14 +257,14 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     view that land on no reading of the other."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
-    rl = reg_mod._levels(ref, INTR, params)[1]
-    cl = reg_mod._levels(cur, INTR, params)[1]
+    rl = pyramid.levels(ref, INTR, params)[1]
+    cl = pyramid.levels(cur, INTR, params)[1]
     T = sc.T_ref_from_cur
     tilt = rpy_deg_to_rotation(1.0, -2.0, 3.0)
     rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
     transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
-    pairs = reg_mod._Pairs(cl)
-    got = reg_mod._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
+    pairs = icp.Pairs(cl)
+    got = agreement._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
                                rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways,
                                hole_weight, pairs.res, pairs.jac, pairs.zs)
     for score, rot, t in zip(got, rots, transs):
@@ -312,12 +312,12 @@ def test_cell_states_match_numpy(office_pair, level):
     """Per cell: 2 seen through or paired beyond 3 sigmas, 1 paired within, 0 otherwise."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
-    rl = reg_mod._levels(ref, INTR, params)[level]
-    cl = reg_mod._levels(cur, INTR, params)[level]
+    rl = pyramid.levels(ref, INTR, params)[level]
+    cl = pyramid.levels(cur, INTR, params)[level]
     for T in (sc.T_ref_from_cur, np.eye(4)):
         args = (cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(),
                 rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, 3.0, 0.03, 0.004)
-        got = reg_mod._cell_states(*args)
+        got = table_top._cell_states(*args)
         np.testing.assert_array_equal(got, _cell_states_twin(*args))
         assert (got == 1).sum() > 100 and (got == 2).sum() > 10
 
@@ -493,11 +493,11 @@ def _camera_over_table(x, y, yaw_deg):
 
 def test_plane_grid_matches_numpy(office_pair):
     ref, _, _ = office_pair
-    lv = reg_mod._levels(ref, INTR, RegistrationParams())[2]
-    n, d, frac = reg_mod._dominant_plane(reg_mod._levels(ref, INTR, RegistrationParams())[0])
-    to_plane = invert(reg_mod._plane_frame(n, d))
+    lv = pyramid.levels(ref, INTR, RegistrationParams())[2]
+    n, d, frac = table_top._dominant_plane(pyramid.levels(ref, INTR, RegistrationParams())[0])
+    to_plane = invert(table_top._plane_frame(n, d))
     args = (0.05, -3.0, -1.0, 96, 120, 0.015, 0.03)
-    got = reg_mod._plane_grid(lv.vertex, to_plane[:3, :3].copy(), to_plane[:3, 3].copy(), *args)
+    got = table_top._plane_grid(lv.vertex, to_plane[:3, :3].copy(), to_plane[:3, 3].copy(), *args)
     want = _plane_grid_twin(lv.vertex, to_plane[:3, :3], to_plane[:3, 3], *args)
     np.testing.assert_array_equal(got, want)
     assert (got == 1).sum() > 100 and (got == -1).sum() > 100  # floor and things on it
@@ -510,12 +510,12 @@ def test_table_top_starts_put_one_start_near_the_truth():
     ref, cur = _table_scene(W_ref), _table_scene(W_cur)
     truth = invert(W_ref) @ W_cur  # T_ref_from_cur
     params = RegistrationParams()
-    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
-    n, d, frac = reg_mod._dominant_plane(rl[0])
+    rl, cl = pyramid.levels(ref, INTR, params), pyramid.levels(cur, INTR, params)
+    n, d, frac = table_top._dominant_plane(rl[0])
     assert frac > params.table_plane_fraction and d == pytest.approx(0.6, abs=0.01)
-    planes = reg_mod._table_planes(rl, cl, params)
+    planes = table_top.table_planes(rl, cl, params)
     assert planes is not None
-    starts = reg_mod._table_starts(rl, cl, planes, params)
+    starts = table_top.table_starts(rl, cl, planes, params)
     assert 1 <= len(starts) <= params.table_starts
     errs = [(np.linalg.norm(e[:3, 3]), rotation_angle_deg(e[:3, :3]))
             for e in (invert(truth) @ s for s in starts)]
@@ -537,29 +537,29 @@ def test_tables_that_do_not_overlap_leave_the_table_plane_directions_weak():
     ref = _table_scene(W_ref)
     cur = _table_scene(W_cur, table=(-0.3, 0.3, -0.4, 0.6), boxes=((0.0, 0.4, 0.1, 0.1, 0.1),))
     got = register_depth(ref, cur, INTR)
-    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
-    planes = reg_mod._table_planes(rl, cl, params)
+    rl, cl = pyramid.levels(ref, INTR, params), pyramid.levels(cur, INTR, params)
+    planes = table_top.table_planes(rl, cl, params)
     assert planes is not None
     T = got.T_ref_from_cur
-    holes = (reg_mod._table_holes(rl[-1], cl[-1], invert(T), planes[0], params),
-             reg_mod._table_holes(cl[-1], rl[-1], T, planes[1], params))
+    holes = (table_top._table_holes(rl[-1], cl[-1], invert(T), planes[0], params),
+             table_top._table_holes(cl[-1], rl[-1], T, planes[1], params))
     assert min(holes) > params.table_outline_holes, holes
-    in_plane = reg_mod._in_plane_names(planes[1])
+    in_plane = table_top.in_plane_names(planes[1])
     assert len(in_plane) == 3 and "x" in in_plane  # the table's width runs along camera x
     assert set(in_plane) <= set(got.weak)
     # the outline check alone says it (every box moved too: the next test's check is off)
     min_cos = np.cos(np.radians(params.max_normal_angle_deg))
-    assert reg_mod._table_pose_weak(rl[-1], cl[-1], T, planes, (), params.replace(
+    assert table_top.table_pose_weak(rl[-1], cl[-1], T, planes, (), params.replace(
         table_static_share=0.0), min_cos)
-    assert not reg_mod._table_pose_weak(rl[-1], cl[-1], T, planes, (), params.replace(
+    assert not table_top.table_pose_weak(rl[-1], cl[-1], T, planes, (), params.replace(
         table_static_share=0.0, table_outline_holes=0.0), min_cos)
     same_cur = _table_scene(W_cur)
     assert register_depth(ref, same_cur, INTR).weak == ()
     truth = invert(W_ref) @ W_cur
-    same_cl = reg_mod._levels(same_cur, INTR, params)
-    same_planes = reg_mod._table_planes(rl, same_cl, params)
-    assert max(reg_mod._table_holes(rl[-1], same_cl[-1], invert(truth), same_planes[0], params),
-               reg_mod._table_holes(same_cl[-1], rl[-1], truth, same_planes[1], params)) < 0.02
+    same_cl = pyramid.levels(same_cur, INTR, params)
+    same_planes = table_top.table_planes(rl, same_cl, params)
+    assert max(table_top._table_holes(rl[-1], same_cl[-1], invert(truth), same_planes[0], params),
+               table_top._table_holes(same_cl[-1], rl[-1], truth, same_planes[1], params)) < 0.02
 
 
 def test_a_table_where_no_object_stayed_put_leaves_the_table_plane_directions_weak():
@@ -575,18 +575,18 @@ def test_a_table_where_no_object_stayed_put_leaves_the_table_plane_directions_we
     ref = _table_scene(W_ref)
     moved = ((0.05, 0.3, 0.12, 0.08, 0.10), (-0.3, -0.2, 0.08, 0.08, 0.2),
              (0.3, -0.1, 0.2, 0.1, 0.05))
-    rl = reg_mod._levels(ref, INTR, params)
+    rl = pyramid.levels(ref, INTR, params)
     min_cos = np.cos(np.radians(params.max_normal_angle_deg))
     for boxes, stayed in ((moved, False), (_BOXES[:2] + moved[:1], True)):
         cur = _table_scene(W_cur, boxes=boxes)
         got = register_depth(ref, cur, INTR)
         err = invert(truth) @ got.T_ref_from_cur
-        cl = reg_mod._levels(cur, INTR, params)
-        planes = reg_mod._table_planes(rl, cl, params)
+        cl = pyramid.levels(cur, INTR, params)
+        planes = table_top.table_planes(rl, cl, params)
         assert planes is not None
-        share = reg_mod._static_object_share(rl[-1], cl[-1], got.T_ref_from_cur, planes,
+        share = table_top._static_object_share(rl[-1], cl[-1], got.T_ref_from_cur, planes,
                                              params, min_cos)
-        in_plane = set(reg_mod._in_plane_names(planes[1]))
+        in_plane = set(table_top.in_plane_names(planes[1]))
         if stayed:
             assert np.linalg.norm(err[:3, 3]) < 0.01 and rotation_angle_deg(err[:3, :3]) < 0.5
             assert share > params.table_static_share and got.weak == (), (share, got.weak)
@@ -594,15 +594,15 @@ def test_a_table_where_no_object_stayed_put_leaves_the_table_plane_directions_we
             assert share < params.table_static_share, share
             assert in_plane <= set(got.weak), got.weak
             alone = params.replace(table_outline_holes=0.0)  # this check alone says it
-            assert reg_mod._table_pose_weak(rl[-1], cl[-1], got.T_ref_from_cur, planes, (),
+            assert table_top.table_pose_weak(rl[-1], cl[-1], got.T_ref_from_cur, planes, (),
                                             alone, min_cos)
-            assert not reg_mod._table_pose_weak(rl[-1], cl[-1], got.T_ref_from_cur, planes,
+            assert not table_top.table_pose_weak(rl[-1], cl[-1], got.T_ref_from_cur, planes,
                                                 (), alone.replace(table_static_share=0.0),
                                                 min_cos)
     # nothing changed at all: the object cells fit (but for edges and occlusions)
     same = _table_scene(W_cur)
-    same_cl = reg_mod._levels(same, INTR, params)
-    assert reg_mod._static_object_share(rl[-1], same_cl[-1], truth, reg_mod._table_planes(
+    same_cl = pyramid.levels(same, INTR, params)
+    assert table_top._static_object_share(rl[-1], same_cl[-1], truth, table_top.table_planes(
         rl, same_cl, params), params, min_cos) > 10 * params.table_static_share
 
 
@@ -616,12 +616,12 @@ def test_one_low_box_on_a_table_names_every_table_plane_direction_weak():
     params = RegistrationParams()
     ref, cur = (_table_scene(W, boxes=_BOXES[2:]) for W in (W_ref, W_cur))
     got = register_depth(ref, cur, INTR)
-    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
-    planes = reg_mod._table_planes(rl, cl, params)
+    rl, cl = pyramid.levels(ref, INTR, params), pyramid.levels(cur, INTR, params)
+    planes = table_top.table_planes(rl, cl, params)
     assert planes is not None and got.eigenvalues[0] < params.weak_eigenvalue
-    assert set(reg_mod._in_plane_names(planes[1])) <= set(got.weak), got.weak
+    assert set(table_top.in_plane_names(planes[1])) <= set(got.weak), got.weak
     min_cos = np.cos(np.radians(params.max_normal_angle_deg))
-    assert reg_mod._static_object_share(rl[-1], cl[-1], got.T_ref_from_cur, planes, params,
+    assert table_top._static_object_share(rl[-1], cl[-1], got.T_ref_from_cur, planes, params,
                                         min_cos) > params.table_static_share  # not that check
 
 
@@ -636,17 +636,17 @@ def test_the_reference_says_whether_the_station_is_a_table_top():
     params = RegistrationParams()
     ref = _table_scene(W_ref)
     cur = _table_scene(W_cur, boxes=_BOXES + ((0.0, 0.0, 0.6, 0.5, 0.3),))
-    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
-    assert reg_mod._dominant_plane(rl[0])[2] > params.table_plane_fraction
-    _n, d, frac = reg_mod._dominant_plane(cl[0])
+    rl, cl = pyramid.levels(ref, INTR, params), pyramid.levels(cur, INTR, params)
+    assert table_top._dominant_plane(rl[0])[2] > params.table_plane_fraction
+    _n, d, frac = table_top._dominant_plane(cl[0])
     assert frac < params.table_plane_fraction and d == pytest.approx(0.6, abs=0.01)
-    planes = reg_mod._table_planes(rl, cl, params)
+    planes = table_top.table_planes(rl, cl, params)
     assert planes is not None
     got = register_depth(ref, cur, INTR)  # the box hides two of the three boxes that stayed
-    assert set(reg_mod._in_plane_names(planes[1])) <= set(got.weak), got.weak
+    assert set(table_top.in_plane_names(planes[1])) <= set(got.weak), got.weak
     tilted = W_cur.copy()
     tilted[:3, :3] = W_cur[:3, :3] @ rpy_deg_to_rotation(params.max_rotation_deg + 5.0, 0, 0)
-    assert reg_mod._table_planes(rl, reg_mod._levels(_table_scene(tilted), INTR, params),
+    assert table_top.table_planes(rl, pyramid.levels(_table_scene(tilted), INTR, params),
                                  params) is None
 
 
@@ -655,20 +655,19 @@ def test_room_views_are_not_table_tops(office_pair):
     starts and no trimming of objects."""
     ref, cur, _ = office_pair
     params = RegistrationParams()
-    rl, cl = reg_mod._levels(ref, INTR, params), reg_mod._levels(cur, INTR, params)
-    assert reg_mod._table_planes(rl, cl, params) is None
+    rl, cl = pyramid.levels(ref, INTR, params), pyramid.levels(cur, INTR, params)
+    assert table_top.table_planes(rl, cl, params) is None
     loose = params.replace(table_plane_fraction=0.0, table_max_extent_m=100.0)
-    planes = reg_mod._table_planes(rl, cl, loose)
-    assert planes is not None and reg_mod._table_starts(rl, cl, planes, loose) != []
+    planes = table_top.table_planes(rl, cl, loose)
+    assert planes is not None and table_top.table_starts(rl, cl, planes, loose) != []
 
 
 def test_the_plane_frame_is_a_rotation_for_any_plane_normal():
     """A plane facing the camera's x axis (a camera rolled by 90 degrees over a table) too."""
-    from robot_change.change.registration import _plane_frame
 
     for n in ([0.0, -0.8, -0.6], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]):
         n = np.array(n) / np.linalg.norm(n)
-        F = _plane_frame(n, 1.2)
+        F = table_top._plane_frame(n, 1.2)
         R = F[:3, :3]
         assert np.all(np.isfinite(F))
         assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
@@ -694,18 +693,18 @@ def test_changed_objects_are_the_objects_that_moved(tabletop, name):
     changed pixels both ways; nothing is judged changed against the view itself."""
     pair = tabletop(name)
     params = RegistrationParams()
-    rl = reg_mod._levels(pair.reference, pair.intrinsics, params)
-    cl = reg_mod._levels(pair.current, pair.intrinsics, params)
-    planes = reg_mod._table_planes(rl, cl, params)
+    rl = pyramid.levels(pair.reference, pair.intrinsics, params)
+    cl = pyramid.levels(pair.current, pair.intrinsics, params)
+    planes = table_top.table_planes(rl, cl, params)
     assert planes is not None
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     for own, other, plane, truth in ((cl[2], rl[2], planes[1], pair.truth_appeared),
                                      (rl[2], cl[2], planes[0], pair.truth_disappeared)):
-        got = reg_mod._changed_objects(own, other, np.eye(4), plane, params, 0.06, min_cos)
+        got = table_top._changed_objects(own, other, np.eye(4), plane, params, 0.06, min_cos)
         blocks = truth.reshape(120, 4, 160, 4).any(axis=(1, 3))  # the finest level's cells
         assert (got & blocks).sum() >= 0.9 * blocks.sum()
         assert (got & blocks).sum() >= 0.5 * got.sum()  # whole objects, most of them truth
-        assert not reg_mod._changed_objects(own, own, np.eye(4), plane, params, 0.06,
+        assert not table_top._changed_objects(own, own, np.eye(4), plane, params, 0.06,
                                             min_cos).any()
 
 

@@ -1,0 +1,159 @@
+"""How well the two views agree at a pose: inlier pairs, the cells either view sees through
+or puts on no reading of the other, the scores that rank candidate poses (the search along
+weak directions, the table-top tracks), and the fitness and seen-through share of the final
+estimate (docs/algorithm.md, "Registration", steps 6 and 8).  Kernels are
+``@njit(cache=True, nogil=True)`` with NumPy twins in ``tests/test_registration.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .icp import Pairs, count_inliers
+from .params import RegistrationParams
+from .pyramid import Level
+from .rigid import exp_so3, invert
+
+
+@numba.njit(cache=True, nogil=True)
+def seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_m2):
+    """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land in the
+    reference image, how many the reference sees *through* (its reading there is farther than
+    the point by more than ``margin_m + margin_per_m2 * z^2``), how many land on a reading
+    (compared), and how many land on no reading (a hole).  Returns (through, compared,
+    holes)."""
+    through = 0
+    compared = 0
+    holes = 0
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            if z <= 0.0:
+                continue
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+                continue
+            rz = ref_v[v, u, 2]
+            if rz <= 0.0:
+                holes += 1
+                continue
+            compared += 1
+            if rz > pz + margin_m + margin_per_m2 * pz * pz:
+                through += 1
+    return through, compared, holes
+
+
+@numba.njit(cache=True, nogil=True)
+def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
+                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight, res, jac, zs):
+    """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
+    metres): per pose, the inlier pairs of :func:`count_inliers` (with ``both_ways`` those of
+    the reference's cells moved into the current view too) minus the cells of either view the
+    other sees through, minus ``hole_weight`` times the cells of either view that land on no
+    reading of the other inside its image (:func:`seen_through`, both ways).  A wrong slide
+    along a room fits floor and walls (inliers) but puts surfaces where the other camera saw
+    free space; a wrong turn on a table top puts the table where the other saw none.
+    ``res``, ``jac``, ``zs``: scratch arrays of :func:`_associate`, one row per cell (the two
+    views' levels are the same size).  Returns (n,) float64."""
+    out = np.empty(rots.shape[0])
+    back = np.empty(3)
+    for m in range(rots.shape[0]):
+        rot = rots[m]
+        t = transs[m]
+        rot_t = np.ascontiguousarray(rot.T)
+        for a in range(3):
+            back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
+        inliers = count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
+                                 min_cos, sigmas, res, jac, zs)
+        if both_ways:
+            inliers += count_inliers(ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy,
+                                      max_dist, min_cos, sigmas, res, jac, zs)
+        through_cur, _, holes_cur = seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
+                                                  margin_m, margin_per_m2)
+        through_ref, _, holes_ref = seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
+                                                  margin_m, margin_per_m2)
+        out[m] = inliers - through_cur - through_ref - hole_weight * (holes_cur + holes_ref)
+    return out
+
+
+def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
+                 min_cos: float, pairs: Pairs, both_ways: bool = False,
+                 hole_weight: float = 0.0) -> np.ndarray:
+    """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
+    search step (of the current's cells; ``both_ways``: of both views' cells), less the cells
+    either view sees through and ``hole_weight`` times those landing on no reading."""
+    rots = np.array([T[:3, :3] for T in poses])
+    transs = np.array([T[:3, 3] for T in poses])
+    return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
+                        rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
+                        params.seen_through_margin_m, params.seen_through_margin_per_m2,
+                        bool(both_ways), float(hole_weight), pairs.res, pairs.jac, pairs.zs)
+
+
+def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
+                 params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
+    """The best-scoring (:func:`score_poses`) of ``T`` moved along the least constrained
+    directions of the normal matrix ``A`` (6, 6): translation offsets along the two weakest
+    directions of its translation block, and screw motions along the two weakest directions
+    of the whole, rotations scaled by the radius (root median squared depth) of the current
+    level; None when ``T`` itself scores best."""
+    _lam, vecs = np.linalg.eigh(A[3:, 3:])
+    steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
+    steps = np.concatenate([-steps[::-1], steps])
+    poses = [T]
+    for d in (vecs[:, 0], vecs[:, 1]):
+        for st in steps:
+            c = T.copy()
+            c[:3, 3] += st * d
+            poses.append(c)
+    if params.search_screw_steps:
+        z = cl.vertex[:, :, 2]
+        radius = math.sqrt(float(np.median(np.square(z[z > 0], dtype=np.float64))))
+        s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
+        _lam6, vecs6 = np.linalg.eigh(A / np.outer(s, s))
+        screw = params.search_step_m * np.arange(1, params.search_screw_steps + 1)
+        for d in (vecs6[:, 0] / s, vecs6[:, 1] / s):
+            for st in np.concatenate([-screw[::-1], screw]):
+                inc = np.eye(4)
+                inc[:3, :3] = exp_so3(st * d[:3])
+                inc[:3, 3] = st * d[3:]
+                poses.append(inc @ T)
+    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos, pairs)))
+    return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
+
+
+def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
+             pairs: Pairs) -> tuple[float, float, int, int]:
+    """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level
+    (``pairs``: that level's scratch arrays)."""
+    n_cells = cl.n_normals
+    if n_cells == 0:
+        return 0.0, 0.0, 0, 0
+    n = pairs.associate(rl, cl, T, params.max_distance_m[-1], min_cos)
+    inl = pairs.inliers(n, params.inlier_sigmas)
+    k = int(np.count_nonzero(inl))
+    rmse = math.sqrt(float(np.square(pairs.res[:n][inl]).mean())) if k else 0.0
+    return k / n_cells, rmse, k, n_cells
+
+
+def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams) -> float:
+    """The larger of the fractions of each view that the other sees through (finest level)."""
+    out = 0.0
+    for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
+        through, compared, _ = seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
+                                             M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                             other.cy, params.seen_through_margin_m,
+                                             params.seen_through_margin_per_m2)
+        out = max(out, through / compared if compared else 0.0)
+    return out

@@ -1,0 +1,222 @@
+"""Projective point-to-plane ICP of one pyramid level: association on the depth grid, the
+robustly weighted normal equations, the Gauss-Newton step that does not move along weak
+directions, and the iterations with a trust region (docs/algorithm.md, "Registration", steps
+3-5 and 7).  Kernels are ``@njit(cache=True, nogil=True)`` with NumPy twins in
+``tests/test_registration.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .params import RegistrationParams
+from .pyramid import Level, depth_sigma
+from .result import AXES
+from .rigid import exp_so3
+
+
+@numba.njit(cache=True, nogil=True)
+def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+               res, jac, zs):
+    """Projective data association and point-to-plane residuals of one ICP step.
+
+    Each current cell with a normal (``cur_v``, ``cur_n`` (h, w, 3)) is moved by (``rot``
+    (3, 3), ``trans`` (3,)), projected with the level's intrinsics into the reference level and
+    paired with the cell it lands on when that has a normal, the two points are within
+    ``max_dist`` and the normals' cosine is at least ``min_cos``.  Fills, per pair k, ``res[k]``
+    = n_ref . (p - q) (metres), ``jac[k]`` = (p x n_ref, n_ref) (derivative of the residual
+    under a left perturbation (rotation vector, translation)) and ``zs[k]`` the depth of p in
+    the reference frame.  Returns the number of pairs.
+
+    (The body is written out, not split into a per-cell helper: numba's call of a helper
+    returning a tuple made this loop five times slower.)
+    """
+    k = 0
+    md2 = max_dist * max_dist
+    h = ref_v.shape[0]
+    w = ref_v.shape[1]
+    for i in range(cur_v.shape[0]):
+        for j in range(cur_v.shape[1]):
+            nx0 = cur_n[i, j, 0]
+            ny0 = cur_n[i, j, 1]
+            nz0 = cur_n[i, j, 2]
+            if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
+                continue
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= w or v >= h:
+                continue
+            mx = ref_n[v, u, 0]
+            my = ref_n[v, u, 1]
+            mz = ref_n[v, u, 2]
+            if mx == 0.0 and my == 0.0 and mz == 0.0:
+                continue
+            dx = px - ref_v[v, u, 0]
+            dy = py - ref_v[v, u, 1]
+            dz = pz - ref_v[v, u, 2]
+            if dx * dx + dy * dy + dz * dz > md2:
+                continue
+            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+            if nx * mx + ny * my + nz * mz < min_cos:
+                continue
+            res[k] = mx * dx + my * dy + mz * dz
+            jac[k, 0] = py * mz - pz * my
+            jac[k, 1] = pz * mx - px * mz
+            jac[k, 2] = px * my - py * mx
+            jac[k, 3] = mx
+            jac[k, 4] = my
+            jac[k, 5] = mz
+            zs[k] = pz
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                   sigmas, res, jac, zs):
+    """The pairs of :func:`_associate` (filling its scratch arrays ``res``, ``jac``, ``zs``)
+    whose residual is within ``sigmas`` depth noise sigmas (:func:`depth_sigma`), counted."""
+    n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                   res, jac, zs)
+    k = 0
+    for m in range(n):
+        if abs(res[m]) <= sigmas * depth_sigma(zs[m]):
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
+    """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
+    ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
+
+    Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
+    normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
+    max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6)
+    = J^T W J, b (6,) = J^T W r, the sum of the weights, radius: the root of the median squared
+    depth, m)."""
+    e = np.empty(n)
+    inv_var = np.empty(n)
+    z2 = np.empty(n)
+    for k in range(n):
+        sig = depth_sigma(zs[k])
+        e[k] = abs(res[k]) / sig
+        inv_var[k] = 1.0 / (sig * sig)
+        z2[k] = zs[k] * zs[k]
+    scale = max(1.4826 * np.median(e), 0.5)
+    radius = math.sqrt(np.median(z2))
+    cut = tukey_c * scale
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    wsum = 0.0
+    for k in range(n):
+        u = e[k] / max(cut, min_cut_m * math.sqrt(inv_var[k]))
+        if u >= 1.0:
+            continue
+        wt = (1.0 - u * u) ** 2 * inv_var[k]
+        wsum += wt
+        for a in range(6):
+            ja = jac[k, a] * wt
+            b[a] += ja * res[k]
+            for c in range(a, 6):
+                A[a, c] += ja * jac[k, c]
+    for a in range(6):
+        for c in range(a):
+            A[a, c] = A[c, a]
+    return A, b, wsum, radius
+
+
+def _solve(A: np.ndarray, b: np.ndarray, radius: float, wsum: float, weak_eigenvalue: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton step of the 6x6 system, not moving along weak directions.
+
+    Rotations are scaled by ``radius`` (m) so all six are metres; eigenvalues per unit weight
+    below ``weak_eigenvalue`` are weak.  Returns (step (6,) rotation vector then translation,
+    eigenvalues (6,) ascending, eigenvectors (6, 6) as columns, scaled)."""
+    s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
+    As = A / np.outer(s, s)
+    bs = b / s
+    lam, vec = np.linalg.eigh(As)
+    lam_n = lam / max(wsum, 1e-300)
+    step_s = np.zeros(6)
+    for i in range(6):
+        if lam_n[i] >= weak_eigenvalue:
+            step_s -= (vec[:, i] @ bs) / lam[i] * vec[:, i]
+    return step_s / s, lam_n, vec
+
+
+def weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> tuple[str, ...]:
+    """The :data:`AXES` names nearest to the eigenvectors (``vec`` (6, 6), columns) whose
+    eigenvalues per unit weight (``lam_n`` (6,)) are below ``weak_eigenvalue``."""
+    names = []
+    for i in range(6):
+        if lam_n[i] < weak_eigenvalue:
+            axis = AXES[int(np.argmax(np.abs(vec[:, i])))]
+            if axis not in names:
+                names.append(axis)
+    return tuple(names)
+
+
+class Pairs:
+    """Scratch arrays for the pairs of one level (one row per current cell)."""
+
+    def __init__(self, level: Level) -> None:
+        size = level.vertex.shape[0] * level.vertex.shape[1]
+        self.res = np.empty(size)
+        self.jac = np.empty((size, 6))
+        self.zs = np.empty(size)
+
+    def associate(self, rl: Level, cl: Level, T: np.ndarray, max_dist: float, min_cos: float
+                  ) -> int:
+        return _associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
+                          T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos,
+                          self.res, self.jac, self.zs)
+
+    def inliers(self, n: int, sigmas: float) -> np.ndarray:
+        """(n,) bool: pairs whose residual is within ``sigmas`` depth-noise sigmas."""
+        return np.abs(self.res[:n]) <= sigmas * depth_sigma(self.zs[:n])
+
+
+def icp_level(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, li: int,
+               min_cos: float, pairs: Pairs, min_cut_m: float = 0.0):
+    """Gauss-Newton iterations of one level from ``T`` (Tukey's cut at least ``min_cut_m``
+    metres); returns (T, iterations, converged, eigenvalues, eigenvectors, last normal matrix
+    or None)."""
+    lam_n, vec, A = np.zeros(6), np.eye(6), None
+    n_it = 0
+    for _ in range(params.iterations[li]):
+        n = pairs.associate(rl, cl, T, params.max_distance_m[li], min_cos)
+        if n < 6:
+            break
+        A, b, wsum, radius = _weighted_system(pairs.res, pairs.jac, pairs.zs, n,
+                                              params.tukey_c, min_cut_m)
+        step, lam_n, vec = _solve(A, b, radius, wsum, params.weak_eigenvalue)
+        # a trust region: no step moves a point by more than half the pairing distance (a
+        # first step from many wrong pairs must not throw the estimate out of the basin)
+        length = math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
+                           + float((step[3:] ** 2).sum()))
+        cap = 0.5 * params.max_distance_m[li]
+        if length > cap:
+            step = step * (cap / length)
+        n_it += 1
+        inc = np.eye(4)
+        inc[:3, :3] = exp_so3(step[:3])
+        inc[:3, 3] = step[3:]
+        T = inc @ T
+        if math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
+                     + float((step[3:] ** 2).sum())) < params.tol_m:
+            return T, n_it, True, lam_n, vec, A
+    return T, n_it, False, lam_n, vec, A

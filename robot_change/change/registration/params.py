@@ -1,0 +1,179 @@
+"""RegistrationParams: every setting of :func:`~robot_change.change.registration.register_depth`,
+validated on construction (the one place their defaults live; the daemon's are these)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+from robot_change import validate
+from robot_change.errors import InputError
+
+_num = functools.partial(validate.number, "RegistrationParams")
+_int = functools.partial(validate.whole, "RegistrationParams")
+_bool = functools.partial(validate.flag, "RegistrationParams")
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationParams:
+    """Parameters of :func:`register_depth`, validated on construction.
+
+    ``levels``: pyramid factors, coarse to fine (a level of factor f has (H/f) x (W/f) cells);
+    ``iterations`` per level; ``max_distance_m`` per level: correspondences farther apart are
+    not paired.  The defaults cover offsets of 15 cm and 6 degrees (docs/algorithm.md).
+    """
+
+    # Register at all (False: the identity, for cameras bolted in place, and to measure).
+    enabled: bool = True
+    levels: tuple[int, ...] = (16, 8, 4)
+    iterations: tuple[int, ...] = (12, 10, 6)
+    max_distance_m: tuple[float, ...] = (0.35, 0.15, 0.06)
+    # After the level of index search_level (0 = coarsest), translations along the two least
+    # constrained translation directions (this step, out to this reach) are scored by their
+    # inlier count and ICP goes on from the best: rooms let ICP slide along the floor and
+    # walls (ALGORITHM.md section 4), and a yaw error is first taken up by a sideways slide.
+    search_level: int = 1
+    search_step_m: float = 0.1
+    search_reach_m: float = 0.4
+    # ... and screw motions (rotation and translation together) along the two least
+    # constrained directions of the whole 6-D system, rotations scaled by the cloud's radius,
+    # search_screw_steps steps of search_step_m each way (0: none; 1 did as well as 2-4 on the
+    # table tops): a table top leaves the turn about its normal coupled with a slide.
+    search_screw_steps: int = 1
+    # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
+    # not), and goes on from the better-scoring of the two ends (inliers less seen-through
+    # cells, as the search).  On a table top the plane aligns first, the residual scale
+    # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
+    # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
+    wide_cut_m: float = 0.2
+    # Table-plane starts (0: none): when the dominant plane of the reference's coarsest level
+    # holds at least table_plane_fraction of its cells (a table top: 0.63-0.91 of the cells;
+    # the current's need only be that plane again), and both views' span at most
+    # table_max_extent_m (a table top 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
+    # two views are drawn top-down on that plane (table_cell_m cells: +1 above it by more than
+    # table_object_m, -1 on it, 0 unseen) and cross-correlated over in-plane shifts (FFT) for
+    # yaws about its normal out to table_yaw_deg in table_yaw_step_deg steps; the
+    # table_starts best distinct peaks are run through ICP down to search_level and compete
+    # there with the main estimate on the search's score.  A table top's moved objects drag
+    # ICP into a compromise; its outline and the objects that stayed fix (x, y, yaw).
+    table_starts: int = 3
+    table_plane_fraction: float = 0.6
+    table_max_extent_m: float = 2.0
+    table_cell_m: float = 0.02
+    table_object_m: float = 0.015
+    table_yaw_deg: float = 10.0
+    table_yaw_step_deg: float = 2.0
+    # The starts compete with the main estimate on a score taken both ways: each view's
+    # inlier cells, less the cells either view sees through, less table_hole_weight times the
+    # cells of either view that land on no reading of the other (a table top's outline).
+    table_hole_weight: float = 1.0
+    # On a table top, after the finest level: trim_rounds rounds of ICP from search_level down
+    # to the finest level without the objects that changed: the connected groups of cells
+    # standing more than table_object_m above each view's plane in which the cells that
+    # contradict the other view (seen through, or paired beyond inlier_sigmas) outnumber
+    # trim_conflict_share of those that contradict or fit.  Moved objects drag ICP into a
+    # compromise; the table and the objects that stayed put are the static part.  0: none.
+    trim_rounds: int = 2
+    trim_conflict_share: float = 0.5
+    # On a table top, at the final estimate: when more than table_outline_holes of each view's
+    # table cells (within 1 cm of its plane) that land in the other image land on no reading
+    # there, the two views' tables do not overlap at that pose (a wrong pose, or outlines
+    # that differ, as when nothing on the table stayed put and the crop changed): the
+    # directions in the table's plane (two slides, the turn about its normal) are reported
+    # weak.  The smaller of the two views' shares was 0.001-0.015 at right poses (dropouts
+    # and the field of view's edge; one of 147 at 0.032) and 0.027-0.087 at 13 of 15 wrong
+    # ones on the table-top tuning sample (docs/benchmarks.md).  0: not checked.
+    table_outline_holes: float = 0.02
+    # On a table top, at the final estimate: when fewer than table_static_share of the two
+    # views' object cells (standing more than table_object_m above their plane) fit the
+    # other view, no object stayed put; the pose in the table's plane then rests on the
+    # table's outline alone, like a bare table, and those directions are reported weak.
+    # At right poses the share was 0.000-0.017 on the tuning pairs where every object moved
+    # or shifted and 0.065-0.72 where one stayed (docs/benchmarks.md).  0: not checked.
+    table_static_share: float = 0.03
+    # Normals of a pair must agree within this angle.
+    max_normal_angle_deg: float = 30.0
+    # A cell is the mean of the block's readings within this band of the reading at its
+    # centre: band = band_m + band_slope * (f * z / fx) (so a slanted floor's block is kept).
+    band_m: float = 0.03
+    band_slope: float = 2.0
+    # Tukey's constant, in units of the robust residual scale (4.685: 95 % efficiency).
+    tukey_c: float = 4.685
+    # A correspondence is an inlier (fitness, RMSE) within this many noise sigmas.
+    inlier_sigmas: float = 3.0
+    # Eigenvalues of the scaled normal matrix per unit weight below this are weak directions.
+    weak_eigenvalue: float = 1e-4
+    # Stop a level when the step is below this (metres; rotations times the cloud radius):
+    # 0.1 mm, a tenth of the depth noise at 0.5 m; a smaller one buys no accuracy.
+    tol_m: float = 1e-4
+    # Station tolerance: fitness below min_fitness, a translation above max_translation_m, a
+    # rotation above max_rotation_deg, or more than max_seen_through of either whole view seen
+    # through by the other (the views contradict each other: another place, or a change too
+    # large to register against) is "not at the station".  Seen through: a reading farther by
+    # more than seen_through_margin_m + seen_through_margin_per_m2 * z^2.
+    min_fitness: float = 0.5
+    max_seen_through: float = 0.25
+    seen_through_margin_m: float = 0.03
+    seen_through_margin_per_m2: float = 0.004
+    max_translation_m: float = 0.5
+    max_rotation_deg: float = 20.0
+    # Depth readings outside this range are not used (metres).
+    min_depth_m: float = 0.4
+    max_depth_m: float = 5.0
+
+    def __post_init__(self) -> None:
+        _bool("enabled", self.enabled)
+        n = len(self.levels) if isinstance(self.levels, tuple) else -1
+        for name in ("levels", "iterations", "max_distance_m"):
+            value = getattr(self, name)
+            if not isinstance(value, tuple) or len(value) != n or n < 1:
+                raise InputError(f"RegistrationParams.{name} must be a tuple of the same length "
+                                 f"as levels (>= 1), got {value!r}")
+        for f in self.levels:
+            _int("levels", f, 1, 64)
+        if any(a != 2 * b for a, b in zip(self.levels, self.levels[1:])):
+            raise InputError(f"RegistrationParams.levels={self.levels!r}: each factor must be "
+                             f"twice the next (coarse to fine), e.g. (16, 8, 4)")
+        for it in self.iterations:
+            _int("iterations", it, 0, 100)
+        for d in self.max_distance_m:
+            _num("max_distance_m", d, 0.0, 5.0, low_open=True, unit=" metres")
+        _int("search_level", self.search_level, 0, n - 1)
+        _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
+        _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
+        _int("search_screw_steps", self.search_screw_steps, 0, 20)
+        _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
+        _int("table_starts", self.table_starts, 0, 20)
+        _num("table_plane_fraction", self.table_plane_fraction, 0.0, 1.0)
+        _num("table_max_extent_m", self.table_max_extent_m, 0.0, 100.0, unit=" metres")
+        _num("table_cell_m", self.table_cell_m, 0.002, 0.2, unit=" metres")
+        _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")
+        _num("table_yaw_deg", self.table_yaw_deg, 0.0, 45.0)
+        _num("table_yaw_step_deg", self.table_yaw_step_deg, 0.0, 45.0, low_open=True)
+        _num("table_hole_weight", self.table_hole_weight, 0.0, 100.0)
+        _int("trim_rounds", self.trim_rounds, 0, 20)
+        _num("trim_conflict_share", self.trim_conflict_share, 0.0, 1.0)
+        _num("table_outline_holes", self.table_outline_holes, 0.0, 1.0)
+        _num("table_static_share", self.table_static_share, 0.0, 1.0)
+        _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
+        _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
+        _num("band_slope", self.band_slope, 0.0, 100.0)
+        _num("tukey_c", self.tukey_c, 0.0, 100.0, low_open=True)
+        _num("inlier_sigmas", self.inlier_sigmas, 0.0, 100.0, low_open=True)
+        _num("weak_eigenvalue", self.weak_eigenvalue, 0.0, 1.0)
+        _num("tol_m", self.tol_m, 0.0, 1.0, low_open=True, unit=" metres")
+        _num("min_fitness", self.min_fitness, 0.0, 1.0)
+        _num("max_seen_through", self.max_seen_through, 0.0, 1.0, low_open=True)
+        _num("seen_through_margin_m", self.seen_through_margin_m, 0.0, 10.0, unit=" metres")
+        _num("seen_through_margin_per_m2", self.seen_through_margin_per_m2, 0.0, 1.0,
+             unit=" per metre")
+        _num("max_translation_m", self.max_translation_m, 0.0, 100.0, unit=" metres")
+        _num("max_rotation_deg", self.max_rotation_deg, 0.0, 180.0)
+        _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
+        _num("max_depth_m", self.max_depth_m, self.min_depth_m, 100.0, low_open=True,
+             unit=" metres")
+
+    def replace(self, **changes: Any) -> RegistrationParams:
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)

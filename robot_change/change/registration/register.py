@@ -1,0 +1,134 @@
+"""register_depth: the current view registered to the station's reference, coarse to fine
+(docs/algorithm.md, "Registration"): ICP per level (:mod:`.icp`), at the coarsest level also
+with a wide cut, the search along weak directions at the middle level (:mod:`.agreement`), and
+on a table top the table-plane tracks, the trimming and the checks of :mod:`.table_top`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from hw.depth import Intrinsics
+from robot_change.errors import InputError
+
+from .agreement import contradiction, fitness, score_poses, weak_search
+from .icp import Pairs, icp_level, weak_names
+from .params import RegistrationParams
+from .pyramid import check_depth, levels
+from .result import Registration, identity_registration
+from .table_top import (
+    TablePlane,
+    in_plane_names,
+    table_planes,
+    table_pose_weak,
+    table_starts,
+    without_changed_objects,
+)
+
+
+def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
+                   params: RegistrationParams = RegistrationParams(), *,
+                   initial: np.ndarray | None = None, keep: dict | None = None) -> Registration:
+    """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
+    into the reference camera frame, from the two depth images.
+
+    Parameters
+    ----------
+    reference, current : (H, W) uint16 mm
+        The reference's (fused) depth image and the current one, same intrinsics.
+    intrinsics : hw.depth.Intrinsics
+    params : RegistrationParams
+    initial : (4, 4) float64, optional
+        Starting estimate (identity by default: the robot believes it is at its station).
+    keep : dict, optional
+        Where the reference's pyramid is kept between calls (a station's reference, checked
+        against many frames, builds it once): an epoch's ``derived``
+        (robot_change.change.epoch.Epoch), which belongs to ``reference`` alone.
+
+    Returns
+    -------
+    Registration
+        With ``enabled=False``, ``initial`` (the identity by default) taken as it is, with
+        fitness 1: for a camera bolted in place, or a transform from elsewhere.
+    """
+    if not isinstance(params, RegistrationParams):
+        raise InputError(f"params must be a RegistrationParams, got {type(params).__name__}")
+    if not isinstance(intrinsics, Intrinsics):
+        raise InputError(f"intrinsics must be a hw.depth.Intrinsics, got "
+                         f"{type(intrinsics).__name__}")
+    ref = check_depth("reference", reference, intrinsics)
+    cur = check_depth("current", current, intrinsics)
+    T = np.eye(4) if initial is None else np.array(initial, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError("initial must be a finite (4, 4) rigid transform")
+    if not params.enabled:
+        return identity_registration(T)
+    t0 = time.perf_counter()
+    key = ("registration_levels", intrinsics, params.levels, params.min_depth_m,
+           params.max_depth_m, params.band_m, params.band_slope)
+    ref_levels = keep.get(key) if keep is not None else None
+    if ref_levels is None:
+        ref_levels = levels(ref, intrinsics, params)
+        if keep is not None:
+            keep[key] = ref_levels
+    cur_levels = levels(cur, intrinsics, params)
+    min_cos = math.cos(math.radians(params.max_normal_angle_deg))
+    iterations = 0
+    converged = False
+    lam_n = np.zeros(6)
+    vec = np.eye(6)
+    tracks: list[np.ndarray] = []  # estimates from the table-plane starts, to search_level
+    planes: tuple[TablePlane, TablePlane] | None = None  # a table top's, when it is one
+    for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
+        pairs = Pairs(cl)
+        start = T
+        T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, start, params, li, min_cos, pairs)
+        iterations += n_it
+        if li == 0 and params.wide_cut_m > 0:
+            wide = icp_level(rl, cl, start, params, li, min_cos, pairs, params.wide_cut_m)
+            iterations += wide[1]
+            scores = score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
+            if scores[1] > scores[0]:  # the narrow cut wins ties
+                T, n_it, converged, lam_n, vec, A = wide
+        if li == 0 and (params.table_starts > 0 or params.trim_rounds > 0):
+            planes = table_planes(ref_levels, cur_levels, params)
+            if planes is not None and params.table_starts > 0:
+                tracks = table_starts(ref_levels, cur_levels, planes, params)
+        if tracks and li <= params.search_level:
+            ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in tracks]
+            iterations += sum(e[1] for e in ends)
+            tracks = [e[0] for e in ends]
+        if li == params.search_level and params.search_reach_m > 0 and A is not None:
+            moved = weak_search(rl, cl, T, A, params, min_cos, pairs)
+            if moved is not None:
+                T, n_it, converged, lam_n, vec, _ = icp_level(rl, cl, moved, params, li,
+                                                              min_cos, pairs)
+                iterations += n_it
+        if tracks and li == params.search_level:
+            # the table-plane tracks against the main one, on the score taken both ways
+            scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs,
+                                 True, params.table_hole_weight)
+            best = int(np.argmax(scores))  # the first of equal scores: the main track
+            if best > 0:
+                T, n_it, converged, lam_n, vec, _ = ends[best - 1]
+            tracks = []
+    if planes is not None:
+        for _round in range(params.trim_rounds):
+            for li in range(params.search_level, len(ref_levels)):
+                rl, cl = without_changed_objects(ref_levels[li], cur_levels[li], planes, T,
+                                                 params, li, min_cos)
+                T, n_it, converged, lam_n, vec, _ = icp_level(rl, cl, T, params, li, min_cos,
+                                                              Pairs(cl))
+                iterations += n_it
+    fit, rmse, n_pairs, n_cells = fitness(ref_levels[-1], cur_levels[-1], T, params, min_cos,
+                                          pairs)
+    through = contradiction(ref_levels[-1], cur_levels[-1], T, params)
+    weak = weak_names(lam_n, vec, params.weak_eigenvalue)
+    if planes is not None and table_pose_weak(ref_levels[-1], cur_levels[-1], T, planes, weak,
+                                              params, min_cos):
+        weak = tuple(dict.fromkeys(weak + in_plane_names(planes[1])))
+    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
+                        (time.perf_counter() - t0) * 1e3, through)
