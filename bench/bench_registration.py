@@ -4,7 +4,8 @@ ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorit
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_registration.py [--runs 5] [--json OUT]
         [--sweep SEEDS [--no-fixtures] [--sweep-levels 2,5,10,15] [--sweep-seed-base N]
          [--sweep-tag T]] [--tabletop SEEDS [--tabletop-seed-base N] [--tabletop-tag T]
-        [--tabletop-static]] [--methods ours,small_gicp,open3d_icp] [--against REV]
+        [--tabletop-static]] [--station SEEDS [--station-seed-base N] [--station-tag T]]
+        [--methods ours,small_gicp,open3d_icp] [--against REV]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -13,15 +14,20 @@ current one frame, the change in view) and, with ``--sweep``, freshly rendered p
 peers the two depth images back-projected (0.4-5 m) and voxelised at 2 cm.  Open3D: Tukey loss
 (k = 5 cm), correspondence distances 25 -> 10 -> 4 cm, normals from 20 neighbours within 10 cm
 (ALGORITHM.md section 4's recipe).  small_gicp: GICP, 2 cm downsampling, 25 cm correspondences.
-With ``--tabletop``: the real table-top pairs (../shared/data/osd-tabletop, the change in view)
-with the current re-rendered from a camera displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its
-back-projected points moved and splatted into a z-buffer (disocclusions stay holes);
+With ``--station``: table stations as a robot sees them (sim_fixtures.stations: a table with
+objects on it, the wall behind, the floor; every kind of change, every object moved among them)
+from a camera displaced by 5 / 10 / 15 cm; seeds from 0 were looked at while choosing the fine
+search and the slide support (issue 12), ``--station-seed-base 1000 --station-tag held`` once
+in between, ``2000 ... held2`` once after every choice.  With ``--tabletop``: the real table-top pairs
+(../shared/data/osd-tabletop, the change in view) with the current re-rendered from a camera
+displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its back-projected points moved and splatted into
+a z-buffer (disocclusions stay holes);
 ``--tabletop-static`` re-renders the reference instead (no change in view), and
 ``--tabletop-seed-base`` / ``--tabletop-tag`` draw other offsets (base 93000, tag "held": the
 held-out table-top set of issue 12, looked at once after the choice).
 One thread each; the methods alternate per pair and per run, so they share the machine's load.
-``--against REV`` adds method ``base``: registration.py as it is at git revision REV (loaded from
-``git show`` beside this one, in the same process), for an A/B of speed and accuracy; the
+``--against REV`` adds method ``base``: the registration as it is at git revision REV (loaded
+from ``git show`` beside this one, in the same process), for an A/B of speed and accuracy; the
 median over pairs of the per-pair time ratio ours / base is printed per group.  For ours (and
 base) each group also counts the wrong estimates (beyond 1 cm / 0.5 deg) and the right ones
 that name weak directions (``Registration.weak``): a wrong pose should say so.
@@ -94,18 +100,33 @@ METHODS = {"ours": ours, "small_gicp": small_gicp_align, "open3d_icp": open3d_ic
 
 
 def at_revision(rev: str):
-    """``register_depth`` of robot_change/change/registration.py as it is at git revision
-    ``rev``, loaded as a module of its own (its numba caches under a temporary folder)."""
+    """``register_depth`` of robot_change/change/registration as it is at git revision ``rev``
+    (the package, or the single registration.py of revisions before the split), loaded under
+    the name ``registration_base`` (its numba caches under a temporary folder)."""
     import importlib.util
     import subprocess
     import tempfile
 
     root = Path(__file__).resolve().parents[1]
-    source = subprocess.run(["git", "show", f"{rev}:robot_change/change/registration.py"],
-                            cwd=root, capture_output=True, text=True, check=True).stdout
-    path = Path(tempfile.mkdtemp(prefix="registration_at_")) / "registration_base.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("registration_base", path)
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True,
+                              check=True).stdout
+
+    folder = Path(tempfile.mkdtemp(prefix="registration_at_"))
+    names = git("ls-tree", "--name-only", rev, "robot_change/change/registration/").split()
+    if names:  # a package: its modules import each other relatively
+        package = folder / "registration_base"
+        package.mkdir()
+        for name in names:
+            (package / Path(name).name).write_text(git("show", f"{rev}:{name}"))
+        spec = importlib.util.spec_from_file_location(
+            "registration_base", package / "__init__.py",
+            submodule_search_locations=[str(package)])
+    else:
+        path = folder / "registration_base.py"
+        path.write_text(git("show", f"{rev}:robot_change/change/registration.py"))
+        spec = importlib.util.spec_from_file_location("registration_base", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules["registration_base"] = module  # its dataclasses look themselves up there
     spec.loader.exec_module(module)
@@ -200,6 +221,23 @@ def tabletop_pairs(seeds: int, seed_base: int = 5000, tag: str = "", static: boo
                     pr.intrinsics
 
 
+def station_pairs(seeds: int, seed_base: int = 0, tag: str = ""):
+    """Table stations as a robot sees them (sim_fixtures.stations: a table with objects, the
+    wall behind, the floor), ``seeds`` layouts per level, each with every kind of change of
+    :data:`sim_fixtures.stations.CHANGES`, the current camera displaced by 5 / 10 / 15 cm (2 /
+    4 / 6 deg) in a direction drawn from ``tag``; the reference fused from 3 noisy frames."""
+    from sim_fixtures.stations import CHANGES, station_pair
+
+    for level in (5, 10, 15):
+        tm, rd = LEVELS[level]
+        for s in range(seeds):
+            seed = seed_base + s
+            for change in CHANGES:
+                draw = zlib.crc32(f"{tag}station{seed}{change}{tm}".encode()) % 100000
+                ref, cur, truth, intrinsics = station_pair(seed, change, (tm, rd, draw))
+                yield f"station_{change}_{level}cm_{seed}", ref, cur, truth, intrinsics
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=5, help="timed runs per method and pair")
@@ -214,11 +252,15 @@ def main(argv=None):
     ap.add_argument("--tabletop-tag", default="", help="mixed into each table-top pair's seed")
     ap.add_argument("--tabletop-static", action="store_true",
                     help="displace the reference's own view (no change in view)")
+    ap.add_argument("--station", type=int, default=0,
+                    help="table-station layouts per level (sim_fixtures.stations)")
+    ap.add_argument("--station-seed-base", type=int, default=0)
+    ap.add_argument("--station-tag", default="", help="mixed into each station's offset")
     ap.add_argument("--methods", default=",".join(METHODS),
                     help="comma-separated subset (ours alone: its speed without the peers' "
                          "threads and caches in between)")
     ap.add_argument("--against", metavar="REV",
-                    help="add method base: registration.py at this git revision (A/B)")
+                    help="add method base: the registration at this git revision (A/B)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     methods = {}
@@ -232,7 +274,9 @@ def main(argv=None):
         (list(sweep_pairs(args.sweep, tuple(int(v) for v in args.sweep_levels.split(",")),
                           args.sweep_seed_base, args.sweep_tag)) if args.sweep else []) + \
         (list(tabletop_pairs(args.tabletop, args.tabletop_seed_base, args.tabletop_tag,
-                             args.tabletop_static)) if args.tabletop else [])
+                             args.tabletop_static)) if args.tabletop else []) + \
+        (list(station_pairs(args.station, args.station_seed_base, args.station_tag))
+         if args.station else [])
     for fn in methods.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
     rows = []
@@ -257,9 +301,10 @@ def main(argv=None):
                                           f" deg {row[m]['ms']:6.1f} ms" for m in methods),
               flush=True)
     summary = {}
-    for group in ("fixtures", "sweep", "tabletop"):
+    for group in ("fixtures", "sweep", "tabletop", "station"):
         sel = [r for r in rows if r["pair"].split("_")[0] == group] if group != "fixtures" \
-            else [r for r in rows if not r["pair"].startswith(("sweep_", "tabletop_"))]
+            else [r for r in rows if not r["pair"].startswith(("sweep_", "tabletop_",
+                                                                "station_"))]
         if not sel:
             continue
         summary[group] = {}
@@ -287,12 +332,21 @@ def main(argv=None):
             print(f"{group:8s} time ours / base (median of per-pair ratios): {ratio:.3f}")
     groups = ([("sweep", tm) for tm in (int(v) for v in args.sweep_levels.split(","))]
               if args.sweep else []) + ([("tabletop", tm) for tm in (5, 10, 15)]
-                                        if args.tabletop else [])
+                                        if args.tabletop else []) + \
+        ([("station", tm) for tm in (5, 10, 15)] if args.station else [])
     for group, tm in groups:
         sel = [r for r in rows if r["pair"].startswith(f"{group}_") and f"_{tm}cm_" in r["pair"]]
         print(f"{group} {tm:2d} cm: " + "  ".join(
             f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
             f"/{len(sel)}" for m in methods))
+    if args.station:
+        from sim_fixtures.stations import CHANGES
+
+        for change in CHANGES:
+            sel = [r for r in rows if r["pair"].startswith(f"station_{change}_")]
+            print(f"station {change:11s}: " + "  ".join(
+                f"{m} {sum(1 for r in sel if r[m]['err_mm'] <= 10 and r[m]['err_deg'] <= 0.5)}"
+                f"/{len(sel)}" for m in methods))
     load = os.getloadavg()
     machine = {"python": platform.python_version(), "cpu": platform.processor() or
                platform.machine(), "cores": os.cpu_count(), "load": [round(v, 2) for v in load]}

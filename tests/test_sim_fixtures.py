@@ -309,6 +309,48 @@ def test_diff_layouts_and_truth_masks_follow_object_ids():
     assert not (appeared & (now.ids == ids["stays"])).any()
 
 
+@pytest.mark.parametrize("seed", [0, 7])
+def test_table_stations_change_what_they_name_and_keep_the_room(seed):
+    """sim_fixtures.stations: every kind of change touches only the things on the table, as
+    named (all_moved: every one of them), each on the table top; the table, the room and the
+    camera stay; the camera looks down at the table and sees it, the wall and the floor."""
+    from sim_fixtures.stations import CHANGES, station_spec
+
+    kinds = {"none": set(), "one_moved": {"moved"}, "one_removed": {"removed"},
+             "one_added": {"added"}, "all_moved": {"moved"}}
+    for change in CHANGES:
+        spec = station_spec(seed, change)
+        found = diff_layouts(spec.reference, spec.current)
+        assert {c.kind for c in found} == kinds[change]
+        assert all(c.name.startswith(("item", "new")) for c in found)
+        items = [o for o in spec.reference if o.name.startswith("item")]
+        if change == "all_moved":
+            assert len(found) == len(items) >= 3
+        elif change != "none":
+            assert len(found) == 1
+        table = next(o for o in spec.reference if o.name == "table")
+        top = table.parts[0]
+        lo = np.asarray(top.center) - np.asarray(top.size) / 2
+        hi = np.asarray(top.center) + np.asarray(top.size) / 2
+        for obj in spec.current:
+            if obj.name.startswith(("item", "new")):
+                corners = obj.corners()
+                assert corners[:, 2].min() == pytest.approx(hi[2])  # stands on the top
+                assert (corners[:, :2] >= lo[:2] - 0.05).all()  # a turned box's corners
+                assert (corners[:, :2] <= hi[:2] + 0.05).all()  # stay near it
+        assert spec.reference_pose == spec.current_pose
+        ref, _cur = render_pair(spec)
+        ids = object_ids(spec)
+        for name in ("table", "floor", "wall_north"):
+            assert (ref.ids == ids[name]).mean() > 0.05, name
+        assert spec.reference_pose.pitch_deg > 20.0
+    moved = station_spec(seed, "none", offset=(0.10, 4.0, 3)).current_pose
+    shift = np.subtract(moved.position, station_spec(seed, "none").reference_pose.position)
+    assert np.linalg.norm(shift) == pytest.approx(0.10)
+    with pytest.raises(ValueError, match="change must be one of"):
+        station_spec(seed, "everything_gone")
+
+
 # ----------------------------------------------------------------------------- fixtures
 
 
