@@ -284,10 +284,12 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
 
 
 def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist, min_cos,
-                      sigmas, margin, per_m2):
+                      sigmas, margin, per_m2, facing, min_facing):
     out = np.zeros(cur_v.shape[:2], np.int8)
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
+            if min_facing > 0 and abs(float(cur_n[i, j] @ facing)) < min_facing:
+                continue
             hit = _project_twin(cur_v[i, j], R, t, fx, fy, cx, cy, ref_v.shape)
             if cur_v[i, j, 2] <= 0 or hit is None or ref_v[hit[2], hit[1], 2] <= 0:
                 continue
@@ -309,7 +311,8 @@ def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist
 
 @pytest.mark.parametrize("level", [1, 2])
 def test_cell_states_match_numpy(office_pair, level):
-    """Per cell: 2 seen through or paired beyond 3 sigmas, 1 paired within, 0 otherwise."""
+    """Per cell: 2 seen through or paired beyond 3 sigmas, 1 paired within, 0 otherwise; with
+    a facing direction, only the cells whose normal lies along it are judged."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = pyramid.levels(ref, INTR, params)[level]
@@ -317,9 +320,15 @@ def test_cell_states_match_numpy(office_pair, level):
     for T in (sc.T_ref_from_cur, np.eye(4)):
         args = (cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(),
                 rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, 3.0, 0.03, 0.004)
-        got = table_top._cell_states(*args)
-        np.testing.assert_array_equal(got, _cell_states_twin(*args))
-        assert (got == 1).sum() > 100 and (got == 2).sum() > 10
+        every = agreement.cell_states(*args, np.zeros(3), 0.0)
+        np.testing.assert_array_equal(every, _cell_states_twin(*args, np.zeros(3), 0.0))
+        assert (every == 1).sum() > 100 and (every == 2).sum() > 10
+        along_x = agreement.cell_states(*args, np.array([1.0, 0.0, 0.0]), 0.5)
+        np.testing.assert_array_equal(
+            along_x, _cell_states_twin(*args, np.array([1.0, 0.0, 0.0]), 0.5))
+        facing = np.abs(cl.normal[:, :, 0]) >= 0.5
+        assert 0 < (along_x > 0).sum() < (every > 0).sum()
+        np.testing.assert_array_equal(along_x[facing], every[facing])
 
 
 def test_rotation_helpers_round_trip():
@@ -354,6 +363,43 @@ def test_a_bare_wall_leaves_sliding_along_it_weak_and_unmoved():
     assert {"x", "y"} <= set(got.weak)
     np.testing.assert_allclose(got.T_ref_from_cur, np.eye(4), atol=1e-6)
     assert got.to_dict()["weak_directions"] == list(got.weak)
+
+
+# Table stations (sim_fixtures.stations) from the bench's dev seeds: (seed, change, offset
+# (translation m, rotation deg, draw)); the draws are the bench's for those pairs.
+_STATION_SLID = (1, "one_removed", (0.10, 4.0, 20663))  # one object taken off the table
+_STATION_LINED_UP = (0, "all_moved", (0.15, 6.0, 78249))  # every object on the table moved
+
+
+def _station_error(station, params=RegistrationParams()):
+    from sim_fixtures.stations import station_pair
+
+    ref, cur, truth, intrinsics = station_pair(*station)
+    got = register_depth(ref, cur, intrinsics, params)
+    err = invert(truth) @ got.T_ref_from_cur
+    return float(np.linalg.norm(err[:3, 3])), rotation_angle_deg(err[:3, :3]), got
+
+
+def test_a_table_station_does_not_slide_along_its_wall():
+    """A table before a wall pins the slide along the wall only by the table's legs and the
+    sides of the objects on it, a few centimetres wide: the fine search finds it where the
+    10 cm search steps over it (57 mm off without it)."""
+    metres, degrees, got = _station_error(_STATION_SLID)
+    assert metres < 0.005 and degrees < 0.1 and got.weak == ()
+    metres, _degrees, _got = _station_error(_STATION_SLID,
+                                            RegistrationParams(fine_search_reach_m=0.0))
+    assert metres > 0.03
+
+
+def test_a_slide_nothing_pins_is_said_weak():
+    """Every object on the table moved, and they line up 28 cm along the wall better than the
+    table's legs do at the truth: the estimate is wrong, and no surface facing along the slide
+    fits there, so the slide is said weak (without the check, nothing was said)."""
+    metres, _degrees, got = _station_error(_STATION_LINED_UP)
+    assert metres > 0.05 and "x" in got.weak
+    _metres, _degrees, unchecked = _station_error(_STATION_LINED_UP,
+                                                  RegistrationParams(slide_support_share=0.0))
+    assert unchecked.weak == ()
 
 
 @pytest.mark.parametrize("name", ["office_far_offset", "storage_other_room"])
@@ -417,7 +463,8 @@ def test_bad_input_is_refused_with_typed_errors(office_pair):
         RegistrationParams(iterations=(1, 2))
     with pytest.raises(InputError, match="RegistrationParams"):
         ChangeParams(registration="yes")
-    for name in ("table_outline_holes", "table_static_share"):
+    for name in ("table_outline_holes", "table_static_share", "fine_search_step_m",
+                 "fine_search_reach_m", "fine_search_ratio", "slide_support_share"):
         for bad in (-0.1, 1.5, "0.02", float("nan")):
             with pytest.raises(InputError, match=name):
                 RegistrationParams(**{name: bad})

@@ -225,15 +225,13 @@ def _whole_path(config: Config) -> None:
 
 
 def _table_top_kernels() -> None:
-    """The registration kernels only a table-top view reaches (the table-plane starts' grid,
-    the trimming's cell states; the synthetic room never passes their gate), with the
-    argument types a check gives them: float32 vertex and normal maps, float64 transforms."""
+    """The registration kernel only a table-top view reaches (the table-plane starts' grid;
+    the synthetic room never passes their gate), with the argument types a check gives it:
+    a float32 vertex map, float64 transforms."""
     from robot_change.change.registration import table_top
 
     v = np.zeros((2, 2, 3), np.float32)
     table_top._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
-    table_top._cell_states(v, v, v, v, np.eye(3), np.zeros(3), 1.0, 1.0, 0.0, 0.0, 0.06, 0.8,
-                           3.0, 0.03, 0.004)
 
 
 def _exit_with_parent(parent: int) -> None:

@@ -18,7 +18,11 @@ a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
   a scale from the median absolute residual: the change is what does not fit;
 * **degeneracy**: the 6x6 normal matrix, rotations scaled by the cloud's radius to metres, is
   decomposed; directions with little information (a bare wall leaves translations along it
-  free) are not moved along and are reported (Zhang, Kaess & Singh 2016);
+  free) are not moved along and are reported (Zhang, Kaess & Singh 2016), and so is a slide
+  that no surface facing along it pins at the estimate;
+* **searches**: offsets along the two least constrained directions, 10 cm apart, scored by
+  inliers less the cells either view sees through; then, along a slide (one direction far
+  less constrained than the others: a table before a wall), 1 cm apart;
 * **table-plane starts** (a table top only: a dominant plane of at most 2 m): top-down
   occupancy grids of the two views on their planes, cross-correlated by FFT over in-plane
   shifts for a few yaws, give starts for (x, y, yaw) in the plane that ICP from the main

@@ -14,7 +14,7 @@ import numpy as np
 
 from .icp import Pairs, count_inliers
 from .params import RegistrationParams
-from .pyramid import Level
+from .pyramid import Level, depth_sigma
 from .rigid import exp_so3, invert
 
 
@@ -55,6 +55,74 @@ def seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_
 
 
 @numba.njit(cache=True, nogil=True)
+def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                sigmas, margin_m, margin_per_m2, facing, min_facing):
+    """What the reference says of each current cell (``cur_v``, ``cur_n`` (h, w, 3)) moved by
+    (rot, trans) and projected into it: 2 (contradicts) when it sees through the cell (its
+    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it as
+    :func:`_associate` does with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
+    when it pairs it within them; 0 otherwise (outside its image, on no reading, hidden
+    behind a nearer reading, or not paired).  Only the cells whose normal has
+    |n . ``facing``| >= ``min_facing`` (``facing`` (3,), current frame) are judged; the
+    others are 0 (``min_facing`` 0: every cell).  Returns (h, w) int8."""
+    h, w = cur_v.shape[0], cur_v.shape[1]
+    out = np.zeros((h, w), dtype=np.int8)
+    md2 = max_dist * max_dist
+    for i in range(h):
+        for j in range(w):
+            x = cur_v[i, j, 0]
+            y = cur_v[i, j, 1]
+            z = cur_v[i, j, 2]
+            if z <= 0.0:
+                continue
+            if min_facing > 0.0 and abs(cur_n[i, j, 0] * facing[0] + cur_n[i, j, 1] * facing[1]
+                                        + cur_n[i, j, 2] * facing[2]) < min_facing:
+                continue
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+                continue
+            rz = ref_v[v, u, 2]
+            if rz <= 0.0:
+                continue
+            margin = margin_m + margin_per_m2 * pz * pz
+            if rz > pz + margin:
+                out[i, j] = 2
+                continue
+            if rz < pz - margin:
+                continue
+            nx0 = cur_n[i, j, 0]
+            ny0 = cur_n[i, j, 1]
+            nz0 = cur_n[i, j, 2]
+            mx = ref_n[v, u, 0]
+            my = ref_n[v, u, 1]
+            mz = ref_n[v, u, 2]
+            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
+                                                                and mz == 0.0):
+                continue
+            dx = px - ref_v[v, u, 0]
+            dy = py - ref_v[v, u, 1]
+            dz = pz - ref_v[v, u, 2]
+            if dx * dx + dy * dy + dz * dz > md2:
+                continue
+            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+            if nx * mx + ny * my + nz * mz < min_cos:
+                continue
+            if abs(mx * dx + my * dy + mz * dz) <= sigmas * depth_sigma(pz):
+                out[i, j] = 1
+            else:
+                out[i, j] = 2
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
                  sigmas, margin_m, margin_per_m2, both_ways, hole_weight, res, jac, zs):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
@@ -75,21 +143,21 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         for a in range(3):
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers = count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
-                                 min_cos, sigmas, res, jac, zs)
+                                min_cos, sigmas, res, jac, zs)
         if both_ways:
             inliers += count_inliers(ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy,
-                                      max_dist, min_cos, sigmas, res, jac, zs)
+                                     max_dist, min_cos, sigmas, res, jac, zs)
         through_cur, _, holes_cur = seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
-                                                  margin_m, margin_per_m2)
+                                                 margin_m, margin_per_m2)
         through_ref, _, holes_ref = seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
-                                                  margin_m, margin_per_m2)
+                                                 margin_m, margin_per_m2)
         out[m] = inliers - through_cur - through_ref - hole_weight * (holes_cur + holes_ref)
     return out
 
 
 def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
-                 min_cos: float, pairs: Pairs, both_ways: bool = False,
-                 hole_weight: float = 0.0) -> np.ndarray:
+                min_cos: float, pairs: Pairs, both_ways: bool = False,
+                hole_weight: float = 0.0) -> np.ndarray:
     """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
     search step (of the current's cells; ``both_ways``: of both views' cells), less the cells
     either view sees through and ``hole_weight`` times those landing on no reading."""
@@ -101,22 +169,30 @@ def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: Registrat
                         bool(both_ways), float(hole_weight), pairs.res, pairs.jac, pairs.zs)
 
 
+def _slides(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int
+            ) -> list[np.ndarray]:
+    """``T`` (4, 4) moved along the ``n_dirs`` least constrained directions of the translation
+    block of the normal matrix ``A`` (6, 6), ``step_m`` apart out to ``reach_m`` each way (m)."""
+    _lam, vecs = np.linalg.eigh(A[3:, 3:])
+    steps = np.arange(step_m, reach_m + 1e-9, step_m)
+    steps = np.concatenate([-steps[::-1], steps])
+    poses = []
+    for d in vecs[:, :n_dirs].T:
+        for st in steps:
+            c = T.copy()
+            c[:3, 3] += st * d
+            poses.append(c)
+    return poses
+
+
 def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
-                 params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
+                params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
     """The best-scoring (:func:`score_poses`) of ``T`` moved along the least constrained
     directions of the normal matrix ``A`` (6, 6): translation offsets along the two weakest
     directions of its translation block, and screw motions along the two weakest directions
     of the whole, rotations scaled by the radius (root median squared depth) of the current
     level; None when ``T`` itself scores best."""
-    _lam, vecs = np.linalg.eigh(A[3:, 3:])
-    steps = np.arange(params.search_step_m, params.search_reach_m + 1e-9, params.search_step_m)
-    steps = np.concatenate([-steps[::-1], steps])
-    poses = [T]
-    for d in (vecs[:, 0], vecs[:, 1]):
-        for st in steps:
-            c = T.copy()
-            c[:3, 3] += st * d
-            poses.append(c)
+    poses = [T] + _slides(T, A, params.search_step_m, params.search_reach_m, 2)
     if params.search_screw_steps:
         z = cl.vertex[:, :, 2]
         radius = math.sqrt(float(np.median(np.square(z[z > 0], dtype=np.float64))))
@@ -133,8 +209,25 @@ def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
+def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
+                params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
+    """The best-scoring (:func:`score_poses`) of ``T`` slid along the least constrained
+    direction of the translation block of ``A`` (6, 6), ``fine_search_step_m`` apart out to
+    ``fine_search_reach_m`` each way; None when ``T`` itself scores best, or when that
+    direction is not a slide (its eigenvalue not below ``fine_search_ratio`` of the next
+    one's).  What pins a slide may be a few centimetres wide (a table's legs, the sides of
+    the objects on it): ICP's basin there is about that wide, narrower than the coarse
+    search's step."""
+    lam = np.linalg.eigvalsh(A[3:, 3:])
+    if params.fine_search_reach_m <= 0 or not lam[0] < params.fine_search_ratio * lam[1]:
+        return None
+    poses = [T] + _slides(T, A, params.fine_search_step_m, params.fine_search_reach_m, 1)
+    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos, pairs)))
+    return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
+
+
 def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
-             pairs: Pairs) -> tuple[float, float, int, int]:
+            pairs: Pairs) -> tuple[float, float, int, int]:
     """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level
     (``pairs``: that level's scratch arrays)."""
     n_cells = cl.n_normals
@@ -147,13 +240,33 @@ def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min
     return k / n_cells, rmse, k, n_cells
 
 
+def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
+                  params: RegistrationParams, min_cos: float) -> int:
+    """The cells of both views (one level: reference ``rl``, current ``cl``) whose normal lies
+    within 60 degrees of ``direction`` (3,), a translation in the reference camera frame, and
+    that fit the other view at ``T`` (T_ref_from_cur; :func:`cell_states`): the surfaces
+    that pin the estimate along that direction.  A wall's or a table's normals are nearly
+    square to a slide along them, and their many cells can give the normal equations a
+    little information along it; the surfaces facing along it are what decides it."""
+    out = 0
+    for own, other, M, d in ((cl, rl, T, T[:3, :3].T @ direction),
+                             (rl, cl, invert(T), direction)):
+        states = cell_states(own.vertex, own.normal, other.vertex, other.normal,
+                             M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                             other.cy, params.max_distance_m[-1], min_cos,
+                             params.inlier_sigmas, params.seen_through_margin_m,
+                             params.seen_through_margin_per_m2, d, 0.5)
+        out += int(np.count_nonzero(states == 1))
+    return out
+
+
 def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams) -> float:
     """The larger of the fractions of each view that the other sees through (finest level)."""
     out = 0.0
     for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
         through, compared, _ = seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
-                                             M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                             other.cy, params.seen_through_margin_m,
-                                             params.seen_through_margin_per_m2)
+                                            M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                            other.cy, params.seen_through_margin_m,
+                                            params.seen_through_margin_per_m2)
         out = max(out, through / compared if compared else 0.0)
     return out

@@ -86,7 +86,7 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
 
 @numba.njit(cache=True, nogil=True)
 def count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                   sigmas, res, jac, zs):
+                  sigmas, res, jac, zs):
     """The pairs of :func:`_associate` (filling its scratch arrays ``res``, ``jac``, ``zs``)
     whose residual is within ``sigmas`` depth noise sigmas (:func:`depth_sigma`), counted."""
     n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
@@ -191,7 +191,7 @@ class Pairs:
 
 
 def icp_level(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, li: int,
-               min_cos: float, pairs: Pairs, min_cut_m: float = 0.0):
+              min_cos: float, pairs: Pairs, min_cut_m: float = 0.0):
     """Gauss-Newton iterations of one level from ``T`` (Tukey's cut at least ``min_cut_m``
     metres); returns (T, iterations, converged, eigenvalues, eigenvectors, last normal matrix
     or None)."""

@@ -41,6 +41,17 @@ class RegistrationParams:
     # search_screw_steps steps of search_step_m each way (0: none; 1 did as well as 2-4 on the
     # table tops): a table top leaves the turn about its normal coupled with a slide.
     search_screw_steps: int = 1
+    # Then, when one translation direction is much less constrained than the other two (its
+    # eigenvalue of the translation block below fine_search_ratio of the next one: a slide),
+    # offsets along it, fine_search_step_m apart out to fine_search_reach_m each way, are
+    # scored the same way and ICP goes on from the best when it ends scoring higher (reach 0:
+    # none).  A table station's slide along its wall is pinned only by the table's legs and
+    # the sides of the objects on it, a few centimetres wide: ICP's basin there is narrower
+    # than search_step_m.  Ratios: table stations that slid 0.001-0.019; rooms, which need no
+    # fine search, 0.10 and more (docs/algorithm.md, step 6).
+    fine_search_step_m: float = 0.01
+    fine_search_reach_m: float = 0.04
+    fine_search_ratio: float = 0.05
     # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
     # not), and goes on from the better-scoring of the two ends (inliers less seen-through
     # cells, as the search).  On a table top the plane aligns first, the residual scale
@@ -92,6 +103,14 @@ class RegistrationParams:
     # At right poses the share was 0.000-0.017 on the tuning pairs where every object moved
     # or shifted and 0.065-0.72 where one stayed (docs/benchmarks.md).  0: not checked.
     table_static_share: float = 0.03
+    # At the final estimate, the least constrained translation direction of the finest
+    # level's normal matrix is reported weak when fewer than slide_support_share of the
+    # current's cells with a normal (both views' cells counted) face along it (normal within
+    # 60 degrees) and fit the other view: nothing pins the estimate there.  Right estimates
+    # had at least 55 such cells of ~19,000 (0.003) on table stations and 746 in rooms; the
+    # table stations that slid along their wall (every object moved, lined up elsewhere) had
+    # 0 (docs/algorithm.md, step 7).  0: not checked.
+    slide_support_share: float = 0.001
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -143,6 +162,10 @@ class RegistrationParams:
         _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
         _int("search_screw_steps", self.search_screw_steps, 0, 20)
+        _num("fine_search_step_m", self.fine_search_step_m, 0.0, 1.0, low_open=True,
+             unit=" metres")
+        _num("fine_search_reach_m", self.fine_search_reach_m, 0.0, 1.0, unit=" metres")
+        _num("fine_search_ratio", self.fine_search_ratio, 0.0, 1.0)
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _int("table_starts", self.table_starts, 0, 20)
         _num("table_plane_fraction", self.table_plane_fraction, 0.0, 1.0)
@@ -156,6 +179,7 @@ class RegistrationParams:
         _num("trim_conflict_share", self.trim_conflict_share, 0.0, 1.0)
         _num("table_outline_holes", self.table_outline_holes, 0.0, 1.0)
         _num("table_static_share", self.table_static_share, 0.0, 1.0)
+        _num("slide_support_share", self.slide_support_share, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)

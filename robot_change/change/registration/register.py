@@ -14,11 +14,18 @@ import numpy as np
 from hw.depth import Intrinsics
 from robot_change.errors import InputError
 
-from .agreement import contradiction, fitness, score_poses, weak_search
+from .agreement import (
+    contradiction,
+    fine_search,
+    fitness,
+    score_poses,
+    slide_support,
+    weak_search,
+)
 from .icp import Pairs, icp_level, weak_names
 from .params import RegistrationParams
-from .pyramid import check_depth, levels
-from .result import Registration, identity_registration
+from .pyramid import Level, check_depth, levels
+from .result import AXES, Registration, identity_registration
 from .table_top import (
     TablePlane,
     in_plane_names,
@@ -104,8 +111,14 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
             moved = weak_search(rl, cl, T, A, params, min_cos, pairs)
             if moved is not None:
-                T, n_it, converged, lam_n, vec, _ = icp_level(rl, cl, moved, params, li,
+                T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, moved, params, li,
                                                               min_cos, pairs)
+                iterations += n_it
+            # a table top's in-plane pose has starts of its own, on a finer grid
+            slid = None if planes is not None else _slide(rl, cl, T, A, params, li, min_cos,
+                                                          pairs)
+            if slid is not None:
+                T, n_it, converged, lam_n, vec, A = slid
                 iterations += n_it
         if tracks and li == params.search_level:
             # the table-plane tracks against the main one, on the score taken both ways
@@ -115,20 +128,51 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             if best > 0:
                 T, n_it, converged, lam_n, vec, _ = ends[best - 1]
             tracks = []
-    if planes is not None:
-        for _round in range(params.trim_rounds):
-            for li in range(params.search_level, len(ref_levels)):
-                rl, cl = without_changed_objects(ref_levels[li], cur_levels[li], planes, T,
-                                                 params, li, min_cos)
-                T, n_it, converged, lam_n, vec, _ = icp_level(rl, cl, T, params, li, min_cos,
-                                                              Pairs(cl))
-                iterations += n_it
+    for _round in range(params.trim_rounds if planes is not None else 0):
+        for li in range(params.search_level, len(ref_levels)):
+            rl, cl = without_changed_objects(ref_levels[li], cur_levels[li], planes, T, params,
+                                             li, min_cos)
+            T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, T, params, li, min_cos,
+                                                          Pairs(cl))
+            iterations += n_it
     fit, rmse, n_pairs, n_cells = fitness(ref_levels[-1], cur_levels[-1], T, params, min_cos,
                                           pairs)
     through = contradiction(ref_levels[-1], cur_levels[-1], T, params)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
-    if planes is not None and table_pose_weak(ref_levels[-1], cur_levels[-1], T, planes, weak,
-                                              params, min_cos):
-        weak = tuple(dict.fromkeys(weak + in_plane_names(planes[1])))
+    slide = _unsupported_slide(ref_levels[-1], cur_levels[-1], T, A, params, min_cos, n_cells)
+    if planes is not None and table_pose_weak(ref_levels[-1], cur_levels[-1], T, planes,
+                                              weak + slide, params, min_cos):
+        weak = weak + in_plane_names(planes[1])
+    weak = tuple(dict.fromkeys(weak + slide))
     return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
                         (time.perf_counter() - t0) * 1e3, through)
+
+
+def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
+           params: RegistrationParams, li: int, min_cos: float, pairs: Pairs):
+    """Level ``li``'s ICP (:func:`icp_level`'s tuple) from the best of ``T`` slid along its
+    least constrained direction (:func:`fine_search`), when it ends scoring higher than ``T``;
+    None otherwise."""
+    if A is None:
+        return None
+    moved = fine_search(rl, cl, T, A, params, min_cos, pairs)
+    if moved is None:
+        return None
+    end = icp_level(rl, cl, moved, params, li, min_cos, pairs)
+    scores = score_poses(rl, cl, [T, end[0]], params, min_cos, pairs)
+    return end if scores[1] > scores[0] else None
+
+
+def _unsupported_slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
+                       params: RegistrationParams, min_cos: float, n_cells: int
+                       ) -> tuple[str, ...]:
+    """The :data:`AXES` name of the least constrained translation of the finest level's normal
+    matrix ``A`` (6, 6), when fewer than ``slide_support_share`` of the ``n_cells`` current
+    cells with a normal face along it and fit at ``T`` (:func:`slide_support`); else ()."""
+    if params.slide_support_share <= 0 or A is None:
+        return ()
+    direction = np.linalg.eigh(A[3:, 3:])[1][:, 0]
+    if slide_support(rl, cl, T, direction, params, min_cos) >= \
+            params.slide_support_share * n_cells:
+        return ()
+    return (AXES[3 + int(np.argmax(np.abs(direction)))],)

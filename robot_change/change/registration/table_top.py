@@ -31,14 +31,16 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from .agreement import seen_through
+from .agreement import cell_states, seen_through
 from .params import RegistrationParams
-from .pyramid import Level, depth_sigma
+from .pyramid import Level
 from .result import AXES
 from .rigid import invert
 
 #: A cell within this distance of a view's table plane is on it (metres).
 _ON_PLANE_M = 0.01
+#: :func:`~.agreement.cell_states` judges every cell with this direction and 0 (any normal).
+_EVERY_CELL = np.zeros(3)
 
 
 def _dominant_plane(level: Level, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
@@ -143,7 +145,7 @@ class TablePlane:
 
 
 def table_planes(ref_levels: list[Level], cur_levels: list[Level],
-                  params: RegistrationParams) -> tuple[TablePlane, TablePlane] | None:
+                 params: RegistrationParams) -> tuple[TablePlane, TablePlane] | None:
     """The (reference, current) table planes when the views are of a table top, else None.
     Each view's dominant plane (:func:`_dominant_plane`, coarsest level) must have its
     supporters (2-98 %) span no more than ``table_max_extent_m`` in either plane direction (a
@@ -171,8 +173,8 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
 
 
 def table_starts(ref_levels: list[Level], cur_levels: list[Level],
-                  planes: tuple[TablePlane, TablePlane], params: RegistrationParams
-                  ) -> list[np.ndarray]:
+                 planes: tuple[TablePlane, TablePlane], params: RegistrationParams
+                 ) -> list[np.ndarray]:
     """Up to ``params.table_starts`` (4, 4) starting estimates of ``T_ref_from_cur`` for a
     table top whose (reference, current) ``planes`` are :func:`table_planes`'.  Each start
     puts the current plane on the reference's and moves it in the plane by a yaw about its
@@ -230,82 +232,19 @@ def table_starts(ref_levels: list[Level], cur_levels: list[Level],
 # --------------------------------------------------------------------------- trimming the change
 
 
-@numba.njit(cache=True, nogil=True)
-def _cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                 sigmas, margin_m, margin_per_m2):
-    """What the reference says of each current cell (``cur_v``, ``cur_n`` (h, w, 3)) moved by
-    (rot, trans) and projected into it: 2 (contradicts) when it sees through the cell (its
-    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it as
-    :func:`_associate` does with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
-    when it pairs it within them; 0 otherwise (outside its image, on no reading, hidden
-    behind a nearer reading, or not paired).  Returns (h, w) int8."""
-    h, w = cur_v.shape[0], cur_v.shape[1]
-    out = np.zeros((h, w), dtype=np.int8)
-    md2 = max_dist * max_dist
-    for i in range(h):
-        for j in range(w):
-            x = cur_v[i, j, 0]
-            y = cur_v[i, j, 1]
-            z = cur_v[i, j, 2]
-            if z <= 0.0:
-                continue
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            if pz <= 0.0:
-                continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
-                continue
-            rz = ref_v[v, u, 2]
-            if rz <= 0.0:
-                continue
-            margin = margin_m + margin_per_m2 * pz * pz
-            if rz > pz + margin:
-                out[i, j] = 2
-                continue
-            if rz < pz - margin:
-                continue
-            nx0 = cur_n[i, j, 0]
-            ny0 = cur_n[i, j, 1]
-            nz0 = cur_n[i, j, 2]
-            mx = ref_n[v, u, 0]
-            my = ref_n[v, u, 1]
-            mz = ref_n[v, u, 2]
-            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
-                                                                and mz == 0.0):
-                continue
-            dx = px - ref_v[v, u, 0]
-            dy = py - ref_v[v, u, 1]
-            dz = pz - ref_v[v, u, 2]
-            if dx * dx + dy * dy + dz * dz > md2:
-                continue
-            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
-            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
-            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
-            if nx * mx + ny * my + nz * mz < min_cos:
-                continue
-            if abs(mx * dx + my * dy + mz * dz) <= sigmas * depth_sigma(pz):
-                out[i, j] = 1
-            else:
-                out[i, j] = 2
-    return out
-
-
 def _object_states(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
                    params: RegistrationParams, max_dist: float, min_cos: float
                    ) -> tuple[np.ndarray, int, np.ndarray]:
     """The objects of ``own`` on its table ``plane`` and what ``other`` says of each cell,
     seen with ``M`` (4, 4) other-from-own: (labels (h, w) int, 0 off any object; the number
-    of objects; :func:`_cell_states` (h, w) int8).  An object is a 4-connected group of cells
-    standing more than ``table_object_m`` above ``plane``."""
+    of objects; :func:`~.agreement.cell_states` (h, w) int8).  An object is a 4-connected
+    group of cells standing more than ``table_object_m`` above ``plane``."""
     objects, n = ndimage.label((own.vertex[:, :, 2] > 0)
                                & (plane.heights(own.vertex) > params.table_object_m))
-    states = _cell_states(own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
-                          M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
-                          min_cos, params.inlier_sigmas, params.seen_through_margin_m,
-                          params.seen_through_margin_per_m2)
+    states = cell_states(own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
+                         M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
+                         min_cos, params.inlier_sigmas, params.seen_through_margin_m,
+                         params.seen_through_margin_per_m2, _EVERY_CELL, 0.0)
     return objects, n, states
 
 
@@ -345,8 +284,8 @@ def _changed_objects(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
 
 
 def without_changed_objects(rl: Level, cl: Level, planes: tuple[TablePlane, TablePlane],
-                             T: np.ndarray, params: RegistrationParams, li: int, min_cos: float
-                             ) -> tuple[Level, Level]:
+                            T: np.ndarray, params: RegistrationParams, li: int, min_cos: float
+                            ) -> tuple[Level, Level]:
     """The two views of level ``li`` (reference, current) with the normals of their changed
     objects' cells (:func:`_changed_objects`, judged at ``T``) set to zero, so ICP pairs
     only the table and the objects that stayed put."""
@@ -368,15 +307,15 @@ def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
     on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < _ON_PLANE_M)
     table = np.where(on[:, :, None], own.vertex, 0.0)
     _through, compared, holes = seen_through(table, other.vertex, M[:3, :3].copy(),
-                                              M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                              other.cy, params.seen_through_margin_m,
-                                              params.seen_through_margin_per_m2)
+                                             M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                             other.cy, params.seen_through_margin_m,
+                                             params.seen_through_margin_per_m2)
     return holes / (holes + compared) if holes + compared else 0.0
 
 
 def table_pose_weak(rl: Level, cl: Level, T: np.ndarray,
-                     planes: tuple[TablePlane, TablePlane], weak: tuple[str, ...],
-                     params: RegistrationParams, min_cos: float) -> bool:
+                    planes: tuple[TablePlane, TablePlane], weak: tuple[str, ...],
+                    params: RegistrationParams, min_cos: float) -> bool:
     """Whether the estimate ``T`` (T_ref_from_cur) of a table top (finest levels ``rl``,
     ``cl``; their table ``planes``) is not to be trusted in the table's plane: one of the
     directions there is already ``weak`` by the normal equations (the three are coupled: a
