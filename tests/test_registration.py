@@ -369,6 +369,7 @@ def test_a_bare_wall_leaves_sliding_along_it_weak_and_unmoved():
 # (translation m, rotation deg, draw)); the draws are the bench's for those pairs.
 _STATION_SLID = (1, "one_removed", (0.10, 4.0, 20663))  # one object taken off the table
 _STATION_LINED_UP = (0, "all_moved", (0.15, 6.0, 78249))  # every object on the table moved
+_STATION_CONTESTED = (3003, "all_moved", (0.05, 2.0, 30935))  # the same, another table
 
 
 def _station_error(station, params=RegistrationParams()):
@@ -394,11 +395,29 @@ def test_a_table_station_does_not_slide_along_its_wall():
 def test_a_slide_nothing_pins_is_said_weak():
     """Every object on the table moved, and they line up 28 cm along the wall better than the
     table's legs do at the truth: the estimate is wrong, and no surface facing along the slide
-    fits there, so the slide is said weak (without the check, nothing was said)."""
+    fits there, so the slide is said weak by that count alone (without the checks, nothing
+    was said)."""
     metres, _degrees, got = _station_error(_STATION_LINED_UP)
     assert metres > 0.05 and "x" in got.weak
-    _metres, _degrees, unchecked = _station_error(_STATION_LINED_UP,
-                                                  RegistrationParams(slide_support_share=0.0))
+    _metres, _degrees, support_only = _station_error(
+        _STATION_LINED_UP, RegistrationParams(slide_contested_share=1.0))
+    assert "x" in support_only.weak
+    _metres, _degrees, unchecked = _station_error(
+        _STATION_LINED_UP, RegistrationParams(slide_support_share=0.0, slide_contested_share=1.0))
+    assert unchecked.weak == ()
+
+
+def test_a_contested_slide_is_said_weak():
+    """Every object on the table moved; some line up 45 mm along the wall, where their sides
+    fit, but most of what faces along the slide (the legs, the other objects) contradicts
+    that pose: the slide is contested and said weak (without that check, nothing was)."""
+    metres, _degrees, got = _station_error(_STATION_CONTESTED)
+    assert metres > 0.03 and "x" in got.weak
+    _metres, _degrees, contest_only = _station_error(
+        _STATION_CONTESTED, RegistrationParams(slide_support_share=0.0))
+    assert "x" in contest_only.weak
+    _metres, _degrees, unchecked = _station_error(_STATION_CONTESTED,
+                                                  RegistrationParams(slide_contested_share=1.0))
     assert unchecked.weak == ()
 
 
@@ -464,7 +483,8 @@ def test_bad_input_is_refused_with_typed_errors(office_pair):
     with pytest.raises(InputError, match="RegistrationParams"):
         ChangeParams(registration="yes")
     for name in ("table_outline_holes", "table_static_share", "fine_search_step_m",
-                 "fine_search_reach_m", "fine_search_ratio", "slide_support_share"):
+                 "fine_search_reach_m", "fine_search_ratio", "slide_support_share",
+                 "slide_contested_share"):
         for bad in (-0.1, 1.5, "0.02", float("nan")):
             with pytest.raises(InputError, match=name):
                 RegistrationParams(**{name: bad})

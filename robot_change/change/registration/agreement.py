@@ -241,14 +241,15 @@ def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min
 
 
 def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
-                  params: RegistrationParams, min_cos: float) -> int:
+                  params: RegistrationParams, min_cos: float) -> tuple[int, int]:
     """The cells of both views (one level: reference ``rl``, current ``cl``) whose normal lies
-    within 60 degrees of ``direction`` (3,), a translation in the reference camera frame, and
-    that fit the other view at ``T`` (T_ref_from_cur; :func:`cell_states`): the surfaces
-    that pin the estimate along that direction.  A wall's or a table's normals are nearly
-    square to a slide along them, and their many cells can give the normal equations a
-    little information along it; the surfaces facing along it are what decides it."""
-    out = 0
+    within 60 degrees of ``direction`` (3,), a translation in the reference camera frame, that
+    fit the other view at ``T`` (T_ref_from_cur) and that contradict it
+    (:func:`cell_states`): the surfaces that pin the estimate along that direction, and
+    those that argue against it.  A wall's or a table's normals are nearly square to a slide
+    along them, and their many cells can give the normal equations a little information
+    along it; the surfaces facing along it are what decides it.  Returns (fit, contradict)."""
+    fit = contradict = 0
     for own, other, M, d in ((cl, rl, T, T[:3, :3].T @ direction),
                              (rl, cl, invert(T), direction)):
         states = cell_states(own.vertex, own.normal, other.vertex, other.normal,
@@ -256,8 +257,9 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
                              other.cy, params.max_distance_m[-1], min_cos,
                              params.inlier_sigmas, params.seen_through_margin_m,
                              params.seen_through_margin_per_m2, d, 0.5)
-        out += int(np.count_nonzero(states == 1))
-    return out
+        fit += int(np.count_nonzero(states == 1))
+        contradict += int(np.count_nonzero(states == 2))
+    return fit, contradict
 
 
 def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams) -> float:

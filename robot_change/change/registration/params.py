@@ -111,6 +111,12 @@ class RegistrationParams:
     # table stations that slid along their wall (every object moved, lined up elsewhere) had
     # 0 (docs/algorithm.md, step 7).  0: not checked.
     slide_support_share: float = 0.001
+    # ... or when more than slide_contested_share of those facing cells that the other view
+    # judges contradict it (1: not checked): a majority of what would pin the slide argues
+    # against the estimate.  Where every object on a table station moved, the legs pin the
+    # truth and the moved objects, lined up elsewhere, a wrong pose; either way the contested
+    # share is high.
+    slide_contested_share: float = 0.7
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0
     # A cell is the mean of the block's readings within this band of the reading at its
@@ -180,6 +186,7 @@ class RegistrationParams:
         _num("table_outline_holes", self.table_outline_holes, 0.0, 1.0)
         _num("table_static_share", self.table_static_share, 0.0, 1.0)
         _num("slide_support_share", self.slide_support_share, 0.0, 1.0)
+        _num("slide_contested_share", self.slide_contested_share, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
         _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)

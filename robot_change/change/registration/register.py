@@ -139,7 +139,10 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                                           pairs)
     through = contradiction(ref_levels[-1], cur_levels[-1], T, params)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
-    slide = _unsupported_slide(ref_levels[-1], cur_levels[-1], T, A, params, min_cos, n_cells)
+    # on a table top the objects that changed were left out of the estimate and the table's
+    # own checks judge what stayed: their contradiction does not contest the slide
+    slide = _unsupported_slide(ref_levels[-1], cur_levels[-1], T, A, params, min_cos, n_cells,
+                               contested=planes is None)
     if planes is not None and table_pose_weak(ref_levels[-1], cur_levels[-1], T, planes,
                                               weak + slide, params, min_cos):
         weak = weak + in_plane_names(planes[1])
@@ -164,15 +167,18 @@ def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
 
 
 def _unsupported_slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
-                       params: RegistrationParams, min_cos: float, n_cells: int
-                       ) -> tuple[str, ...]:
+                       params: RegistrationParams, min_cos: float, n_cells: int, *,
+                       contested: bool) -> tuple[str, ...]:
     """The :data:`AXES` name of the least constrained translation of the finest level's normal
-    matrix ``A`` (6, 6), when fewer than ``slide_support_share`` of the ``n_cells`` current
-    cells with a normal face along it and fit at ``T`` (:func:`slide_support`); else ()."""
-    if params.slide_support_share <= 0 or A is None:
+    matrix ``A`` (6, 6), when what faces along it (:func:`slide_support`) does not pin it at
+    ``T``: fewer than ``slide_support_share`` of the ``n_cells`` current cells with a normal
+    fit, or (``contested``) more than ``slide_contested_share`` of those judged contradict;
+    else ()."""
+    if A is None:
         return ()
     direction = np.linalg.eigh(A[3:, 3:])[1][:, 0]
-    if slide_support(rl, cl, T, direction, params, min_cos) >= \
-            params.slide_support_share * n_cells:
+    fit, contradict = slide_support(rl, cl, T, direction, params, min_cos)
+    if fit >= params.slide_support_share * n_cells and (
+            not contested or contradict <= params.slide_contested_share * (fit + contradict)):
         return ()
     return (AXES[3 + int(np.argmax(np.abs(direction)))],)

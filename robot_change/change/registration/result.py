@@ -26,8 +26,9 @@ class Registration:
     ``seen_through``: the larger of the two whole views' fractions seen through by the other
     (finest level, floor and table included).  ``weak``: names
     (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
-    there is the starting value), the slide no surface facing along it pins at the estimate
-    (``slide_support_share``), and on a table top the directions in the table's plane
+    there is the starting value), the slide that no surface facing along it pins at the
+    estimate (``slide_support_share``) or that most of what faces along it contradicts
+    (``slide_contested_share``), and on a table top the directions in the table's plane
     together, when one of them is weak, the two tables do not overlap at the estimate
     (``RegistrationParams.table_outline_holes``) or no object stayed put
     (``table_static_share``): not to be trusted.  ``eigenvalues`` (6,) of the scaled normal
