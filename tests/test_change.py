@@ -231,7 +231,9 @@ def test_params_are_validated():
     for bad in (dict(novelty_quantile=0.0), dict(ground_distance="l1"), dict(greedy=1),
                 dict(posterior_threshold=1.5), dict(region_connectivity=0),
                 dict(free_space_margin_m=-0.01), dict(novelty_seed="x"),
-                dict(gone_component_share=1.5), dict(gone_component_share="half")):
+                dict(gone_component_share=1.5), dict(gone_component_share="half"),
+                dict(free_space_shadow_baseline_m=-0.075),
+                dict(free_space_shadow_baseline_m="7.5 cm")):
         with pytest.raises(InputError, match="ChangeParams"):
             ChangeParams(**bad)
     with pytest.raises(InputError):
@@ -314,8 +316,25 @@ def _warp_twin(own, T, intr, depth_range, window=None, pv=None):
     return target, np.where(ok, pz, 0.0)
 
 
+def _row_neighbours_twin(depth):
+    """(left_mm, left_px, right_mm, right_px): the first reading left / right of each pixel
+    along its row, and how far; 0 where none."""
+    h, w = depth.shape
+    out = [np.zeros((h, w), np.uint16), np.zeros((h, w), np.int32),
+           np.zeros((h, w), np.uint16), np.zeros((h, w), np.int32)]
+    for r in range(h):
+        cols = np.flatnonzero(depth[r] > 0)
+        for c in range(w):
+            left, right = cols[cols < c], cols[cols > c]
+            if left.size:
+                out[0][r, c], out[1][r, c] = depth[r, left[-1]], c - left[-1]
+            if right.size:
+                out[2][r, c], out[3][r, c] = depth[r, right[0]], right[0] - c
+    return out
+
+
 def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero,
-                     target=None, z_other=None):
+                     target=None, z_other=None, shadow_bf=0.0):
     near = (_window_twin(other, pose_r, True) if pose_r else other).ravel()
     far = (_window_twin(other, hole_r, False) if hole_r else other).ravel()
     if target is None:
@@ -326,7 +345,15 @@ def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_z
     q = np.where(valid, target, 0)
     d1 = np.where(near[q] > 0, near[q], far[q]).astype(np.float64) * 1e-3
     z = z_other
-    seen = valid & np.where(d1 == 0, free_zero, d1 > z + margin_m + per_m2 * z * z)
+    margin = margin_m + per_m2 * z * z
+    shadowed = np.zeros(q.shape, bool)
+    for mm, px in np.reshape(_row_neighbours_twin(other), (2, 2) + other.shape):
+        zn = mm.ravel()[q] * 1e-3
+        with np.errstate(divide="ignore"):
+            reach = shadow_bf * (1.0 / np.where(zn > 0, zn, 1.0) - 1.0 / np.maximum(z, 1e-9))
+        shadowed |= (zn > 0) & (shadow_bf > 0) & (zn < z - margin) & \
+            (px.ravel()[q] <= reach + 1.0)
+    seen = valid & np.where(d1 == 0, free_zero & ~shadowed, d1 > z + margin)
     ok = pv >= 0
     votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
     total = np.bincount(pv[ok], minlength=n).astype(np.int32)
@@ -348,6 +375,43 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero):
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     assert not got[2].any()  # the shared pixel grid: everything is observed
+
+
+def test_free_space_with_projector_shadows_matches_numpy():
+    rng = np.random.default_rng(8)
+    h, w, n = 30, 40, 50
+    own = rng.integers(800, 3000, size=(h, w)).astype(np.uint16)
+    other = (own.astype(np.int64) + rng.integers(-600, 400, size=(h, w))).astype(np.uint16)
+    other[rng.random((h, w)) < 0.3] = 0
+    other[10:22, 5:30] = 0
+    pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
+    got = free_space_votes(pv, own, other, n, 0.03, 0.004, 1, 2, True, shadow_baseline_m=0.075)
+    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 1, 2, True, shadow_bf=0.075 * 525)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    plain = free_space_votes(pv, own, other, n, 0.03, 0.004, 1, 2, True)
+    assert plain[0].sum() > got[0].sum()  # some holes are shadows now
+
+
+def test_a_projector_shadow_is_not_seen_through():
+    """A surface 2 m away beside a box 1 m away, both seen at first; then the surface has no
+    reading over 15 pixels next to the box, as the projector's shadow of the box would leave
+    it (7.5 cm x 525 px x (1/1 m - 1/2 m) = 19.7 pixels wide at most): not seen through.  The
+    same hole 40 pixels from the box, or with no box beside it, is."""
+    h, w = 20, 120
+    own = np.full((h, w), 2000, np.uint16)
+    own[:, 10:30] = 1000  # the box
+    pv = np.full((h, w), -1, np.int32)
+    pv[:, 30:45] = 0  # the surface beside the box
+    pv[:, 70:85] = 1  # the surface far from it
+    other = own.copy()
+    other[:, 30:45] = 0
+    other[:, 70:85] = 0
+    votes, total, _unseen = free_space_votes(pv, own, other, 2, 0.03, 0.004, 0, 0, True,
+                                             shadow_baseline_m=0.075)
+    assert votes[0] == 0 and votes[1] == total[1]
+    no_shadows = free_space_votes(pv, own, other, 2, 0.03, 0.004, 0, 0, True)[0]
+    assert no_shadows[0] == total[0]
 
 
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.03, -0.02, 0.05), (0.4, 0.0, 0.0)])
@@ -377,8 +441,9 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,
-                           other_from_own=T, depth_range_m=(0.4, 2.9))
-    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z)
+                           other_from_own=T, depth_range_m=(0.4, 2.9), shadow_baseline_m=0.075)
+    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z,
+                            shadow_bf=0.075 * intr.fx)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     assert got[2].sum() > 0  # the depth range and the image border leave some unseen

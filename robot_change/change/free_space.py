@@ -148,8 +148,8 @@ def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, wind
 
 
 @numba.njit(cache=True, nogil=True)
-def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_points, margin_m,
-                       margin_per_m2, no_reading_is_free):
+def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, other, width,
+                       shadow_bf, n_points, margin_m, margin_per_m2, no_reading_is_free):
     """Per point: how many of its pixels the other image sees through, how many it has, and
     how many of them the other camera could not have seen.
 
@@ -157,8 +157,13 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_po
     ``z_other`` (P,) from :func:`_warp_kernel`; ``near_other`` (P',) the other image's
     nearest reading in the pose window (0: none there), ``far_other`` (P',) its farthest
     reading in the hole window (0: none).  The other reading is ``near_other``, else
-    ``far_other``; with neither, the pixel is seen through when ``no_reading_is_free``.  Seen
-    through: reading > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
+    ``far_other``; with neither, the pixel is seen through when ``no_reading_is_free``, unless
+    it may lie in a projector shadow: the first reading to its left or right along its row of
+    ``other`` (P',) uint16 mm, the other image (``width`` pixels a row), nearer than z by more
+    than the margin and no farther away than the shadow such a surface casts at depth z,
+    ``shadow_bf`` (1/z_near - 1/z) pixels (``shadow_bf`` = baseline x fx, m px; 0: no
+    shadows).  Seen through: reading > z + margin_m + margin_per_m2 * z^2 (metres, z =
+    ``z_other``).
     """
     votes = np.zeros(n_points, dtype=np.int32)
     total = np.zeros(n_points, dtype=np.int32)
@@ -175,22 +180,45 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, n_po
         d1 = near_other[q]
         if d1 == 0:
             d1 = far_other[q]
+        z = z_other[p]
+        margin = margin_m + margin_per_m2 * z * z
         if d1 == 0:
-            if no_reading_is_free:
+            if no_reading_is_free and not (
+                    _casts_shadow(other, width, q, -1, z, margin, shadow_bf)
+                    or _casts_shadow(other, width, q, 1, z, margin, shadow_bf)):
                 votes[v] += 1
             continue
-        z = z_other[p]
-        if d1 * 0.001 > z + margin_m + margin_per_m2 * z * z:
+        if d1 * 0.001 > z + margin:
             votes[v] += 1
     return votes, total, unseen
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _casts_shadow(other, width, q, step, z, margin, shadow_bf):
+    """Whether the first reading of ``other`` (flat (P',) uint16 mm, ``width`` pixels a row)
+    from pixel ``q`` along its row in direction ``step`` (-1 left, +1 right) can shadow from
+    the projector a surface at depth ``z`` (m) at ``q``: nearer by more than ``margin`` (m),
+    and the shadow it casts, ``shadow_bf`` (1/z_near - 1/z) pixels wide (``shadow_bf`` =
+    baseline x fx), reaches ``q``."""
+    if shadow_bf <= 0.0:
+        return False
+    row0 = q - q % width
+    c = q + step
+    while row0 <= c < row0 + width:
+        if other[c] > 0:
+            z_near = other[c] * 0.001
+            return z_near < z - margin and \
+                abs(c - q) <= shadow_bf * (1.0 / z_near - 1.0 / z) + 1.0
+        c += step
+    return False
 
 
 def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the free-space check reads of the other epoch's (H, W) uint16 depth image:
     ``near`` (its nearest reading within ``pose_radius`` pixels, 0: none), ``far`` (its
-    farthest within ``hole_radius``), both (H, W) uint16 mm, and its :func:`sensing_window`
-    as a (4,) int64 array.  A function of the image alone: a reference's is computed once
+    farthest within ``hole_radius``), both (H, W) uint16 mm, its :func:`sensing_window` as a
+    (4,) int64 array.  A function of the image alone: a reference's is computed once
     (:func:`free_and_observed` keeps it in the epoch's ``derived``)."""
     other = readonly_view(np.ascontiguousarray(other_depth))
     near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
@@ -205,6 +233,7 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                      intrinsics: Intrinsics | None = None,
                      other_from_own: np.ndarray | None = None,
                      depth_range_m: tuple[float, float] = (0.0, 65.535),
+                     shadow_baseline_m: float = 0.0,
                      views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Free-space evidence per point of one epoch against the other epoch's depth image.
@@ -219,9 +248,12 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     edges look seen through); where that window has no reading, the *farthest* reading within
     ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
-    (open space beyond the sensor's range).  A pixel that lands behind the other camera,
-    outside the part of its image it has readings in (:func:`sensing_window`) or outside
-    ``depth_range_m`` was not observed by it.  ``views``: :func:`other_views` of
+    (open space beyond the sensor's range), unless a nearer reading along its row could cast
+    a projector shadow that wide on it (``shadow_baseline_m``: the projector's distance from
+    the camera, 7.5 cm on a Kinect, PrimeSense or Xtion; 0: no shadows; a near object's
+    shadow on a far surface is wider than ``hole_radius``).  A pixel that lands behind the
+    other camera, outside the part of its image it has readings in (:func:`sensing_window`)
+    or outside ``depth_range_m`` was not observed by it.  ``views``: :func:`other_views` of
     ``other_depth`` with these radii, when already at hand.
 
     Returns
@@ -254,7 +286,9 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                                        intrinsics.fx, intrinsics.fy, intrinsics.cx,
                                        intrinsics.cy, width, window,
                                        float(depth_range_m[0]), float(depth_range_m[1]))
+    other = readonly_view(np.ascontiguousarray(other_depth))
     return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
+                              other.ravel(), width, float(shadow_baseline_m) * intrinsics.fx,
                               int(n_points), float(margin_m), float(margin_per_m2),
                               bool(no_reading_is_free))
 
@@ -282,7 +316,9 @@ def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from
         params.free_space_margin_per_m2, params.free_space_pose_radius_px,
         params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
         intrinsics=other.intrinsics, other_from_own=base_from_other,
-        depth_range_m=(cp.min_depth_m, cp.max_depth_m), views=free_space_views(base, params))
+        depth_range_m=(cp.min_depth_m, cp.max_depth_m),
+        shadow_baseline_m=params.free_space_shadow_baseline_m,
+        views=free_space_views(base, params))
     observed = (total > 0) & (2 * unseen < total)
     seen = total - unseen
     free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))

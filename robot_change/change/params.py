@@ -123,6 +123,12 @@ class ChangeParams:
     # Where that window has no reading, the farthest reading within this many pixels stands
     # in (projector shadows and dropouts); 0 = the pixel alone.
     free_space_hole_radius_px: int = 5
+    # With no reading in either window, a pixel is not seen through when a nearer reading
+    # along its row could cast a projector shadow that wide on it: a structured-light camera's
+    # projector stands this far from its camera (metres; Kinect, PrimeSense, Xtion: 7.5 cm;
+    # 0 = no shadows).  A table's edge or legs, a cupboard, 1-1.5 m away, shadow the floor
+    # and wall behind them over 10-30 pixels, wider than the hole window.
+    free_space_shadow_baseline_m: float = 0.075
     # A point passes when at least this fraction of its pixels are seen through.
     free_space_min_fraction: float = 0.5
     # Optional nearest-neighbour check: a changed point needs no point of the other epoch
@@ -178,6 +184,8 @@ class ChangeParams:
         _num("nn_check_m", self.nn_check_m, 0.0, 10.0, unit=" metres")
         _int("free_space_pose_radius_px", self.free_space_pose_radius_px, 0, 50)
         _int("free_space_hole_radius_px", self.free_space_hole_radius_px, 0, 50)
+        _num("free_space_shadow_baseline_m", self.free_space_shadow_baseline_m, 0.0, 1.0,
+             unit=" metres")
         _int("region_connectivity", self.region_connectivity, 1, 3)
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
