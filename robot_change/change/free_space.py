@@ -217,8 +217,8 @@ def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the free-space check reads of the other epoch's (H, W) uint16 depth image:
     ``near`` (its nearest reading within ``pose_radius`` pixels, 0: none), ``far`` (its
-    farthest within ``hole_radius``), both (H, W) uint16 mm, its :func:`sensing_window` as a
-    (4,) int64 array.  A function of the image alone: a reference's is computed once
+    farthest within ``hole_radius``), both (H, W) uint16 mm, and its :func:`sensing_window`
+    as a (4,) int64 array.  A function of the image alone: a reference's is computed once
     (:func:`free_and_observed` keeps it in the epoch's ``derived``)."""
     other = readonly_view(np.ascontiguousarray(other_depth))
     near = _window_filter(other, int(pose_radius), True) if pose_radius > 0 else other
