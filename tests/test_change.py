@@ -380,6 +380,13 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline):
         np.testing.assert_array_equal(a, b)
     assert not got[2].any()  # the shared pixel grid: everything is observed
     if baseline:  # some holes are shadows: fewer pixels seen through
+        flat = other.ravel()
+        rows = [np.empty(flat.size, np.uint16), np.empty(flat.size, np.int32),
+                np.empty(flat.size, np.uint16), np.empty(flat.size, np.int32)]
+        for r in range(h):
+            free_space._fill_row(flat, w, r, *rows)
+        for got_a, want_a in zip(rows, _row_neighbours_twin(other)):
+            np.testing.assert_array_equal(got_a, want_a.ravel())
         plain = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
         assert plain[0].sum() > got[0].sum()
 

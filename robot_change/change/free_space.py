@@ -168,6 +168,14 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
     votes = np.zeros(n_points, dtype=np.int32)
     total = np.zeros(n_points, dtype=np.int32)
     unseen = np.zeros(n_points, dtype=np.int32)
+    # the first reading left and right of each pixel of ``other`` (mm, pixels away; 0: none),
+    # filled a row at a time when a pixel of that row is first asked about: a row's walk is
+    # O(width) once, however many holes of it the points land on
+    row_filled = np.zeros(other.shape[0] // width, dtype=np.bool_)
+    left_mm = np.empty(other.shape[0], dtype=np.uint16)
+    left_px = np.empty(other.shape[0], dtype=np.int32)
+    right_mm = np.empty(other.shape[0], dtype=np.uint16)
+    right_px = np.empty(other.shape[0], dtype=np.int32)
     for p in range(pixel_voxel.shape[0]):
         v = pixel_voxel[p]
         if v < 0:
@@ -183,9 +191,12 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
         z = z_other[p]
         margin = margin_m + margin_per_m2 * z * z
         if d1 == 0:
+            if no_reading_is_free and shadow_bf > 0.0 and not row_filled[q // width]:
+                _fill_row(other, width, q // width, left_mm, left_px, right_mm, right_px)
+                row_filled[q // width] = True
             if no_reading_is_free and not (
-                    _casts_shadow(other, width, q, -1, z, margin, shadow_bf)
-                    or _casts_shadow(other, width, q, 1, z, margin, shadow_bf)):
+                    _casts_shadow(left_mm[q], left_px[q], z, margin, shadow_bf)
+                    or _casts_shadow(right_mm[q], right_px[q], z, margin, shadow_bf)):
                 votes[v] += 1
             continue
         if d1 * 0.001 > z + margin:
@@ -193,24 +204,36 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
     return votes, total, unseen
 
 
+@numba.njit(cache=True, nogil=True)
+def _fill_row(other, width, row, left_mm, left_px, right_mm, right_px):
+    """Row ``row`` of ``other`` (flat uint16 mm, ``width`` pixels a row): for each pixel, the
+    first reading to its left and to its right (mm, 0: none) and how many pixels away, into
+    ``left_mm``, ``left_px``, ``right_mm``, ``right_px`` (flat, like ``other``)."""
+    start = row * width
+    last = -1
+    for c in range(width):
+        left_mm[start + c] = other[start + last] if last >= 0 else 0
+        left_px[start + c] = c - last if last >= 0 else 0
+        if other[start + c] > 0:
+            last = c
+    last = -1
+    for c in range(width - 1, -1, -1):
+        right_mm[start + c] = other[start + last] if last >= 0 else 0
+        right_px[start + c] = last - c if last >= 0 else 0
+        if other[start + c] > 0:
+            last = c
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
-def _casts_shadow(other, width, q, step, z, margin, shadow_bf):
-    """Whether the first reading of ``other`` (flat (P',) uint16 mm, ``width`` pixels a row)
-    from pixel ``q`` along its row in direction ``step`` (-1 left, +1 right) can shadow from
-    the projector a surface at depth ``z`` (m) at ``q``: nearer by more than ``margin`` (m),
-    and the shadow it casts, ``shadow_bf`` (1/z_near - 1/z) pixels wide (``shadow_bf`` =
-    baseline x fx), reaches ``q``."""
-    if shadow_bf <= 0.0:
+def _casts_shadow(near_mm, distance_px, z, margin, shadow_bf):
+    """Whether a reading ``near_mm`` (0: none), ``distance_px`` pixels along the row from a
+    pixel with no reading, can shadow from the projector a surface at depth ``z`` (m) there:
+    nearer by more than ``margin`` (m), and the shadow it casts, ``shadow_bf`` (1/z_near -
+    1/z) pixels wide (``shadow_bf`` = baseline x fx), reaches that far."""
+    if near_mm == 0 or shadow_bf <= 0.0:
         return False
-    row0 = q - q % width
-    c = q + step
-    while row0 <= c < row0 + width:
-        if other[c] > 0:
-            z_near = other[c] * 0.001
-            return z_near < z - margin and \
-                abs(c - q) <= shadow_bf * (1.0 / z_near - 1.0 / z) + 1.0
-        c += step
-    return False
+    z_near = near_mm * 0.001
+    return z_near < z - margin and distance_px <= shadow_bf * (1.0 / z_near - 1.0 / z) + 1.0
 
 
 def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
