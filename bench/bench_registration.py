@@ -226,16 +226,11 @@ def station_pairs(seeds: int, seed_base: int = 0, tag: str = ""):
     wall behind, the floor), ``seeds`` layouts per level, each with every kind of change of
     :data:`sim_fixtures.stations.CHANGES`, the current camera displaced by 5 / 10 / 15 cm (2 /
     4 / 6 deg) in a direction drawn from ``tag``; the reference fused from 3 noisy frames."""
-    from sim_fixtures.stations import CHANGES, station_pair
+    from sim_fixtures.stations import station_checks, station_pair
 
-    for level in (5, 10, 15):
-        tm, rd = LEVELS[level]
-        for s in range(seeds):
-            seed = seed_base + s
-            for change in CHANGES:
-                draw = zlib.crc32(f"{tag}station{seed}{change}{tm}".encode()) % 100000
-                ref, cur, truth, intrinsics = station_pair(seed, change, (tm, rd, draw))
-                yield f"station_{change}_{level}cm_{seed}", ref, cur, truth, intrinsics
+    for name, seed, change, offset in station_checks(seeds, seed_base, tag):
+        ref, cur, truth, intrinsics = station_pair(seed, change, offset)
+        yield name, ref, cur, truth, intrinsics
 
 
 def main(argv=None):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import zlib
 
 import numpy as np
 
@@ -30,14 +31,17 @@ from hw.depth import Intrinsics
 from sim_fixtures.scenes import (
     SceneSpec,
     box,
+    observed_masks,
     pose_offset,
     render_pair,
     room,
     table,
     true_transform,
+    truth_masks,
 )
 
-__all__ = ["CHANGES", "station_pair", "station_spec"]
+__all__ = ["CHANGES", "OFFSET_LEVELS", "StationScene", "station_checks", "station_pair",
+           "station_scene", "station_spec"]
 
 #: The kinds of change a station scene can be drawn with.
 CHANGES = ("none", "one_moved", "one_removed", "one_added", "all_moved")
@@ -164,16 +168,71 @@ def station_spec(seed: int, change: str = "all_moved",
                      pose, current_pose, KinectNoise(), int(seed) * 10 + CHANGES.index(change))
 
 
+#: Offset levels of a revisit: cm -> (translation m, rotation deg), as the benches use them;
+#: 0 is the robot at its station.
+OFFSET_LEVELS = {0: (0.0, 0.0), 5: (0.05, 2.0), 10: (0.10, 4.0), 15: (0.15, 6.0)}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class StationScene:
+    """One check of a station with its truth, with :class:`sim_fixtures.Scene`'s names for the
+    scorers.
+
+    ``reference_frames`` (3, H, W) and ``current`` (H, W): uint16 mm noisy depth (0 = no
+    reading); ``T_ref_from_cur`` (4, 4) the true transform; ``truth_appeared`` over the current
+    image and ``truth_disappeared`` over the reference image, ``observed_reference`` /
+    ``observed_current`` (what the other camera could see): (H, W) bool from the ideal renders
+    (``scenes.truth_masks``, ``scenes.observed_masks``).
+    """
+
+    name: str
+    change: str
+    intrinsics: Intrinsics
+    reference_frames: np.ndarray
+    current: np.ndarray
+    T_ref_from_cur: np.ndarray
+    truth_appeared: np.ndarray
+    truth_disappeared: np.ndarray
+    observed_reference: np.ndarray
+    observed_current: np.ndarray
+
+
+def station_scene(seed: int, change: str = "all_moved",
+                  offset: tuple[float, float, int] | None = None) -> StationScene:
+    """A check of :func:`station_spec` (same arguments): 3 noisy reference frames, 1 noisy
+    current frame, and the truth."""
+    spec = station_spec(seed, change, offset)
+    ref, cur = render_pair(spec)
+    frames = np.stack([spec.noise.apply(ref, np.random.default_rng([spec.seed, 0, k]))
+                       for k in range(3)])
+    draw = 0 if offset is None else int(offset[2])
+    current = spec.noise.apply(cur, np.random.default_rng([spec.seed, draw, 1]))
+    appeared, disappeared = truth_masks(spec, ref, cur)
+    observed_ref, observed_cur = observed_masks(spec, ref, cur)
+    return StationScene(spec.name, change, spec.intrinsics, frames, current,
+                        true_transform(spec), appeared, disappeared, observed_ref, observed_cur)
+
+
 def station_pair(seed: int, change: str = "all_moved",
                  offset: tuple[float, float, int] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Intrinsics]:
     """The depth a check of :func:`station_spec` (same arguments) sees: the reference fused
     from 3 noisy frames (per-pixel median), the current one noisy frame, both (H, W) uint16
     mm; the true ``T_ref_from_cur`` (4, 4) and the intrinsics."""
-    spec = station_spec(seed, change, offset)
-    ref, cur = render_pair(spec)
-    fused = np.median(np.stack([spec.noise.apply(ref, np.random.default_rng([spec.seed, 0, k]))
-                                for k in range(3)]), axis=0).astype(np.uint16)
-    draw = 0 if offset is None else int(offset[2])
-    current = spec.noise.apply(cur, np.random.default_rng([spec.seed, draw, 1]))
-    return fused, current, true_transform(spec), spec.intrinsics
+    scene = station_scene(seed, change, offset)
+    fused = np.median(scene.reference_frames, axis=0).astype(np.uint16)
+    return fused, scene.current, scene.T_ref_from_cur, scene.intrinsics
+
+
+def station_checks(seeds: int, seed_base: int = 0, tag: str = "", levels=(5, 10, 15)):
+    """The checks a bench runs: ``seeds`` layouts from ``seed_base``, every change of
+    :data:`CHANGES`, every level of :data:`OFFSET_LEVELS` in ``levels``; yields (name, seed,
+    change, offset), the offset's direction drawn from ``tag`` (None at level 0)."""
+    for level in levels:
+        tm, rd = OFFSET_LEVELS[level]
+        for s in range(seeds):
+            seed = seed_base + s
+            for change in CHANGES:
+                draw = zlib.crc32(f"{tag}station{seed}{change}{tm}".encode()) % 100000
+                yield (f"station_{change}_{level}cm_{seed}", seed, change,
+                       (tm, rd, draw) if level else None)

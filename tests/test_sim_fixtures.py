@@ -351,6 +351,41 @@ def test_table_stations_change_what_they_name_and_keep_the_room(seed):
         station_spec(seed, "everything_gone")
 
 
+def test_a_station_check_carries_its_truth():
+    """sim_fixtures.stations.station_scene: 3 reference frames and 1 current frame, each its
+    own noise; the truth says only what changed (nothing for none, appeared for added,
+    disappeared for removed, both for moved), on surfaces the frames read; with no change at
+    the station each camera observes every surface the other read, 10 cm away not quite;
+    station_pair fuses the same
+    frames; station_checks names every change at every level."""
+    from sim_fixtures.stations import CHANGES, station_checks, station_pair, station_scene
+
+    expect = {"none": (False, False), "one_added": (True, False),
+              "one_removed": (False, True), "one_moved": (True, True)}
+    seed = 3
+    for change, (app, dis) in expect.items():
+        sc = station_scene(seed, change)
+        assert sc.reference_frames.shape == (3, 480, 640) and sc.current.shape == (480, 640)
+        assert sc.reference_frames.dtype == sc.current.dtype == np.uint16
+        assert not np.array_equal(sc.reference_frames[0], sc.reference_frames[1])
+        assert bool(sc.truth_appeared.any()) == app and bool(sc.truth_disappeared.any()) == dis
+        if app:
+            assert (sc.current[sc.truth_appeared] > 0).mean() > 0.5
+        np.testing.assert_allclose(sc.T_ref_from_cur, np.eye(4), atol=1e-12)
+        if change == "none":
+            assert sc.observed_reference[sc.reference_frames[0] > 0].all()
+            assert sc.observed_current[sc.current > 0].all()
+    away = station_scene(seed, "one_moved", (0.10, 4.0, 3))
+    assert 0.5 < away.observed_reference[away.reference_frames[0] > 0].mean() < 0.999
+    fused, cur, truth, _ = station_pair(seed, "one_moved", (0.10, 4.0, 3))
+    np.testing.assert_array_equal(fused, np.median(away.reference_frames, axis=0))
+    np.testing.assert_array_equal(cur, away.current)
+    np.testing.assert_array_equal(truth, away.T_ref_from_cur)
+    checks = list(station_checks(2, 40, "t", (0, 10)))
+    assert len(checks) == 2 * 2 * len(CHANGES) and len({c[0] for c in checks}) == len(checks)
+    assert all((c[3] is None) == c[0].endswith(("_0cm_40", "_0cm_41")) for c in checks)
+
+
 # ----------------------------------------------------------------------------- fixtures
 
 
