@@ -233,7 +233,9 @@ def test_params_are_validated():
                 dict(free_space_margin_m=-0.01), dict(novelty_seed="x"),
                 dict(gone_component_share=1.5), dict(gone_component_share="half"),
                 dict(free_space_shadow_baseline_m=-0.075),
-                dict(free_space_shadow_baseline_m="7.5 cm")):
+                dict(free_space_shadow_baseline_m="7.5 cm"),
+                dict(free_space_sensor_min_m=-0.5), dict(free_space_sensor_min_m="near"),
+                dict(free_space_hole_needs_far_edge="yes")):
         with pytest.raises(InputError, match="ChangeParams"):
             ChangeParams(**bad)
     with pytest.raises(InputError):
@@ -334,7 +336,8 @@ def _row_neighbours_twin(depth):
 
 
 def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero,
-                     target=None, z_other=None, shadow_bf=0.0):
+                     target=None, z_other=None, shadow_bf=0.0, sensor_min_m=0.0,
+                     far_edge=False):
     near = (_window_twin(other, pose_r, True) if pose_r else other).ravel()
     far = (_window_twin(other, hole_r, False) if hole_r else other).ravel()
     if target is None:
@@ -347,24 +350,29 @@ def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_z
     z = z_other
     margin = margin_m + per_m2 * z * z
     shadowed = np.zeros(q.shape, bool)
+    opens = np.zeros(q.shape, bool)  # a first reading beside the hole lies beyond the point
     for mm, px in np.reshape(_row_neighbours_twin(other), (2, 2) + other.shape):
         zn = mm.ravel()[q] * 1e-3
         with np.errstate(divide="ignore"):
             reach = shadow_bf * (1.0 / np.where(zn > 0, zn, 1.0) - 1.0 / np.maximum(z, 1e-9))
         shadowed |= (zn > 0) & (shadow_bf > 0) & (zn < z - margin) & \
             (px.ravel()[q] <= reach + 1.0)
-    seen = valid & np.where(d1 == 0, free_zero & ~shadowed, d1 > z + margin)
+        opens |= zn > z + margin
+    too_near = valid & (other.ravel()[q] == 0) & (z < sensor_min_m + margin)
+    seen = valid & ~too_near & np.where(d1 == 0, free_zero & ~shadowed & (opens | ~far_edge),
+                                        d1 > z + margin)
     ok = pv >= 0
     votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
     total = np.bincount(pv[ok], minlength=n).astype(np.int32)
-    unseen = np.bincount(pv[ok], weights=~valid[ok], minlength=n).astype(np.int32)
+    unseen = np.bincount(pv[ok], weights=(~valid | too_near)[ok], minlength=n).astype(np.int32)
     return votes, total, unseen
 
 
-@pytest.mark.parametrize("pose_r,hole_r,free_zero,baseline",
-                         [(0, 0, True, 0.0), (2, 4, False, 0.0), (3, 0, True, 0.0),
-                          (1, 2, True, 0.075)])
-def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline):
+@pytest.mark.parametrize("pose_r,hole_r,free_zero,baseline,sensor_min,far_edge",
+                         [(0, 0, True, 0.0, 0.0, False), (2, 4, False, 0.0, 0.0, False),
+                          (3, 0, True, 0.0, 0.0, False), (1, 2, True, 0.075, 0.0, False),
+                          (1, 2, True, 0.075, 1.5, True), (0, 0, True, 0.0, 1.0, True)])
+def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_min, far_edge):
     rng = np.random.default_rng(7)
     h, w, n = 30, 40, 50
     own = rng.integers(800, 3000, size=(h, w)).astype(np.uint16)
@@ -373,11 +381,21 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline):
     other[10:22, 5:30] = 0
     pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero,
-                           shadow_baseline_m=baseline)
+                           shadow_baseline_m=baseline, sensor_min_m=sensor_min,
+                           hole_needs_far_edge=far_edge)
     want = _free_space_twin(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero,
-                            shadow_bf=baseline * 525)
+                            shadow_bf=baseline * 525, sensor_min_m=sensor_min,
+                            far_edge=far_edge)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
+    if sensor_min:  # points too near for the other camera on its holes: not observed
+        assert got[2].any()
+        if far_edge:  # and some holes lie in rows with no reading beyond the point
+            plain = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r,
+                                     free_zero, shadow_baseline_m=baseline,
+                                     sensor_min_m=sensor_min)
+            assert plain[0].sum() > got[0].sum()
+        return
     assert not got[2].any()  # the shared pixel grid: everything is observed
     if baseline:  # some holes are shadows: fewer pixels seen through
         flat = other.ravel()
@@ -412,6 +430,33 @@ def test_a_projector_shadow_is_not_seen_through():
     assert no_shadows[0] == total[0]
 
 
+def test_a_hole_is_seen_through_only_where_it_opens_beyond_the_point():
+    """Holes the other camera left: over a table edge 0.45 m away (too near to read), a point
+    there was not observed; a hole in a wall 2 m away, bordered by that wall, says nothing of
+    a point of the wall (a dropout, or a surface too near to read, as an object 0.4 m before
+    the lens leaves it); the same hole with a room 4 m away beside it opens beyond the point,
+    which is seen through.  Without the two rules every one of them was seen through."""
+    h, w = 10, 100
+    own = np.full((h, w), 2000, np.uint16)
+    own[:, 0:20] = 450  # the table edge, read by this camera
+    pv = np.full((h, w), -1, np.int32)
+    pv[:, 5:15] = 0  # on the table edge
+    pv[:, 40:50] = 1  # on the wall, its hole bordered by the wall
+    pv[:, 80:90] = 2  # on the wall, its hole beside a view 4 m deep
+    other = np.full((h, w), 2000, np.uint16)
+    other[:, 0:20] = 0  # too near for the other camera
+    other[:, 35:55] = 0
+    other[:, 75:92] = 0
+    other[:, 92:] = 4000
+    votes, total, unseen = free_space_votes(pv, own, other, 3, 0.03, 0.004, 0, 0, True,
+                                            sensor_min_m=0.5, hole_needs_far_edge=True)
+    assert unseen[0] == total[0] and votes[0] == 0
+    assert unseen[1] == 0 and votes[1] == 0
+    assert unseen[2] == 0 and votes[2] == total[2]
+    before = free_space_votes(pv, own, other, 3, 0.03, 0.004, 0, 0, True)
+    np.testing.assert_array_equal(before[0], total)
+
+
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.03, -0.02, 0.05), (0.4, 0.0, 0.0)])
 def test_free_space_through_a_transform_matches_numpy(shift):
     from hw.depth import Intrinsics
@@ -439,9 +484,10 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
     got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,
-                           other_from_own=T, depth_range_m=(0.4, 2.9), shadow_baseline_m=0.075)
+                           other_from_own=T, depth_range_m=(0.4, 2.9), shadow_baseline_m=0.075,
+                           sensor_min_m=1.2, hole_needs_far_edge=True)
     want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z,
-                            shadow_bf=0.075 * intr.fx)
+                            shadow_bf=0.075 * intr.fx, sensor_min_m=1.2, far_edge=True)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     assert got[2].sum() > 0  # the depth range and the image border leave some unseen

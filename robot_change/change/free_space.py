@@ -149,21 +149,24 @@ def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, wind
 
 @numba.njit(cache=True, nogil=True)
 def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, other, width,
-                       shadow_bf, n_points, margin_m, margin_per_m2, no_reading_is_free):
+                       shadow_bf, n_points, margin_m, margin_per_m2, no_reading_is_free,
+                       sensor_min_m, hole_needs_far_edge):
     """Per point: how many of its pixels the other image sees through, how many it has, and
     how many of them the other camera could not have seen.
 
     ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``target`` (P,) and
     ``z_other`` (P,) from :func:`_warp_kernel`; ``near_other`` (P',) the other image's
     nearest reading in the pose window (0: none there), ``far_other`` (P',) its farthest
-    reading in the hole window (0: none).  The other reading is ``near_other``, else
-    ``far_other``; with neither, the pixel is seen through when ``no_reading_is_free``, unless
-    it may lie in a projector shadow: the first reading to its left or right along its row of
-    ``other`` (P',) uint16 mm, the other image (``width`` pixels a row), nearer than z by more
-    than the margin and no farther away than the shadow such a surface casts at depth z,
-    ``shadow_bf`` (1/z_near - 1/z) pixels (``shadow_bf`` = baseline x fx, m px; 0: no
-    shadows).  Seen through: reading > z + margin_m + margin_per_m2 * z^2 (metres, z =
-    ``z_other``).
+    reading in the hole window (0: none).  A pixel that lands on no reading of ``other`` (P',
+    uint16 mm, the other image, ``width`` pixels a row) nearer than ``sensor_min_m`` plus the
+    margin was not observed (too near for the other camera).  The other reading is
+    ``near_other``, else ``far_other``; with neither, the pixel is seen through when
+    ``no_reading_is_free`` and, with ``hole_needs_far_edge``, the first reading to its left
+    or right along its row lies beyond z by more than the margin, unless it may lie in a
+    projector shadow: such a first reading nearer than z by more than the margin and no
+    farther away than the shadow such a surface casts at depth z, ``shadow_bf`` (1/z_near -
+    1/z) pixels (``shadow_bf`` = baseline x fx, m px; 0: no shadows).  Seen through: reading
+    > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
     """
     votes = np.zeros(n_points, dtype=np.int32)
     total = np.zeros(n_points, dtype=np.int32)
@@ -185,17 +188,24 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
         if q < 0:
             unseen[v] += 1
             continue
+        z = z_other[p]
+        margin = margin_m + margin_per_m2 * z * z
+        if other[q] == 0 and z < sensor_min_m + margin:  # too near for the other camera
+            unseen[v] += 1
+            continue
         d1 = near_other[q]
         if d1 == 0:
             d1 = far_other[q]
-        z = z_other[p]
-        margin = margin_m + margin_per_m2 * z * z
         if d1 == 0:
-            if no_reading_is_free and shadow_bf > 0.0 and not row_filled[q // width]:
+            if not no_reading_is_free:
+                continue
+            if (shadow_bf > 0.0 or hole_needs_far_edge) and not row_filled[q // width]:
                 _fill_row(other, width, q // width, left_mm, left_px, right_mm, right_px)
                 row_filled[q // width] = True
-            if no_reading_is_free and not (
-                    _casts_shadow(left_mm[q], left_px[q], z, margin, shadow_bf)
+            if hole_needs_far_edge and not (left_mm[q] * 0.001 > z + margin
+                                            or right_mm[q] * 0.001 > z + margin):
+                continue
+            if not (_casts_shadow(left_mm[q], left_px[q], z, margin, shadow_bf)
                     or _casts_shadow(right_mm[q], right_px[q], z, margin, shadow_bf)):
                 votes[v] += 1
             continue
@@ -257,6 +267,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                      other_from_own: np.ndarray | None = None,
                      depth_range_m: tuple[float, float] = (0.0, 65.535),
                      shadow_baseline_m: float = 0.0,
+                     sensor_min_m: float = 0.0,
+                     hole_needs_far_edge: bool = False,
                      views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Free-space evidence per point of one epoch against the other epoch's depth image.
@@ -271,12 +283,15 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     edges look seen through); where that window has no reading, the *farthest* reading within
     ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
-    (open space beyond the sensor's range), unless a nearer reading along its row could cast
-    a projector shadow that wide on it (``shadow_baseline_m``: the projector's distance from
-    the camera, 7.5 cm on a Kinect, PrimeSense or Xtion; 0: no shadows; a near object's
-    shadow on a far surface is wider than ``hole_radius``).  A pixel that lands behind the
-    other camera, outside the part of its image it has readings in (:func:`sensing_window`)
-    or outside ``depth_range_m`` was not observed by it.  ``views``: :func:`other_views` of
+    (open space beyond the sensor's range) and, with ``hole_needs_far_edge``, the first
+    reading along its row on one side lies beyond the point (the hole opens onto something
+    farther), unless a nearer reading along its row could cast a projector shadow that wide
+    on it (``shadow_baseline_m``: the projector's distance from the camera, 7.5 cm on a
+    Kinect, PrimeSense or Xtion; 0: no shadows; a near object's shadow on a far surface is
+    wider than ``hole_radius``).  A pixel that lands behind the other camera, outside the
+    part of its image it has readings in (:func:`sensing_window`), outside ``depth_range_m``,
+    or on no reading nearer than ``sensor_min_m`` plus the margin (the camera reads nothing
+    that near) was not observed by it.  ``views``: :func:`other_views` of
     ``other_depth`` with these radii, when already at hand.
 
     Returns
@@ -313,7 +328,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
                               other.ravel(), width, float(shadow_baseline_m) * intrinsics.fx,
                               int(n_points), float(margin_m), float(margin_per_m2),
-                              bool(no_reading_is_free))
+                              bool(no_reading_is_free), float(sensor_min_m),
+                              bool(hole_needs_far_edge))
 
 
 def free_space_views(base: Epoch, params: ChangeParams
@@ -341,6 +357,8 @@ def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from
         intrinsics=other.intrinsics, other_from_own=base_from_other,
         depth_range_m=(cp.min_depth_m, cp.max_depth_m),
         shadow_baseline_m=params.free_space_shadow_baseline_m,
+        sensor_min_m=params.free_space_sensor_min_m,
+        hole_needs_far_edge=params.free_space_hole_needs_far_edge,
         views=free_space_views(base, params))
     observed = (total > 0) & (2 * unseen < total)
     seen = total - unseen

@@ -129,6 +129,16 @@ class ChangeParams:
     # 0 = no shadows).  A table's edge or legs, a cupboard, 1-1.5 m away, shadow the floor
     # and wall behind them over 10-30 pixels, wider than the hole window.
     free_space_shadow_baseline_m: float = 0.075
+    # A depth camera reads nothing nearer than this (metres; Kinect, PrimeSense, Xtion: about
+    # 0.5 m): a point that lands nearer than it plus the margin on a pixel of the other image
+    # with no reading was not observed by the other camera (a table's edge right before the
+    # robot, an object close to the lens), rather than seen through.  0 = no such limit.
+    free_space_sensor_min_m: float = 0.5
+    # With no reading in either window, a pixel is seen through only when the hole opens onto
+    # something farther: the first reading along its row, to the left or to the right, lies
+    # beyond the point by more than the margin.  A hole bordered only by surfaces at the
+    # point's depth or nearer is a dropout, or the mark of a surface too near to read.
+    free_space_hole_needs_far_edge: bool = True
     # A point passes when at least this fraction of its pixels are seen through.
     free_space_min_fraction: float = 0.5
     # Optional nearest-neighbour check: a changed point needs no point of the other epoch
@@ -166,7 +176,8 @@ class ChangeParams:
         _choice("novelty_seed", self.novelty_seed, NOVELTY_SEEDS)
         _choice("current_mixture", self.current_mixture, ("fit", "from_reference"))
         for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
-                     "free_space_no_reading_is_free", "disappeared"):
+                     "free_space_no_reading_is_free", "free_space_hole_needs_far_edge",
+                     "disappeared"):
             _bool(name, getattr(self, name))
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
@@ -186,6 +197,7 @@ class ChangeParams:
         _int("free_space_hole_radius_px", self.free_space_hole_radius_px, 0, 50)
         _num("free_space_shadow_baseline_m", self.free_space_shadow_baseline_m, 0.0, 1.0,
              unit=" metres")
+        _num("free_space_sensor_min_m", self.free_space_sensor_min_m, 0.0, 10.0, unit=" metres")
         _int("region_connectivity", self.region_connectivity, 1, 3)
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
