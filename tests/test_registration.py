@@ -231,8 +231,9 @@ def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
     rz = ref_v[w[inside], u[inside], 2].astype(np.float64)
     pz = p[inside, 2]
     ok = rz > 0
-    return (int((rz[ok] > pz[ok] + margin + per_m2 * pz[ok] ** 2).sum()), int(ok.sum()),
-            int((~ok).sum()))
+    m = margin + per_m2 * pz[ok] ** 2
+    return (int((rz[ok] > pz[ok] + m).sum()), int(ok.sum()), int((~ok).sum()),
+            int((rz[ok] < pz[ok] - m).sum()))
 
 
 def test_seen_through_matches_numpy(office_pair):
@@ -247,6 +248,7 @@ def test_seen_through_matches_numpy(office_pair):
                               rl.cy, 0.03, 0.004)
     assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
     assert 0 < got[2] < 0.2 * got[1]  # cells landing on no reading: few at the true pose
+    assert 0 < got[3] < 0.1 * got[1]  # behind what the reference saw nearer: few as well
 
 
 @pytest.mark.parametrize("both_ways,hole_weight", [(False, 0.0), (True, 0.0), (True, 1.0),
@@ -432,6 +434,33 @@ def test_another_place_is_not_at_station_not_a_change(name):
     assert summary["outcome"] == "not_at_station"
     assert set(summary["registration"]) >= {"T_ref_from_cur", "translation_m", "rotation_deg",
                                              "fitness", "rmse_m", "weak_directions", "ms"}
+
+
+def test_what_lies_behind_the_reference_counts_for_the_station():
+    """A table station revisited from 15 cm away, one object moved 8-20 cm: the pose is right,
+    but a quarter of the current's cells fall outside the reference's image and a fifth lie
+    behind what the reference saw nearer (the object's old place), so fewer than half fit.
+    Hidden, not contradicted: the check compares and reports the move.  The rule itself:
+    fitness plus that share against min_fitness."""
+    from robot_change.change.registration.result import Registration
+    from sim_fixtures.stations import station_checks, station_scene
+
+    check = next(c for c in station_checks(1, 9009, "", (15,)) if c[2] == "one_moved")
+    sc = station_scene(*check[1:])
+    ref = build_scene(list(sc.reference_frames), intrinsics=sc.intrinsics)
+    cs = detect_changes(ref, sc.current, intrinsics=sc.intrinsics)
+    reg = cs.registration
+    err = invert(sc.T_ref_from_cur) @ reg.T_ref_from_cur
+    assert np.linalg.norm(err[:3, 3]) < 0.002 and reg.seen_through < 0.1
+    assert reg.fitness < 0.5 <= reg.fitness + reg.behind
+    assert cs.outcome == "changed" and cs.not_at_station_reason == ""
+    params = RegistrationParams()
+    for fitness, behind, at_station in ((0.45, 0.1, True), (0.45, 0.0, False),
+                                        (0.3, 0.15, False)):
+        got = Registration(np.eye(4), fitness, 0.0, (), np.ones(6), 0, 0, 0, True, 0.0,
+                           0.0, behind).not_at_station(params)
+        assert (got == "") == at_station
+        assert at_station or "behind what the reference saw nearer" in got
 
 
 def test_offset_beyond_the_station_tolerance_is_not_at_station():

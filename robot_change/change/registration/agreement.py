@@ -23,11 +23,13 @@ def seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_
     """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land in the
     reference image, how many the reference sees *through* (its reading there is farther than
     the point by more than ``margin_m + margin_per_m2 * z^2``), how many land on a reading
-    (compared), and how many land on no reading (a hole).  Returns (through, compared,
-    holes)."""
+    (compared), how many land on no reading (a hole), and how many lie *behind* the reading
+    they land on (nearer than the point by more than the margin: hidden from the reference).
+    Returns (through, compared, holes, behind)."""
     through = 0
     compared = 0
     holes = 0
+    behind = 0
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
             x = cur_v[i, j, 0]
@@ -49,9 +51,12 @@ def seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_
                 holes += 1
                 continue
             compared += 1
-            if rz > pz + margin_m + margin_per_m2 * pz * pz:
+            margin = margin_m + margin_per_m2 * pz * pz
+            if rz > pz + margin:
                 through += 1
-    return through, compared, holes
+            elif rz < pz - margin:
+                behind += 1
+    return through, compared, holes, behind
 
 
 @numba.njit(cache=True, nogil=True)
@@ -147,10 +152,10 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         if both_ways:
             inliers += count_inliers(ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy,
                                      max_dist, min_cos, sigmas, res, jac, zs)
-        through_cur, _, holes_cur = seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
-                                                 margin_m, margin_per_m2)
-        through_ref, _, holes_ref = seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
-                                                 margin_m, margin_per_m2)
+        through_cur, _, holes_cur, _ = seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
+                                                    margin_m, margin_per_m2)
+        through_ref, _, holes_ref, _ = seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
+                                                    margin_m, margin_per_m2)
         out[m] = inliers - through_cur - through_ref - hole_weight * (holes_cur + holes_ref)
     return out
 
@@ -262,13 +267,18 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     return fit, contradict
 
 
-def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams) -> float:
-    """The larger of the fractions of each view that the other sees through (finest level)."""
+def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams
+                  ) -> tuple[float, float]:
+    """(the larger of the fractions of each view that the other sees through, the fraction of
+    the current's cells that lie behind a nearer reading of the reference), finest levels."""
     out = 0.0
+    behind_share = 0.0
     for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
-        through, compared, _ = seen_through(own.vertex, other.vertex, M[:3, :3].copy(),
-                                            M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                            other.cy, params.seen_through_margin_m,
-                                            params.seen_through_margin_per_m2)
+        through, compared, _, behind = seen_through(
+            own.vertex, other.vertex, M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy,
+            other.cx, other.cy, params.seen_through_margin_m, params.seen_through_margin_per_m2)
         out = max(out, through / compared if compared else 0.0)
-    return out
+        if own is cl:
+            cells = int(np.count_nonzero(own.vertex[:, :, 2] > 0))
+            behind_share = behind / cells if cells else 0.0
+    return out, behind_share

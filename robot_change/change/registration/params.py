@@ -132,11 +132,14 @@ class RegistrationParams:
     # Stop a level when the step is below this (metres; rotations times the cloud radius):
     # 0.1 mm, a tenth of the depth noise at 0.5 m; a smaller one buys no accuracy.
     tol_m: float = 1e-4
-    # Station tolerance: fitness below min_fitness, a translation above max_translation_m, a
-    # rotation above max_rotation_deg, or more than max_seen_through of either whole view seen
-    # through by the other (the views contradict each other: another place, or a change too
-    # large to register against) is "not at the station".  Seen through: a reading farther by
-    # more than seen_through_margin_m + seen_through_margin_per_m2 * z^2.
+    # Station tolerance: fitness, plus the share of the current's cells that lie behind a
+    # nearer reading of the reference (what was taken away, what the new place sees past an
+    # edge: consistent with the station), below min_fitness, a translation above
+    # max_translation_m, a rotation above max_rotation_deg, or more than max_seen_through of
+    # either whole view seen through by the other (the views contradict each other: another
+    # place, or a change too large to register against) is "not at the station".  Seen
+    # through: a reading farther by more than seen_through_margin_m +
+    # seen_through_margin_per_m2 * z^2; behind: nearer by as much.
     min_fitness: float = 0.5
     max_seen_through: float = 0.25
     seen_through_margin_m: float = 0.03

@@ -137,7 +137,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             iterations += n_it
     fit, rmse, n_pairs, n_cells = fitness(ref_levels[-1], cur_levels[-1], T, params, min_cos,
                                           pairs)
-    through = contradiction(ref_levels[-1], cur_levels[-1], T, params)
+    through, behind = contradiction(ref_levels[-1], cur_levels[-1], T, params)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
     # on a table top the objects that changed were left out of the estimate and the table's
     # own checks judge what stayed: their contradiction does not contest the slide
@@ -148,7 +148,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         weak = weak + in_plane_names(planes[1])
     weak = tuple(dict.fromkeys(weak + slide))
     return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
-                        (time.perf_counter() - t0) * 1e3, through)
+                        (time.perf_counter() - t0) * 1e3, through, behind)
 
 
 def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,

@@ -24,7 +24,9 @@ class Registration:
     camera frame (metres).  ``fitness``: fraction of the current's cells with an inlier
     correspondence (0..1); ``rmse_m`` of those residuals (point-to-plane).
     ``seen_through``: the larger of the two whole views' fractions seen through by the other
-    (finest level, floor and table included).  ``weak``: names
+    (finest level, floor and table included).  ``behind``: the fraction of the current's cells
+    that lie behind a nearer reading of the reference (hidden from it: where an object was
+    taken away, or seen past an edge from the new place).  ``weak``: names
     (:data:`AXES`) of directions the views leave unconstrained (not moved along; the estimate
     there is the starting value), the slide that no surface facing along it pins at the
     estimate (``slide_support_share``) or that most of what faces along it contradicts
@@ -48,6 +50,7 @@ class Registration:
     converged: bool
     ms: float
     seen_through: float = 0.0
+    behind: float = 0.0
 
     @property
     def translation_m(self) -> np.ndarray:
@@ -71,9 +74,10 @@ class Registration:
     def not_at_station(self, params: RegistrationParams) -> str:
         """Why the camera is not at the station by the tolerance of ``params``; "" when it is."""
         moved = float(np.linalg.norm(self.translation_m))
-        if self.fitness < params.min_fitness:
-            return (f"registration fitness {self.fitness:.2f} < {params.min_fitness:.2f}: the "
-                    f"views do not overlap enough")
+        if self.fitness + self.behind < params.min_fitness:
+            return (f"registration fitness {self.fitness:.2f} (and {self.behind:.2f} behind "
+                    f"what the reference saw nearer) < {params.min_fitness:.2f}: the views do "
+                    f"not overlap enough")
         if moved > params.max_translation_m:
             return f"offset {moved:.2f} m > {params.max_translation_m:.2f} m"
         if self.rotation_deg > params.max_rotation_deg:
@@ -95,6 +99,7 @@ class Registration:
             "fitness": round(self.fitness, 4),
             "rmse_m": round(self.rmse_m, 5),
             "seen_through": round(self.seen_through, 4),
+            "behind": round(self.behind, 4),
             "weak_directions": list(self.weak),
             "n_pairs": self.n_pairs,
             "iterations": self.iterations,

@@ -306,10 +306,9 @@ def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
     reading there (:func:`seen_through`'s holes)."""
     on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < _ON_PLANE_M)
     table = np.where(on[:, :, None], own.vertex, 0.0)
-    _through, compared, holes = seen_through(table, other.vertex, M[:3, :3].copy(),
-                                             M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                             other.cy, params.seen_through_margin_m,
-                                             params.seen_through_margin_per_m2)
+    _through, compared, holes, _behind = seen_through(
+        table, other.vertex, M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
+        other.cy, params.seen_through_margin_m, params.seen_through_margin_per_m2)
     return holes / (holes + compared) if holes + compared else 0.0
 
 
