@@ -1,7 +1,7 @@
 """How well the two views agree at a pose: inlier pairs, the cells either view sees through
 or puts on no reading of the other, the scores that rank candidate poses (the search along
-weak directions, the table-top tracks), and the fitness and seen-through share of the final
-estimate (docs/algorithm.md, "Registration", steps 6 and 8).  Kernels are
+weak directions, the table-top tracks), and the fitness, seen-through and behind shares of the
+final estimate (docs/algorithm.md, "Registration", steps 6 and 8).  Kernels are
 ``@njit(cache=True, nogil=True)`` with NumPy twins in ``tests/test_registration.py``.
 """
 
