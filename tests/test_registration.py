@@ -276,10 +276,11 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
                                             R, tt, other.fx, other.fy, other.cx, other.cy, 0.1,
                                             0.8)
             inliers += int((np.abs(res) <= 3.0 * depth_sigma(zs)).sum())
-        through_cur, _, holes_cur = _seen_through_twin(cl.vertex, rl.vertex, rot, t, rl.fx,
-                                                       rl.fy, rl.cx, rl.cy, 0.03, 0.004)
-        through_ref, _, holes_ref = _seen_through_twin(rl.vertex, cl.vertex, rot.T, -rot.T @ t,
-                                                       cl.fx, cl.fy, cl.cx, cl.cy, 0.03, 0.004)
+        through_cur, _, holes_cur, _ = _seen_through_twin(cl.vertex, rl.vertex, rot, t, rl.fx,
+                                                          rl.fy, rl.cx, rl.cy, 0.03, 0.004)
+        through_ref, _, holes_ref, _ = _seen_through_twin(rl.vertex, cl.vertex, rot.T,
+                                                          -rot.T @ t, cl.fx, cl.fy, cl.cx,
+                                                          cl.cy, 0.03, 0.004)
         assert score == pytest.approx(inliers - through_cur - through_ref
                                       - hole_weight * (holes_cur + holes_ref), abs=1e-9)
     assert got[0] == got.max()  # the true pose scores best
