@@ -57,6 +57,7 @@ from robot_change.change.compare import (
 )
 from robot_change.change.epoch import Epoch
 from robot_change.change.greedy import greedy_trace, posteriors
+from robot_change.change.objects import complete_objects
 from robot_change.change.params import ChangeParams
 from robot_change.change.parallel import both
 from robot_change.change.regions import label_voxel_components
@@ -281,6 +282,9 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
                                                     timings, "appeared_", free, observed)
         cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free, observed)
         t0 = time.perf_counter()
+        cand = complete_objects(cur, cand, observed, params)
+        timings["appeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
         direction = Direction(cand, post, mix, trace, observed)
         direction = dataclasses.replace(
             direction, regions=direction_regions("appeared", cur, direction, params))
@@ -300,6 +304,9 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
                                                     timings, "disappeared_", free, observed)
         cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free,
                                  observed)
+        t0 = time.perf_counter()
+        cand = complete_objects(ref, cand, observed, params)
+        timings["disappeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         direction = Direction(cand, post, mix, trace, observed)
         direction = dataclasses.replace(

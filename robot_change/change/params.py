@@ -153,6 +153,15 @@ class ChangeParams:
     # min_region_points / min_region_extent_mm start from these.
     min_region_points: int = 12
     min_region_extent_m: float = 0.01
+    # Changed points are completed to the objects they lie on (robot_change.change.objects):
+    # the depth image is cut into surface segments, on cells of object_cell_px pixels, where
+    # the surface folds inwards by more than object_fold_deg (an object's foot, an object
+    # against a wall) or steps in depth, and a segment is claimed when the changed points'
+    # pixels make up at least object_min_share of it.
+    object_completion: bool = True
+    object_min_share: float = 0.3
+    object_fold_deg: float = 20.0
+    object_cell_px: int = 4
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -177,7 +186,7 @@ class ChangeParams:
         _choice("current_mixture", self.current_mixture, ("fit", "from_reference"))
         for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
                      "free_space_no_reading_is_free", "free_space_hole_needs_far_edge",
-                     "disappeared"):
+                     "object_completion", "disappeared"):
             _bool(name, getattr(self, name))
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
@@ -201,6 +210,9 @@ class ChangeParams:
         _int("region_connectivity", self.region_connectivity, 1, 3)
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
+        _num("object_min_share", self.object_min_share, 0.0, 1.0, low_open=True)
+        _num("object_fold_deg", self.object_fold_deg, 0.0, 180.0, unit=" degrees")
+        _int("object_cell_px", self.object_cell_px, 1, 64, unit=" pixels")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
         _int("seed", self.seed, 0, 2**63 - 1)
         _int("threads", self.threads, 1, 2)

@@ -37,42 +37,40 @@ def _find(parent, i):
 
 
 @numba.njit(cache=True, nogil=True)
-def _components_kernel(keys, radius):
-    """Connected components of voxels: ``keys`` (M,) int64 packed keys, sorted ascending and
-    unique; voxels are neighbours when each index differs by at most ``radius``.  Returns
-    (M,) int64 labels 0..C-1, numbered in order of each component's first voxel."""
-    m = keys.shape[0]
-    parent = np.arange(m)
-    # the key's three fields (z, y, x from the top; the test treats them alike)
+def _union(parent, i, j):
+    """Join the sets of ``i`` and ``j`` (the smaller root stays the root)."""
+    a = _find(parent, i)
+    b = _find(parent, j)
+    if a != b:
+        if a < b:
+            parent[b] = a
+        else:
+            parent[a] = b
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbour(keys, k, dt, dm, dl):
+    """Row of the voxel ``k`` + (dt, dm, dl) in ``keys`` (sorted, unique), or -1."""
     shift_top = np.int64(1) << np.int64(2 * KEY_BITS)
     shift_mid = np.int64(1) << np.int64(KEY_BITS)
-    for i in range(m):
-        k = keys[i]
-        it = (k >> np.int64(2 * KEY_BITS)) & _FIELD
-        im = (k >> np.int64(KEY_BITS)) & _FIELD
-        il = k & _FIELD
-        for dt in range(-radius, radius + 1):
-            for dm in range(-radius, radius + 1):
-                for dl in range(-radius, radius + 1):
-                    # each pair once: only neighbours with a larger key
-                    if dt < 0 or (dt == 0 and (dm < 0 or (dm == 0 and dl <= 0))):
-                        continue
-                    jt = it + dt
-                    jm = im + dm
-                    jl = il + dl
-                    if jt < 0 or jm < 0 or jl < 0 or jt > _FIELD or jm > _FIELD or \
-                            jl > _FIELD:
-                        continue
-                    nk = jt * shift_top + jm * shift_mid + jl
-                    j = np.searchsorted(keys, nk)
-                    if j < m and keys[j] == nk:
-                        a = _find(parent, i)
-                        b = _find(parent, j)
-                        if a != b:
-                            if a < b:
-                                parent[b] = a
-                            else:
-                                parent[a] = b
+    # the key's three fields (z, y, x from the top; the test treats them alike)
+    jt = ((k >> np.int64(2 * KEY_BITS)) & _FIELD) + dt
+    jm = ((k >> np.int64(KEY_BITS)) & _FIELD) + dm
+    jl = (k & _FIELD) + dl
+    if jt < 0 or jm < 0 or jl < 0 or jt > _FIELD or jm > _FIELD or jl > _FIELD:
+        return -1
+    nk = jt * shift_top + jm * shift_mid + jl
+    j = np.searchsorted(keys, nk)
+    if j < keys.shape[0] and keys[j] == nk:
+        return j
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _labels(parent):
+    """(M,) int64 labels 0..C-1 of a union-find forest, numbered in order of each set's first
+    member."""
+    m = parent.shape[0]
     labels = np.empty(m, dtype=np.int64)
     remap = np.full(m, -1, dtype=np.int64)
     count = 0
@@ -83,6 +81,26 @@ def _components_kernel(keys, radius):
             count += 1
         labels[i] = remap[r]
     return labels
+
+
+@numba.njit(cache=True, nogil=True)
+def _components_kernel(keys, radius):
+    """Connected components of voxels: ``keys`` (M,) int64 packed keys, sorted ascending and
+    unique; voxels are neighbours when each index differs by at most ``radius``.  Returns
+    (M,) int64 labels 0..C-1, numbered in order of each component's first voxel."""
+    m = keys.shape[0]
+    parent = np.arange(m)
+    for i in range(m):
+        for dt in range(-radius, radius + 1):
+            for dm in range(-radius, radius + 1):
+                for dl in range(-radius, radius + 1):
+                    # each pair once: only neighbours with a larger key
+                    if dt < 0 or (dt == 0 and (dm < 0 or (dm == 0 and dl <= 0))):
+                        continue
+                    j = _neighbour(keys, keys[i], dt, dm, dl)
+                    if j >= 0:
+                        _union(parent, i, j)
+    return _labels(parent)
 
 
 def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:

@@ -109,12 +109,16 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
 
 def _region_kernels() -> None:
     """The regions' kernels, with the argument type a cloud gives them (read-only int64 voxel
-    keys)."""
+    keys), and the object completion's surface segments (float32 vertex and normal maps)."""
+    from robot_change.change.objects import _segments_kernel
     from robot_change.change.regions import label_voxel_components
 
     keys = np.arange(500, dtype=np.int64) * 3
     keys.setflags(write=False)
     label_voxel_components(keys, 1)
+    cells = np.zeros((6, 6, 3), np.float32)
+    cells[..., 2] = 1.0
+    _segments_kernel(cells, -cells, 0.9, 0.03, 0.01, 2)
 
 
 def _own_share(config: Config) -> None:

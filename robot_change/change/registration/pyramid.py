@@ -199,22 +199,38 @@ def levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams
            ) -> list[Level]:
     """The pyramid, coarse to fine: the finest level from the image, each coarser one by
     merging 2 x 2 cells of the one below (the factors must double)."""
-    min_mm = int(math.ceil(params.min_depth_m * 1000.0))
-    max_mm = int(math.floor(params.max_depth_m * 1000.0))
     finest = int(params.levels[-1])
-    vertex, count = _vertex_level(readonly_view(depth), finest, intrinsics.fx, intrinsics.fy,
-                                  intrinsics.cx, intrinsics.cy, min_mm, max_mm, params.band_m,
-                                  params.band_slope)
+    vertex, count = _cells(depth, intrinsics, finest, params)
     out = []
     for f in reversed(params.levels):
         if f != finest:
             vertex, count = _merge_level(vertex, count, params.band_m,
                                          params.band_slope * f / intrinsics.fx)
-        # a difference of two cells spans 2 f pixels; allow surfaces up to ~76 deg
-        normal = _normal_map(vertex, 8.0 * f / intrinsics.fx)
-        out.append(Level(int(f), vertex, normal, intrinsics.fx / f, intrinsics.fy / f,
-                         (intrinsics.cx + 0.5) / f - 0.5, (intrinsics.cy + 0.5) / f - 0.5))
+        out.append(_level(vertex, intrinsics, f))
     return out[::-1]
+
+
+def _cells(depth: np.ndarray, intrinsics: Intrinsics, factor: int, params: RegistrationParams
+           ) -> tuple[np.ndarray, np.ndarray]:
+    min_mm = int(math.ceil(params.min_depth_m * 1000.0))
+    max_mm = int(math.floor(params.max_depth_m * 1000.0))
+    return _vertex_level(readonly_view(depth), int(factor), intrinsics.fx, intrinsics.fy,
+                         intrinsics.cx, intrinsics.cy, min_mm, max_mm, params.band_m,
+                         params.band_slope)
+
+
+def _level(vertex: np.ndarray, intrinsics: Intrinsics, f: int) -> Level:
+    # a difference of two cells spans 2 f pixels; allow surfaces up to ~76 deg
+    normal = _normal_map(vertex, 8.0 * f / intrinsics.fx)
+    return Level(int(f), vertex, normal, intrinsics.fx / f, intrinsics.fy / f,
+                 (intrinsics.cx + 0.5) / f - 0.5, (intrinsics.cy + 0.5) / f - 0.5)
+
+
+def surface_level(depth: np.ndarray, intrinsics: Intrinsics, factor: int,
+                  params: RegistrationParams) -> Level:
+    """One level of cells of ``factor`` x ``factor`` pixels made from the image as the finest
+    level of :func:`levels` is (vertex and normal maps, ``params``' depth range and band)."""
+    return _level(_cells(depth, intrinsics, factor, params)[0], intrinsics, factor)
 
 
 def check_depth(name: str, depth: Any, intrinsics: Intrinsics) -> np.ndarray:

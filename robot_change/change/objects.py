@@ -1,0 +1,189 @@
+"""Changed points completed to the objects they lie on.
+
+An object moved by less than its own size stands partly where it stood: there the other epoch
+saw a surface at the same depth, the free-space check has nothing to say, and only the part
+that left its old place is found.  The foot of an object on a table lies within the free-space
+margin of the table behind it and is not found either.  What a robot needs is the object.
+
+So the epoch's depth image is cut into surface segments, on cells of ``object_cell_px`` x
+``object_cell_px`` pixels (vertex and normal maps made as the registration's finest level):
+neighbouring cells (4-neighbourhood) join when both have a normal, they lie on one surface
+(no depth step), and their normals agree within ``object_fold_deg`` or the surface between
+them bends outwards (convex, as round an object's top edge); they part where it folds inwards
+(an object's foot on a table, an object against a wall).  A segment is claimed when the pixels
+of changed points make up at least ``object_min_share`` of the pixels of its points: an object
+found in part is completed, while a sliver on a wall or a table, a small part of a large
+segment, stays as it is.  Only groups of changed points large enough to be a region count,
+and only points the other camera observed are claimed.  A point is claimed when more of its
+pixels lie in claimed segments than in other segments (pixels on a fold or a depth edge, in
+no segment, do not vote: an object's foot stays as the free-space check found it).  The cell
+kernel has a NumPy twin in tests/test_objects.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from robot_change.change.epoch import Epoch
+from robot_change.change.params import ChangeParams
+from robot_change.change.regions import _labels, _union, label_voxel_components
+from robot_change.change.registration.pyramid import surface_level
+
+__all__ = [
+    "complete_objects",
+    "surface_segments",
+]
+
+
+@numba.njit(cache=True, nogil=True)
+def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
+    """Surface segments of a cell grid: ``vertex`` (h, w, 3) float32 m (z = 0: empty) and
+    ``normal`` (h, w, 3) float32 unit normals facing the camera (0: none).  A cell is on an
+    inward fold when the cells ``span`` away on either side, along a row, a column or a
+    diagonal, are concave ((n_a - n_b) . (p_a - p_b) < 0) with a normals' cosine below
+    ``cos_fold`` (and no depth step between them); it joins nothing.  Right and lower
+    neighbours join when both have a normal and are on no fold, they are at most
+    ``max_step * z`` apart and each lies within ``max_off * z`` of the other's tangent plane,
+    and their normals' cosine is at least ``cos_fold`` or the pair is convex.  Returns (h, w)
+    int64 labels 0..C-1 in row-major order of each segment's first cell, -1 for cells
+    without a normal or on a fold."""
+    h, w, _ = vertex.shape
+    parent = np.arange(h * w)
+    has = np.zeros((h, w), dtype=np.bool_)
+    for i in range(h):
+        for j in range(w):
+            has[i, j] = normal[i, j, 0] != 0.0 or normal[i, j, 1] != 0.0 or \
+                normal[i, j, 2] != 0.0
+    # a cell on an inward fold joins nothing: along a fold the normals turn from one surface
+    # to the other a few degrees a cell, and neighbour by neighbour would join them
+    fold = np.zeros((h, w), dtype=np.bool_)
+    for i in range(h):
+        for j in range(w):
+            if not has[i, j]:
+                continue
+            for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+                a0 = i - span * di
+                b0 = j - span * dj
+                a1 = i + span * di
+                b1 = j + span * dj
+                if a0 < 0 or a1 >= h or b0 < 0 or b0 >= w or b1 < 0 or b1 >= w or \
+                        not has[a0, b0] or not has[a1, b1]:
+                    continue
+                cos = 0.0
+                bend = 0.0
+                dist2 = 0.0
+                for k in range(3):
+                    d = vertex[a0, b0, k] - vertex[a1, b1, k]
+                    cos += normal[a0, b0, k] * normal[a1, b1, k]
+                    bend += (normal[a0, b0, k] - normal[a1, b1, k]) * d
+                    dist2 += d * d
+                lim = 2 * span * max_step * vertex[i, j, 2]
+                if cos < cos_fold and bend < 0.0 and dist2 <= lim * lim:
+                    fold[i, j] = True
+                    break
+    for i in range(h):
+        for j in range(w):
+            if fold[i, j]:
+                has[i, j] = False
+    for i in range(h):
+        for j in range(w):
+            if not has[i, j]:
+                continue
+            lim = max_step * vertex[i, j, 2]
+            for di, dj in ((0, 1), (1, 0)):
+                a = i + di
+                b = j + dj
+                if a >= h or b >= w or not has[a, b]:
+                    continue
+                cos = 0.0
+                bend = 0.0
+                dist2 = 0.0
+                off_a = 0.0
+                off_b = 0.0
+                for k in range(3):
+                    d = vertex[i, j, k] - vertex[a, b, k]
+                    cos += normal[i, j, k] * normal[a, b, k]
+                    bend += (normal[i, j, k] - normal[a, b, k]) * d
+                    dist2 += d * d
+                    off_a += normal[i, j, k] * d
+                    off_b += normal[a, b, k] * d
+                # one surface: no step along the way nor off either cell's tangent plane
+                # (a box's top edge and the table just behind it are parallel, a step apart)
+                if dist2 > lim * lim or abs(off_a) > max_off * vertex[i, j, 2] or \
+                        abs(off_b) > max_off * vertex[i, j, 2]:
+                    continue
+                if cos >= cos_fold or bend > 0.0:
+                    _union(parent, i * w + j, a * w + b)
+    flat = _labels(parent)
+    out = np.full((h, w), -1, dtype=np.int64)
+    count = 0
+    remap = np.full(h * w, -1, dtype=np.int64)
+    for i in range(h):
+        for j in range(w):
+            if has[i, j]:
+                lab = flat[i * w + j]
+                if remap[lab] < 0:
+                    remap[lab] = count
+                    count += 1
+                out[i, j] = remap[lab]
+    return out
+
+
+def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
+    """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image (-1: none), cut
+    on cells of ``params.object_cell_px`` pixels (module docstring).  A function of the image
+    alone, so it is kept in ``epoch.derived``: a station's reference pays for it once."""
+    f = params.object_cell_px
+    key = ("surface_segments", f, params.object_fold_deg, params.registration.band_m,
+           params.registration.band_slope, params.registration.min_depth_m,
+           params.registration.max_depth_m)
+    if key in epoch.derived:
+        return epoch.derived[key]
+    level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
+    # one cell step spans f z / fx metres: up to 4x that along the surface (~76 deg, as the
+    # normals allow), up to 1x that off it
+    cells = _segments_kernel(level.vertex, level.normal,
+                             math.cos(math.radians(params.object_fold_deg)),
+                             4.0 * f / epoch.intrinsics.fx, 1.0 * f / epoch.intrinsics.fx, 2)
+    height, width = epoch.depth.shape
+    pixels = np.full((height, width), -1, dtype=np.int64)
+    h, w = cells.shape
+    pixels[:h * f, :w * f] = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
+    pixels.setflags(write=False)
+    epoch.derived[key] = pixels
+    return pixels
+
+
+def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
+                     params: ChangeParams) -> np.ndarray:
+    """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the rest of the surface
+    segments their pixels make up at least ``params.object_min_share`` of (module
+    docstring); only ``observed`` (M,) bool points are added.  Unchanged when
+    ``params.object_completion`` is off or no group of changed points has
+    ``min_region_points``."""
+    if not params.object_completion or not changed.any():
+        return changed
+    idx = np.flatnonzero(changed)
+    labels = label_voxel_components(epoch.keys[idx], params.region_connectivity)
+    sizes = np.bincount(labels)
+    seeds = np.zeros(epoch.n_points + 1, dtype=bool)  # the last entry: pixel_voxel -1
+    seeds[idx[sizes[labels] >= params.min_region_points]] = True
+    if not seeds.any():
+        return changed
+    segment = surface_segments(epoch, params).ravel()
+    point = epoch.pixel_voxel.ravel()
+    on = (segment >= 0) & (point >= 0)
+    segment, point = segment[on], point[on]
+    n_seg = int(segment.max()) + 1 if segment.size else 0
+    size = np.bincount(segment, minlength=n_seg)
+    found = np.bincount(segment, weights=seeds[point], minlength=n_seg)
+    claimed = (found > 0) & (found >= params.object_min_share * size)
+    # a point's pixels in claimed segments against those in other segments (pixels on a fold
+    # or a depth edge, in no segment, do not vote)
+    votes = np.bincount(point, weights=np.where(claimed[segment], 1.0, -1.0),
+                        minlength=epoch.n_points)
+    return changed | (observed & (votes > 0))
+

@@ -1,0 +1,197 @@
+"""Changed points completed to the objects they lie on (robot_change.change.objects): the
+surface-segment kernel against its NumPy twin, objects cut from their table, a moved object
+found whole, a sliver that claims nothing."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from robot_change.change.detect import detect_changes
+from robot_change.change.epoch import as_epoch
+from robot_change.change.objects import _segments_kernel, complete_objects, surface_segments
+from robot_change.change.params import ChangeParams
+from robot_change.change.registration.pyramid import surface_level
+from robot_change.change.scene import build_scene
+from robot_change.errors import InputError
+from sim_fixtures.stations import station_scene
+from sim_fixtures.truth import point_truth
+
+
+def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
+    """NumPy twin of ``_segments_kernel``: fold cells by shifted arrays, joins as a sparse
+    graph, components by SciPy, labels renumbered in row-major order of first cells."""
+    v = vertex.astype(np.float64)
+    n = normal.astype(np.float64)
+    h, w, _ = v.shape
+    has = np.any(n != 0, axis=2)
+    fold = np.zeros((h, w), dtype=bool)
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        for i in range(h):
+            for j in range(w):
+                a0, b0, a1, b1 = i - span * di, j - span * dj, i + span * di, j + span * dj
+                if not has[i, j] or fold[i, j] or min(a0, b0, b1) < 0 or a1 >= h or \
+                        max(b0, b1) >= w or not (has[a0, b0] and has[a1, b1]):
+                    continue
+                d = v[a0, b0] - v[a1, b1]
+                lim = 2 * span * max_step * v[i, j, 2]
+                if n[a0, b0] @ n[a1, b1] < cos_fold and (n[a0, b0] - n[a1, b1]) @ d < 0 and \
+                        d @ d <= lim * lim:
+                    fold[i, j] = True
+    has &= ~fold
+    rows, cols = [], []
+    idx = np.arange(h * w).reshape(h, w)
+    for di, dj in ((0, 1), (1, 0)):
+        a = (slice(0, h - di), slice(0, w - dj))
+        b = (slice(di, h), slice(dj, w))
+        d = v[a] - v[b]
+        lim = max_step * v[a][..., 2]
+        off = max_off * v[a][..., 2]
+        cos = np.sum(n[a] * n[b], axis=2)
+        bend = np.sum((n[a] - n[b]) * d, axis=2)
+        ok = has[a] & has[b] & (np.sum(d * d, axis=2) <= lim * lim) \
+            & (np.abs(np.sum(n[a] * d, axis=2)) <= off) \
+            & (np.abs(np.sum(n[b] * d, axis=2)) <= off) & ((cos >= cos_fold) | (bend > 0))
+        rows.append(idx[a][ok])
+        cols.append(idx[b][ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r)), (r, c)), shape=(h * w, h * w))
+    _, comp = connected_components(graph, directed=False)
+    out = np.full(h * w, -1, dtype=np.int64)
+    flat_has = has.ravel()
+    remap: dict[int, int] = {}
+    for i in np.flatnonzero(flat_has):
+        out[i] = remap.setdefault(int(comp[i]), len(remap))
+    return out.reshape(h, w)
+
+
+@pytest.fixture(scope="module")
+def moved():
+    """A table station where one box moved (seed 8007, at the station)."""
+    sc = station_scene(8007, "one_moved", None)
+    ref = build_scene(list(sc.reference_frames), intrinsics=sc.intrinsics)
+    cur = build_scene([sc.current], intrinsics=sc.intrinsics)
+    return sc, ref, cur
+
+
+def _largest_in_cloud(seg, pixel_voxel):
+    """The segment with the most pixels that have a point in the clean cloud (the wall, beyond
+    the cloud's range, has none)."""
+    return np.bincount(seg[(seg >= 0) & (pixel_voxel >= 0)]).argmax()
+
+
+def _cells(model, params=ChangeParams()):
+    level = surface_level(model.depth, model.intrinsics, params.object_cell_px,
+                          params.registration)
+    return level.vertex, level.normal
+
+
+@pytest.mark.parametrize("fold_deg", [10.0, 20.0, 45.0])
+def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
+    _, ref, cur = moved
+    fx = ref.intrinsics.fx
+    for model in (ref, cur):
+        vertex, normal = _cells(model)
+        args = (math.cos(math.radians(fold_deg)), 16.0 / fx, 4.0 / fx, 2)
+        got = _segments_kernel(vertex, normal, *args)
+        np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
+    # and on noise, where folds, steps and joins fall anywhere
+    rng = np.random.default_rng(3)
+    vertex = np.zeros((30, 40, 3), np.float32)
+    vertex[..., 0], vertex[..., 1] = np.meshgrid(np.arange(40) * 0.01, np.arange(30) * 0.01)
+    vertex[..., 2] = 1.0 + rng.normal(0, 0.004, (30, 40))
+    normal = rng.normal(0, 0.3, (30, 40, 3)).astype(np.float32)
+    normal[..., 2] -= 1.0
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    normal[rng.random((30, 40)) < 0.1] = 0
+    args = (math.cos(math.radians(fold_deg)), 0.02, 0.005, 2)
+    got = _segments_kernel(vertex, normal, *args)
+    np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
+    assert got.max() > 3  # the noise does cut it
+
+
+def test_an_object_is_cut_from_the_table_it_stands_on(moved):
+    sc, ref, _ = moved
+    seg = surface_segments(as_epoch(ref, "reference"), ChangeParams())
+    box = sc.truth_disappeared & (seg >= 0)
+    labels, counts = np.unique(seg[box], return_counts=True)
+    main = labels[np.argmax(counts)]
+    # most of the box is one segment, and that segment is little else
+    assert counts.max() >= 0.8 * box.sum()
+    assert (seg == main).sum() <= 1.15 * counts.max()
+    # the table it stands on is one large segment of its own
+    table = _largest_in_cloud(seg, ref.pixel_voxel)
+    assert table != main and (seg == table).sum() > 5 * counts.max()
+
+
+def test_a_moved_object_is_found_whole(moved):
+    sc, ref, cur = moved
+    params = ChangeParams()
+    recall = {}
+    for on in (False, True):
+        res = detect_changes(ref, cur, params.replace(object_completion=on))
+        for name, model, truth, idx in (("appeared", cur, sc.truth_appeared,
+                                         res.appeared_index),
+                                        ("disappeared", ref, sc.truth_disappeared,
+                                         res.disappeared_index)):
+            t = point_truth(model.pixel_voxel, truth, len(model))
+            found = np.zeros(len(model), bool)
+            found[idx] = True
+            recall[name, on] = (found & t).sum() / t.sum()
+            assert not (found & ~t).any(), (name, on)  # nothing beside the box
+    # the box is found about half without completion, and mostly with it; in the reference
+    # part of its top and of its side lie on fold or edge cells, in no segment
+    assert recall["appeared", False] < 0.5 and recall["appeared", True] > 0.75, recall
+    assert recall["disappeared", True] >= recall["disappeared", False] + 0.15, recall
+
+
+def test_a_sliver_on_a_large_surface_claims_nothing(moved):
+    _, ref, _ = moved
+    ep = as_epoch(ref, "reference")
+    params = ChangeParams()
+    seg = surface_segments(ep, params)
+    table = _largest_in_cloud(seg, ep.pixel_voxel)
+    # a group of 20 points of the table, as a misregistered edge would give
+    on_table = np.unique(ep.pixel_voxel[(seg == table) & (ep.pixel_voxel >= 0)])
+    changed = np.zeros(ep.n_points, bool)
+    centre = ep.points[on_table].mean(axis=0)
+    near = on_table[np.argsort(np.linalg.norm(ep.points[on_table] - centre, axis=1))[:20]]
+    changed[near] = True
+    assert changed.sum() == 20 and len(on_table) > 200
+    observed = np.ones(ep.n_points, bool)
+    np.testing.assert_array_equal(complete_objects(ep, changed, observed, params), changed)
+
+
+def test_completion_claims_only_observed_points_and_can_be_switched_off(moved):
+    sc, ref, cur = moved
+    ep = as_epoch(ref, "reference")
+    params = ChangeParams()
+    t = point_truth(ep.pixel_voxel, sc.truth_disappeared, ep.n_points)
+    changed = t.copy()
+    changed[np.flatnonzero(t)[::2]] = False  # half the box found
+    observed = np.ones(ep.n_points, bool)
+    full = complete_objects(ep, changed, observed, params)
+    assert full.sum() > changed.sum() and not (changed & ~full).any()
+    observed[np.flatnonzero(full & ~changed)[:5]] = False
+    part = complete_objects(ep, changed, observed, params)
+    assert part.sum() == full.sum() - 5
+    off = complete_objects(ep, changed, observed, params.replace(object_completion=False))
+    assert off is changed
+    # groups smaller than a region seed nothing
+    few = np.zeros(ep.n_points, bool)
+    few[np.flatnonzero(t)[:params.min_region_points - 1]] = True
+    np.testing.assert_array_equal(complete_objects(ep, few, observed, params), few)
+
+
+@pytest.mark.parametrize("field, value", [("object_min_share", 0.0), ("object_min_share", 1.5),
+                                          ("object_fold_deg", -1.0), ("object_cell_px", 0),
+                                          ("object_cell_px", 2.0),
+                                          ("object_completion", "yes")])
+def test_bad_completion_parameters_are_refused(field, value):
+    with pytest.raises(InputError, match=field):
+        ChangeParams(**{field: value})
+
