@@ -36,7 +36,8 @@ table with objects, the wall, the floor), every kind of change, the robot at its
 5 / 10 / 15 cm (2 / 4 / 6 deg) away; the reference fused from 3 frames, the current 1 frame.
 Seed sets: 5000 was looked at while choosing the projector-shadow rule of the free-space
 check, 6000 (the default) once after it, 8000 while choosing its near-range and hole rules,
-9000 once after those (issue 12, docs/evaluation.md, "Table stations").
+9000 once after those, 8000 again while choosing the object completion's share, 11000 once
+after it (issue 12, docs/evaluation.md, "Table stations").
 
 Every method sees the same two SceneModels: the reference and the current, each fused from the
 scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with

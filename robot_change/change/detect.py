@@ -19,7 +19,10 @@ numbers in docs/evaluation.md).  For what appeared (current points):
    ``greedy=True`` (off by default: measured to lose real changes, docs/evaluation.md).
 4. **Segmentation**: a point is changed when the posterior mass of the change components at it
    exceeds ``posterior_threshold`` (0.5) and it passed the free-space check.
-5. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys),
+5. **Objects completed** (:func:`robot_change.change.objects.complete_objects`): a surface
+   segment of the depth image that the changed points make up ``object_min_share`` of is
+   claimed whole (a moved object stands partly where it stood).
+6. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys),
    regions below ``min_region_points`` dropped.
 
 The mirror (disappeared: reference points) runs the same steps with the roles swapped: the
