@@ -66,7 +66,21 @@ def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
     remap: dict[int, int] = {}
     for i in np.flatnonzero(flat_has):
         out[i] = remap.setdefault(int(comp[i]), len(remap))
-    return out.reshape(h, w)
+    out = out.reshape(h, w)
+    # rim cells: the first neighbour (left, up, right, down) of the first pass on whose
+    # tangent plane they lie
+    rim = out.copy()
+    for i, j in zip(*np.nonzero((out < 0) & ~fold & (v[..., 2] > 0))):
+        for di, dj in ((0, -1), (-1, 0), (0, 1), (1, 0)):
+            a, b = i + di, j + dj
+            if not (0 <= a < h and 0 <= b < w) or out[a, b] < 0:
+                continue
+            d = v[i, j] - v[a, b]
+            lim = max_step * v[a, b, 2]
+            if d @ d <= lim * lim and abs(n[a, b] @ d) <= max_off * v[a, b, 2]:
+                rim[i, j] = out[a, b]
+                break
+    return rim
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +113,7 @@ def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
         args = (math.cos(math.radians(fold_deg)), 16.0 / fx, 4.0 / fx, 2)
         got = _segments_kernel(vertex, normal, *args)
         np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
+        assert ((got >= 0) & ~np.any(normal != 0, axis=2)).sum() > 100  # rims joined
     # and on noise, where folds, steps and joins fall anywhere
     rng = np.random.default_rng(3)
     vertex = np.zeros((30, 40, 3), np.float32)
@@ -107,11 +122,12 @@ def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
     normal = rng.normal(0, 0.3, (30, 40, 3)).astype(np.float32)
     normal[..., 2] -= 1.0
     normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-    normal[rng.random((30, 40)) < 0.1] = 0
+    normal[rng.random((30, 40)) < 0.2] = 0  # cells without a normal: rims
     args = (math.cos(math.radians(fold_deg)), 0.02, 0.005, 2)
     got = _segments_kernel(vertex, normal, *args)
     np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
     assert got.max() > 3  # the noise does cut it
+    assert ((got >= 0) & ~np.any(normal != 0, axis=2)).any()  # and rims join
 
 
 def test_an_object_is_cut_from_the_table_it_stands_on(moved):

@@ -7,17 +7,19 @@ margin of the table behind it and is not found either.  What a robot needs is th
 
 So the epoch's depth image is cut into surface segments, on cells of ``object_cell_px`` x
 ``object_cell_px`` pixels (vertex and normal maps made as the registration's finest level):
-neighbouring cells (4-neighbourhood) join when both have a normal, they lie on one surface
-(no depth step), and their normals agree within ``object_fold_deg`` or the surface between
-them bends outwards (convex, as round an object's top edge); they part where it folds inwards
-(an object's foot on a table, an object against a wall).  A segment is claimed when the pixels
-of changed points make up at least ``object_min_share`` of the pixels of its points: an object
-found in part is completed, while a sliver on a wall or a table, a small part of a large
-segment, stays as it is.  Only groups of changed points large enough to be a region count,
-and only points the other camera observed are claimed.  A point is claimed when more of its
-pixels lie in claimed segments than in other segments (pixels on a fold or a depth edge, in
-no segment, do not vote: an object's foot stays as the free-space check found it).  The cell
-kernel has a NumPy twin in tests/test_objects.py.
+neighbouring cells (4-neighbourhood) join when both have a normal, they lie on one surface (no
+depth step), and their normals agree within ``object_fold_deg`` or the surface between them
+bends outwards (convex, as round an object's top edge); they part where it folds inwards (an
+object's foot on a table, an object against a wall), and a cell on such a fold joins
+nothing. A cell without a normal (a rim, a thin
+face) joins a neighbour's segment whose tangent plane it lies on. A segment is claimed when the
+pixels of changed points make up at least ``object_min_share`` of the pixels of its points: an
+object found in part is completed, while a sliver on a wall or a table, a small part of a large
+segment, stays as it is. Only groups of changed points large enough to be a region count, and
+only points the other camera observed are claimed. A point is claimed when more of its pixels
+lie in claimed segments than in other segments (pixels on a fold or a depth edge, in no
+segment, do not vote: an object's foot stays as the free-space check found it). The cell kernel
+has a NumPy twin in tests/test_objects.py.
 """
 
 from __future__ import annotations
@@ -48,8 +50,10 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
     neighbours join when both have a normal and are on no fold, they are at most
     ``max_step * z`` apart and each lies within ``max_off * z`` of the other's tangent plane,
     and their normals' cosine is at least ``cos_fold`` or the pair is convex.  Returns (h, w)
-    int64 labels 0..C-1 in row-major order of each segment's first cell, -1 for cells
-    without a normal or on a fold."""
+    int64 labels 0..C-1 in row-major order of each segment's first cell.  Then a cell with a
+    point but no normal (an object's rim, a thin face), on no fold, takes the label of its
+    first neighbour (left, up, right, down) that has one, is at most ``max_step * z`` away and
+    whose tangent plane it lies within ``max_off * z`` of; -1 for the cells left."""
     h, w, _ = vertex.shape
     parent = np.arange(h * w)
     has = np.zeros((h, w), dtype=np.bool_)
@@ -129,7 +133,29 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
                     remap[lab] = count
                     count += 1
                 out[i, j] = remap[lab]
-    return out
+    # a cell with a point but no normal (an object's rim, a thin face) joins the segment of a
+    # neighbour whose tangent plane it lies on (the first of left, up, right, down)
+    rim = out.copy()
+    for i in range(h):
+        for j in range(w):
+            if out[i, j] >= 0 or fold[i, j] or vertex[i, j, 2] <= 0.0:
+                continue
+            for di, dj in ((0, -1), (-1, 0), (0, 1), (1, 0)):
+                a = i + di
+                b = j + dj
+                if a < 0 or b < 0 or a >= h or b >= w or out[a, b] < 0:
+                    continue
+                off = 0.0
+                dist2 = 0.0
+                for k in range(3):
+                    d = vertex[i, j, k] - vertex[a, b, k]
+                    off += normal[a, b, k] * d
+                    dist2 += d * d
+                lim = max_step * vertex[a, b, 2]
+                if dist2 <= lim * lim and abs(off) <= max_off * vertex[a, b, 2]:
+                    rim[i, j] = out[a, b]
+                    break
+    return rim
 
 
 def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
