@@ -41,6 +41,25 @@ __all__ = [
 
 
 @numba.njit(cache=True, nogil=True)
+def _pair(vertex, normal, i, j, a, b):
+    """Cells (i, j) and (a, b) with d = p_ij - p_ab: the normals' cosine, the bend
+    (n_ij - n_ab) . d (> 0: convex), |d|^2, and d along each cell's normal."""
+    cos = 0.0
+    bend = 0.0
+    dist2 = 0.0
+    off_ij = 0.0
+    off_ab = 0.0
+    for k in range(3):
+        d = vertex[i, j, k] - vertex[a, b, k]
+        cos += normal[i, j, k] * normal[a, b, k]
+        bend += (normal[i, j, k] - normal[a, b, k]) * d
+        dist2 += d * d
+        off_ij += normal[i, j, k] * d
+        off_ab += normal[a, b, k] * d
+    return cos, bend, dist2, off_ij, off_ab
+
+
+@numba.njit(cache=True, nogil=True)
 def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
     """Surface segments of a cell grid: ``vertex`` (h, w, 3) float32 m (z = 0: empty) and
     ``normal`` (h, w, 3) float32 unit normals facing the camera (0: none).  A cell is on an
@@ -76,14 +95,7 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
                 if a0 < 0 or a1 >= h or b0 < 0 or b0 >= w or b1 < 0 or b1 >= w or \
                         not has[a0, b0] or not has[a1, b1]:
                     continue
-                cos = 0.0
-                bend = 0.0
-                dist2 = 0.0
-                for k in range(3):
-                    d = vertex[a0, b0, k] - vertex[a1, b1, k]
-                    cos += normal[a0, b0, k] * normal[a1, b1, k]
-                    bend += (normal[a0, b0, k] - normal[a1, b1, k]) * d
-                    dist2 += d * d
+                cos, bend, dist2, _, _ = _pair(vertex, normal, a0, b0, a1, b1)
                 lim = 2 * span * max_step * vertex[i, j, 2]
                 if cos < cos_fold and bend < 0.0 and dist2 <= lim * lim:
                     fold[i, j] = True
@@ -102,18 +114,7 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
                 b = j + dj
                 if a >= h or b >= w or not has[a, b]:
                     continue
-                cos = 0.0
-                bend = 0.0
-                dist2 = 0.0
-                off_a = 0.0
-                off_b = 0.0
-                for k in range(3):
-                    d = vertex[i, j, k] - vertex[a, b, k]
-                    cos += normal[i, j, k] * normal[a, b, k]
-                    bend += (normal[i, j, k] - normal[a, b, k]) * d
-                    dist2 += d * d
-                    off_a += normal[i, j, k] * d
-                    off_b += normal[a, b, k] * d
+                cos, bend, dist2, off_a, off_b = _pair(vertex, normal, i, j, a, b)
                 # one surface: no step along the way nor off either cell's tangent plane
                 # (a box's top edge and the table just behind it are parallel, a step apart)
                 if dist2 > lim * lim or abs(off_a) > max_off * vertex[i, j, 2] or \
@@ -145,12 +146,7 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
                 b = j + dj
                 if a < 0 or b < 0 or a >= h or b >= w or out[a, b] < 0:
                     continue
-                off = 0.0
-                dist2 = 0.0
-                for k in range(3):
-                    d = vertex[i, j, k] - vertex[a, b, k]
-                    off += normal[a, b, k] * d
-                    dist2 += d * d
+                _, _, dist2, _, off = _pair(vertex, normal, i, j, a, b)
                 lim = max_step * vertex[a, b, 2]
                 if dist2 <= lim * lim and abs(off) <= max_off * vertex[a, b, 2]:
                     rim[i, j] = out[a, b]
