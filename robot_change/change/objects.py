@@ -154,14 +154,18 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
     return rim
 
 
+def _segments_key(params: ChangeParams) -> tuple:
+    reg = params.registration
+    return ("surface_segments", params.object_cell_px, params.object_fold_deg, reg.band_m,
+            reg.band_slope, reg.min_depth_m, reg.max_depth_m)
+
+
 def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image (-1: none), cut
     on cells of ``params.object_cell_px`` pixels (module docstring).  A function of the image
     alone, so it is kept in ``epoch.derived``: a station's reference pays for it once."""
     f = params.object_cell_px
-    key = ("surface_segments", f, params.object_fold_deg, params.registration.band_m,
-           params.registration.band_slope, params.registration.min_depth_m,
-           params.registration.max_depth_m)
+    key = _segments_key(params)
     if key in epoch.derived:
         return epoch.derived[key]
     level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
@@ -177,6 +181,23 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     pixels.setflags(write=False)
     epoch.derived[key] = pixels
     return pixels
+
+
+def _segment_pixels(epoch: Epoch, params: ChangeParams
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) and points
+    (P,), each segment's count of them (S,) and each point's (M,); kept in ``epoch.derived``
+    as the segments are."""
+    key = ("segment_pixels",) + _segments_key(params)
+    if key not in epoch.derived:
+        segment = surface_segments(epoch, params).ravel()
+        point = epoch.pixel_voxel.ravel()
+        on = (segment >= 0) & (point >= 0)
+        segment, point = segment[on], point[on].astype(np.int64)
+        size = np.bincount(segment, minlength=int(segment.max()) + 1 if segment.size else 0)
+        epoch.derived[key] = (segment, point, size,
+                              np.bincount(point, minlength=epoch.n_points))
+    return epoch.derived[key]
 
 
 def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
@@ -195,17 +216,11 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     seeds[idx[sizes[labels] >= params.min_region_points]] = True
     if not seeds.any():
         return changed
-    segment = surface_segments(epoch, params).ravel()
-    point = epoch.pixel_voxel.ravel()
-    on = (segment >= 0) & (point >= 0)
-    segment, point = segment[on], point[on]
-    n_seg = int(segment.max()) + 1 if segment.size else 0
-    size = np.bincount(segment, minlength=n_seg)
-    found = np.bincount(segment, weights=seeds[point], minlength=n_seg)
+    segment, point, size, per_point = _segment_pixels(epoch, params)
+    found = np.bincount(segment, weights=seeds[point], minlength=len(size))
     claimed = (found > 0) & (found >= params.object_min_share * size)
     # a point's pixels in claimed segments against those in other segments (pixels on a fold
     # or a depth edge, in no segment, do not vote)
-    votes = np.bincount(point, weights=np.where(claimed[segment], 1.0, -1.0),
-                        minlength=epoch.n_points)
-    return changed | (observed & (votes > 0))
+    inside = np.bincount(point[claimed[segment]], minlength=epoch.n_points)
+    return changed | (observed & (2 * inside > per_point))
 
