@@ -21,9 +21,9 @@ Truth and scoring (point level):
   the other camera could not see (``observed_reference`` / ``observed_current`` of the scene)
   is not counted: no method can detect it, and a method that reports it (as a whole object
   completed, robot_change.change.objects) is not wrong there either: such points count
-  neither way.  The registration error is the estimated
-  ``T_ref_from_cur`` against the scene's true one (mm, degrees); the far-offset and
-  other-room pairs must end as ``not_at_station``.
+  neither way.  The registration error is the estimated ``T_ref_from_cur`` against the
+  scene's true one (mm, degrees); the far-offset and other-room pairs must end as
+  ``not_at_station``.
 * the real table tops' truth is geometric (an object's pixels that the other frame saw
   through, sim_fixtures/tabletop.py); they are scored too with the changed objects whole as
   truth (every pixel of an object any pixel of which is truth), as the simulated scenes are;

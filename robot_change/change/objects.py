@@ -10,16 +10,15 @@ So the epoch's depth image is cut into surface segments, on cells of ``object_ce
 neighbouring cells (4-neighbourhood) join when both have a normal, they lie on one surface (no
 depth step), and their normals agree within ``object_fold_deg`` or the surface between them
 bends outwards (convex, as round an object's top edge); they part where it folds inwards (an
-object's foot on a table, an object against a wall), and a cell on such a fold joins
-nothing. A cell without a normal (a rim, a thin
-face) joins a neighbour's segment whose tangent plane it lies on. A segment is claimed when the
-pixels of changed points make up at least ``object_min_share`` of the pixels of its points: an
-object found in part is completed, while a sliver on a wall or a table, a small part of a large
-segment, stays as it is. Only groups of changed points large enough to be a region count, and
-only points the other camera observed are claimed. A point is claimed when more of its pixels
-lie in claimed segments than in other segments (pixels on a fold or a depth edge, in no
-segment, do not vote: an object's foot stays as the free-space check found it). The cell kernel
-has a NumPy twin in tests/test_objects.py.
+object's foot on a table, an object against a wall), and a cell on such a fold joins nothing. A
+cell without a normal (a rim, a thin face) joins a neighbour's segment whose tangent plane it
+lies on. A segment is claimed when the pixels of changed points make up at least
+``object_min_share`` of the pixels of its points: an object found in part is completed, while a
+sliver on a wall or a table, a small part of a large segment, stays as it is. Only groups of
+changed points large enough to be a region count, and only points the other camera observed are
+claimed. A point is claimed when more of its pixels lie in claimed segments than in other
+segments (pixels on a fold or a depth edge, in no segment, do not vote: an object's foot stays
+as the free-space check found it). The cell kernel has a NumPy twin in tests/test_objects.py.
 """
 
 from __future__ import annotations
@@ -212,7 +211,7 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     idx = np.flatnonzero(changed)
     labels = label_voxel_components(epoch.keys[idx], params.region_connectivity)
     sizes = np.bincount(labels)
-    seeds = np.zeros(epoch.n_points + 1, dtype=bool)  # the last entry: pixel_voxel -1
+    seeds = np.zeros(epoch.n_points, dtype=bool)
     seeds[idx[sizes[labels] >= params.min_region_points]] = True
     if not seeds.any():
         return changed
