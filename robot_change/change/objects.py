@@ -153,20 +153,10 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
     return rim
 
 
-def _segments_key(params: ChangeParams) -> tuple:
-    reg = params.registration
-    return ("surface_segments", params.object_cell_px, params.object_fold_deg, reg.band_m,
-            reg.band_slope, reg.min_depth_m, reg.max_depth_m)
-
-
 def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image (-1: none), cut
-    on cells of ``params.object_cell_px`` pixels (module docstring).  A function of the image
-    alone, so it is kept in ``epoch.derived``: a station's reference pays for it once."""
+    on cells of ``params.object_cell_px`` pixels (module docstring)."""
     f = params.object_cell_px
-    key = _segments_key(params)
-    if key in epoch.derived:
-        return epoch.derived[key]
     level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
     # one cell step spans f z / fx metres: up to 4x that along the surface (~76 deg, as the
     # normals allow), up to 1x that off it
@@ -177,22 +167,23 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     pixels = np.full((height, width), -1, dtype=np.int64)
     h, w = cells.shape
     pixels[:h * f, :w * f] = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
-    pixels.setflags(write=False)
-    epoch.derived[key] = pixels
     return pixels
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) and points
-    (P,), each segment's count of them (S,) and each point's (M,); kept in ``epoch.derived``
-    as the segments are."""
-    key = ("segment_pixels",) + _segments_key(params)
+    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) int32 and
+    points (P,) int32, each segment's count of them (S,) and each point's (M,).  A function
+    of the image and the cloud alone, so it is kept in ``epoch.derived``: a station's
+    reference pays for it once."""
+    reg = params.registration
+    key = ("segment_pixels", params.object_cell_px, params.object_fold_deg, reg.band_m,
+           reg.band_slope, reg.min_depth_m, reg.max_depth_m)
     if key not in epoch.derived:
         segment = surface_segments(epoch, params).ravel()
         point = epoch.pixel_voxel.ravel()
         on = (segment >= 0) & (point >= 0)
-        segment, point = segment[on], point[on].astype(np.int64)
+        segment, point = segment[on].astype(np.int32), point[on].astype(np.int32)
         size = np.bincount(segment, minlength=int(segment.max()) + 1 if segment.size else 0)
         epoch.derived[key] = (segment, point, size,
                               np.bincount(point, minlength=epoch.n_points))
