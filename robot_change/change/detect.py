@@ -187,7 +187,10 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
     """Changed points of ``other`` relative to ``base``: the mixture part.
 
     ``base_mix`` (fitted on ``base``) is held fixed as the background of ``other``'s cloud;
-    novelty components for poorly explained points; greedy EMD base -> other over them.
+    novelty components for poorly explained points; greedy EMD base -> other over them.  A
+    point is a candidate when the accepted components hold most of its posterior, or, where
+    the base explains it less than its own points (log-density below the self threshold),
+    most of the novelty components' share.
     Returns (candidate mask (M,), searched mixture, posterior (M, K) of its novelty
     components (the fixed ones' columns may be 0) or None when no component is a change,
     trace).
@@ -215,6 +218,15 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
         rows = np.flatnonzero(free) if params.free_space else None
         post = posteriors(fitted, other.points, rows, (k0, log_dens) if background else None)
         cand = post[:, trace.change].sum(axis=1) > params.posterior_threshold
+        # where the fixed components explain a point less than they explain their own points
+        # (log-density below the self threshold), they do not compete for it: a narrow fixed
+        # component 15 cm away would win the posterior from a wide novelty one by default
+        lost = np.flatnonzero(novel & (log_dens < thr) & (free if params.free_space else True))
+        if lost.size and fitted.weights[k0:].sum() > 0:
+            part = Mixture(fitted.weights[k0:] / fitted.weights[k0:].sum(), fitted.means[k0:],
+                           fitted.covariances[k0:])
+            share = part.responsibilities(other.points[lost])[:, trace.change - k0].sum(axis=1)
+            cand[lost[share > params.posterior_threshold]] = True
     t4 = time.perf_counter()
     timings[f"{prefix}novelty_mask_ms"] = (t1 - t0) * 1e3
     timings[f"{prefix}novelty_fit_ms"] = (t2 - t1) * 1e3
