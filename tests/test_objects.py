@@ -13,7 +13,12 @@ from scipy.sparse.csgraph import connected_components
 
 from robot_change.change.detect import detect_changes
 from robot_change.change.epoch import as_epoch
-from robot_change.change.objects import _segments_kernel, complete_objects, surface_segments
+from robot_change.change.objects import (
+    _pixels_kernel,
+    _segments_kernel,
+    complete_objects,
+    surface_segments,
+)
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration.pyramid import surface_level
 from robot_change.change.scene import build_scene
@@ -83,6 +88,50 @@ def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
     return rim
 
 
+def _pixels_twin(depth, cells, vertex, normal, f, fx, fy, cx, cy, max_step, max_off, radius):
+    """NumPy twin of ``_pixels_kernel``: the own cell's plane test on whole arrays, then the
+    cells around, one offset at a time in the kernel's order (the last of equal fits wins)."""
+    h, w = cells.shape
+    height, width = depth.shape
+    v = vertex.astype(np.float64)
+    n = normal.astype(np.float64)
+    rr, cc = np.mgrid[0:min(height, h * f), 0:min(width, w * f)]
+    z = depth[:rr.shape[0], :rr.shape[1]] * 0.001
+    px = (cc - cx) * z / fx
+    py = (rr - cy) * z / fy
+    i, j = rr // f, cc // f
+
+    def plane(a, b):
+        nn, vv = n[a, b], v[a, b]
+        d = (px - vv[..., 0], py - vv[..., 1], z - vv[..., 2])
+        return (nn[..., 0] * d[0] + nn[..., 1] * d[1] + nn[..., 2] * d[2],
+                d[0] * d[0] + d[1] * d[1] + d[2] * d[2], np.any(nn != 0, axis=-1))
+
+    own = cells[i, j]
+    off, _, has = plane(i, j)
+    keep = (z > 0) & (own >= 0) & (~has | (np.abs(off) <= max_off * z))
+    search = (z > 0) & ~keep
+    best = np.where(search, own, -1)
+    best_off = max_off * z
+    lim = max_step * z
+    for da in range(-radius, radius + 1):
+        for db in range(-radius, radius + 1):
+            if da == 0 and db == 0:
+                continue
+            a, b = i + da, j + db
+            inside = (a >= 0) & (a < h) & (b >= 0) & (b < w)
+            a, b = np.clip(a, 0, h - 1), np.clip(b, 0, w - 1)
+            off, dist2, has = plane(a, b)
+            off = np.abs(off)
+            take = search & inside & (cells[a, b] >= 0) & has & (dist2 <= lim * lim) & \
+                (off <= best_off)
+            best[take] = cells[a, b][take]
+            best_off = np.where(take, off, best_off)
+    out = np.full((height, width), -1, dtype=np.int64)
+    out[:rr.shape[0], :rr.shape[1]] = np.where(keep, own, best)
+    return out
+
+
 @pytest.fixture(scope="module")
 def moved():
     """A table station where one box moved (seed 8007, at the station)."""
@@ -130,6 +179,46 @@ def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
     assert ((got >= 0) & ~np.any(normal != 0, axis=2)).any()  # and rims join
 
 
+def test_the_pixel_kernel_matches_its_twin(moved):
+    _, ref, cur = moved
+    params = ChangeParams()
+    f = params.object_cell_px
+    intr = ref.intrinsics
+    args = (intr.fx, intr.fy, intr.cx, intr.cy, 4.0 * f / intr.fx, 1.0 * f / intr.fx, 2)
+    for model in (ref, cur):
+        vertex, normal = _cells(model)
+        cells = _segments_kernel(vertex, normal, math.cos(math.radians(20.0)),
+                                 4.0 * f / intr.fx, 1.0 * f / intr.fx, 2)
+        got = _pixels_kernel(model.depth, cells, vertex, normal, f, *args)
+        np.testing.assert_array_equal(got, _pixels_twin(model.depth, cells, vertex, normal, f,
+                                                        *args))
+        by_cell = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
+        # pixels of fold and edge cells given a segment, and all others kept
+        assert ((got >= 0) & (by_cell < 0)).sum() > 5000
+        assert ((by_cell >= 0) & (got != by_cell) & (model.depth > 0)).sum() < 100
+    # and on noise: a depth image of random steps, cells of random labels and normals
+    rng = np.random.default_rng(5)
+    depth = (1000 + 40 * rng.integers(0, 3, (60, 84)) + rng.normal(0, 4, (60, 84))
+             ).astype(np.uint16)
+    depth[rng.random(depth.shape) < 0.1] = 0
+    cells = rng.integers(-1, 6, (15, 21))
+    vertex = np.zeros((15, 21, 3), np.float32)
+    ci, cj = np.mgrid[0:15, 0:21]
+    vertex[..., 2] = 1.0 + 0.04 * rng.integers(0, 3, (15, 21))
+    vertex[..., 0] = (cj * 4 + 1.5 - 42) * vertex[..., 2] / 60.0
+    vertex[..., 1] = (ci * 4 + 1.5 - 30) * vertex[..., 2] / 60.0
+    normal = rng.normal(0, 0.2, (15, 21, 3)).astype(np.float32)
+    normal[..., 2] -= 1.0
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    normal[rng.random((15, 21)) < 0.2] = 0
+    args = (4, 60.0, 60.0, 42.0, 30.0, 0.3, 0.02, 2)
+    got = _pixels_kernel(depth, cells, vertex, normal, *args)
+    np.testing.assert_array_equal(got, _pixels_twin(depth, cells, vertex, normal, *args))
+    by_cell = np.repeat(np.repeat(cells, 4, axis=0), 4, axis=1)
+    assert ((got >= 0) & (by_cell < 0)).sum() > 50  # given a segment
+    assert ((got >= 0) & (by_cell >= 0) & (got != by_cell)).sum() > 50  # off their cell's plane
+
+
 def test_an_object_is_cut_from_the_table_it_stands_on(moved):
     sc, ref, _ = moved
     seg = surface_segments(as_epoch(ref, "reference"), ChangeParams())
@@ -158,7 +247,9 @@ def test_a_moved_object_is_found_whole(moved):
             found = np.zeros(len(model), bool)
             found[idx] = True
             recall[name, on] = (found & t).sum() / t.sum()
-            assert not (found & ~t).any(), (name, on)  # nothing beside the box
+            # nothing beside the box: a false point is a voxel its outline cuts
+            for k in np.flatnonzero(found & ~t):
+                assert truth[model.pixel_voxel == k].mean() >= 0.25, (name, on, k)
     # the box is found about half without completion, and mostly with it; in the reference
     # part of its top and of its side lie on fold or edge cells, in no segment
     assert recall["appeared", False] < 0.5 and recall["appeared", True] > 0.75, recall
@@ -180,6 +271,31 @@ def test_a_sliver_on_a_large_surface_claims_nothing(moved):
     assert changed.sum() == 20 and len(on_table) > 200
     observed = np.ones(ep.n_points, bool)
     np.testing.assert_array_equal(complete_objects(ep, changed, observed, params), changed)
+
+
+def test_a_segment_large_in_view_needs_as_large_a_share(moved):
+    # a registration that slid along the wall leaves strips of the table "changed": a segment
+    # is claimed only when as large a share of it was found as it covers of the image
+    _, ref, _ = moved
+    ep = as_epoch(ref, "reference")
+    params = ChangeParams()
+    seg = surface_segments(ep, params)
+    table = _largest_in_cloud(seg, ep.pixel_voxel)
+    on_table = np.zeros(ep.n_points, bool)
+    on_table[ep.pixel_voxel[(seg == table) & (ep.pixel_voxel >= 0)]] = True
+    in_view = ((seg == table) & (ep.pixel_voxel >= 0)).sum() / seg.size
+    observed = np.ones(ep.n_points, bool)
+    rows = np.flatnonzero(on_table)
+    by_x = rows[np.argsort(ep.points[rows, 0])]
+    # found by point, claimed by pixel: shares well either side of what the table covers
+    for share, claimed in ((0.75 * in_view, False), (1.5 * in_view, True)):
+        changed = np.zeros(ep.n_points, bool)
+        changed[by_x[:int(share * len(by_x))]] = True
+        got = complete_objects(ep, changed, observed, params)
+        added = got[on_table & ~changed].mean()
+        assert added > 0.9 if claimed else added < 0.01, (share, added)
+    # with the old rule alone the smaller share would have claimed it
+    assert 0.75 * in_view > params.object_min_share
 
 
 def test_completion_claims_only_observed_points_and_can_be_switched_off(moved):

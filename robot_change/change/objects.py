@@ -12,13 +12,19 @@ depth step), and their normals agree within ``object_fold_deg`` or the surface b
 bends outwards (convex, as round an object's top edge); they part where it folds inwards (an
 object's foot on a table, an object against a wall), and a cell on such a fold joins nothing. A
 cell without a normal (a rim, a thin face) joins a neighbour's segment whose tangent plane it
-lies on. A segment is claimed when the pixels of changed points make up at least
-``object_min_share`` of the pixels of its points: an object found in part is completed, while a
-sliver on a wall or a table, a small part of a large segment, stays as it is. Only groups of
-changed points large enough to be a region count, and only points the other camera observed are
-claimed. A point is claimed when more of its pixels lie in claimed segments than in other
-segments (pixels on a fold or a depth edge, in no segment, do not vote: an object's foot stays
-as the free-space check found it). The cell kernel has a NumPy twin in tests/test_objects.py.
+lies on. Then each pixel on a fold or a depth edge (its cell in no segment) joins the segment
+of the cell around it whose tangent plane its own point lies nearest to: the pixels of an
+object's foot join the object, those of the table beside it the table.
+
+A segment is claimed when the pixels of changed points make up at least ``object_min_share``
+of the pixels of its points: an object found in part is completed, while a sliver on a wall or
+a table, a small part of a large segment, stays as it is. The larger a segment is in view, the
+more of it must be found: at least the share of the image it covers (a table top, a floor or a
+wall filling half the view, half of it), so that the strips of a registration slid along a
+wall do not claim the place itself. Only groups of changed points large enough to be a region
+count, and only points the other camera observed are claimed. A point is claimed when more of
+its pixels lie in claimed segments than in other segments (pixels in no segment do not vote).
+Both kernels have NumPy twins in tests/test_objects.py.
 """
 
 from __future__ import annotations
@@ -153,21 +159,82 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
     return rim
 
 
+@numba.njit(cache=True, nogil=True)
+def _pixels_kernel(depth, cells, vertex, normal, f, fx, fy, cx, cy, max_step, max_off, radius):
+    """Each pixel's segment: ``depth`` (H, W) uint16 mm, ``cells`` (h, w) int64 segment of
+    each cell of ``f`` x ``f`` pixels (-1: none), ``vertex`` / ``normal`` (h, w, 3) float32 the
+    cells' points (m) and unit normals (0: none).  A pixel whose point (p, depth z) lies within
+    ``max_off * z`` of its cell's tangent plane, or whose cell has a segment but no normal,
+    takes its cell's segment.  Any other pixel (on a fold, on a depth edge, or behind the
+    surface its cell was made of) takes the segment of the cell within ``radius`` cells that
+    has a normal, lies within ``max_step * z`` of p and whose tangent plane p is nearest to,
+    if within ``max_off * z``; else its cell's (-1 for none).  Returns (H, W) int64."""
+    height, width = depth.shape
+    h, w = cells.shape
+    out = np.full((height, width), -1, dtype=np.int64)
+    for r in range(min(height, h * f)):
+        i = r // f
+        for c in range(min(width, w * f)):
+            if depth[r, c] == 0:
+                continue
+            j = c // f
+            z = depth[r, c] * 0.001
+            px = (c - cx) * z / fx
+            py = (r - cy) * z / fy
+            own = cells[i, j]
+            nx = normal[i, j, 0]
+            ny = normal[i, j, 1]
+            nz = normal[i, j, 2]
+            if own >= 0:
+                if nx == 0.0 and ny == 0.0 and nz == 0.0:
+                    out[r, c] = own
+                    continue
+                off = nx * (px - vertex[i, j, 0]) + ny * (py - vertex[i, j, 1]) + \
+                    nz * (z - vertex[i, j, 2])
+                if abs(off) <= max_off * z:
+                    out[r, c] = own
+                    continue
+            best = own
+            best_off = max_off * z
+            lim = max_step * z
+            for a in range(max(i - radius, 0), min(i + radius + 1, h)):
+                for b in range(max(j - radius, 0), min(j + radius + 1, w)):
+                    if (a == i and b == j) or cells[a, b] < 0:
+                        continue
+                    nx = normal[a, b, 0]
+                    ny = normal[a, b, 1]
+                    nz = normal[a, b, 2]
+                    if nx == 0.0 and ny == 0.0 and nz == 0.0:
+                        continue
+                    dx = px - vertex[a, b, 0]
+                    dy = py - vertex[a, b, 1]
+                    dz = z - vertex[a, b, 2]
+                    if dx * dx + dy * dy + dz * dz > lim * lim:
+                        continue
+                    off = abs(nx * dx + ny * dy + nz * dz)
+                    if off <= best_off:
+                        best_off = off
+                        best = cells[a, b]
+            out[r, c] = best
+    return out
+
+
 def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image (-1: none), cut
-    on cells of ``params.object_cell_px`` pixels (module docstring)."""
+    on cells of ``params.object_cell_px`` pixels, then pixel by pixel where a cell is on a
+    fold or an edge (module docstring)."""
     f = params.object_cell_px
     level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
+    intr = epoch.intrinsics
     # one cell step spans f z / fx metres: up to 4x that along the surface (~76 deg, as the
-    # normals allow), up to 1x that off it
+    # normals allow), up to 1x that off it; a fold is judged across 2 cells, so a pixel of a
+    # fold finds a cell off it within 2 cells
+    max_step, max_off = 4.0 * f / intr.fx, 1.0 * f / intr.fx
     cells = _segments_kernel(level.vertex, level.normal,
-                             math.cos(math.radians(params.object_fold_deg)),
-                             4.0 * f / epoch.intrinsics.fx, 1.0 * f / epoch.intrinsics.fx, 2)
-    height, width = epoch.depth.shape
-    pixels = np.full((height, width), -1, dtype=np.int64)
-    h, w = cells.shape
-    pixels[:h * f, :w * f] = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
-    return pixels
+                             math.cos(math.radians(params.object_fold_deg)), max_step, max_off,
+                             2)
+    return _pixels_kernel(epoch.depth, cells, level.vertex, level.normal, f, intr.fx, intr.fy,
+                          intr.cx, intr.cy, max_step, max_off, 2)
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams
@@ -193,8 +260,9 @@ def _segment_pixels(epoch: Epoch, params: ChangeParams
 def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
                      params: ChangeParams) -> np.ndarray:
     """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the rest of the surface
-    segments their pixels make up at least ``params.object_min_share`` of (module
-    docstring); only ``observed`` (M,) bool points are added.  Unchanged when
+    segments their pixels make up at least ``params.object_min_share`` of, and at least the
+    share of the image each covers (module docstring); only ``observed`` (M,) bool points
+    are added.  Unchanged when
     ``params.object_completion`` is off or no group of changed points has
     ``min_region_points``."""
     if not params.object_completion or not changed.any():
@@ -208,7 +276,10 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
         return changed
     segment, point, size, per_point = _segment_pixels(epoch, params)
     found = np.bincount(segment, weights=seeds[point], minlength=len(size))
-    claimed = (found > 0) & (found >= params.object_min_share * size)
+    # the larger a segment is in view, the more of it must be found: a table top that fills
+    # half the image is claimed when half of it is
+    claimed = (found > 0) & (found >= np.maximum(params.object_min_share,
+                                                 size / epoch.depth.size) * size)
     # a point's pixels in claimed segments against those in other segments (pixels on a fold
     # or a depth edge, in no segment, do not vote)
     inside = np.bincount(point[claimed[segment]], minlength=epoch.n_points)

@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from hw.depth import Intrinsics
+from robot_change.arrays import readonly_view
 from robot_change.change.detect import detect_changes
 from robot_change.change.scene import build_scene
 from robot_change.errors import EmptySceneError, InputError
@@ -109,8 +110,9 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
 
 def _region_kernels() -> None:
     """The regions' kernels, with the argument type a cloud gives them (read-only int64 voxel
-    keys), and the object completion's surface segments (float32 vertex and normal maps)."""
-    from robot_change.change.objects import _segments_kernel
+    keys), and the object completion's surface segments (float32 vertex and normal maps) and
+    their pixels (a reference's read-only depth image, a current's writable one)."""
+    from robot_change.change.objects import _pixels_kernel, _segments_kernel
     from robot_change.change.regions import label_voxel_components
 
     keys = np.arange(500, dtype=np.int64) * 3
@@ -118,7 +120,10 @@ def _region_kernels() -> None:
     label_voxel_components(keys, 1)
     cells = np.zeros((6, 6, 3), np.float32)
     cells[..., 2] = 1.0
-    _segments_kernel(cells, -cells, 0.9, 0.03, 0.01, 2)
+    labels = _segments_kernel(cells, -cells, 0.9, 0.03, 0.01, 2)
+    depth = np.full((24, 24), 1000, np.uint16)
+    for image in (depth, readonly_view(depth)):
+        _pixels_kernel(image, labels, cells, -cells, 4, 500.0, 500.0, 12.0, 12.0, 0.03, 0.01, 2)
 
 
 def _own_share(config: Config) -> None:
