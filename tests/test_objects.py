@@ -88,47 +88,59 @@ def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
     return rim
 
 
-def _pixels_twin(depth, cells, vertex, normal, f, fx, fy, cx, cy, max_step, max_off, radius):
+def _near_twin(cells, normal, i, j, radius):
+    """NumPy twin of ``_near_segments``: the first cell with a normal of each segment, ring by
+    ring, at most 4."""
+    h, w = cells.shape
+    out: list[tuple[int, int]] = []
+    for d in range(1, radius + 1):
+        for a in range(i - d, i + d + 1):
+            for b in range(j - d, j + d + 1):
+                if not (0 <= a < h and 0 <= b < w) or max(abs(a - i), abs(b - j)) != d:
+                    continue
+                if cells[a, b] < 0 or not np.any(normal[a, b] != 0) or len(out) == 4 or \
+                        cells[a, b] in [cells[x, y] for x, y in out]:
+                    continue
+                out.append((a, b))
+    return out
+
+
+def _pixels_twin(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy, max_step,
+                 max_off, radius):
     """NumPy twin of ``_pixels_kernel``: the own cell's plane test on whole arrays, then the
-    cells around, one offset at a time in the kernel's order (the last of equal fits wins)."""
+    segments around each cell left, pixel by pixel (the last of equal fits wins)."""
     h, w = cells.shape
     height, width = depth.shape
     v = vertex.astype(np.float64)
     n = normal.astype(np.float64)
     rr, cc = np.mgrid[0:min(height, h * f), 0:min(width, w * f)]
     z = depth[:rr.shape[0], :rr.shape[1]] * 0.001
-    px = (cc - cx) * z / fx
-    py = (rr - cy) * z / fy
+    px = ((cc - cx) / fx) * z
+    py = ((rr - cy) / fy) * z
     i, j = rr // f, cc // f
-
-    def plane(a, b):
-        nn, vv = n[a, b], v[a, b]
-        d = (px - vv[..., 0], py - vv[..., 1], z - vv[..., 2])
-        return (nn[..., 0] * d[0] + nn[..., 1] * d[1] + nn[..., 2] * d[2],
-                d[0] * d[0] + d[1] * d[1] + d[2] * d[2], np.any(nn != 0, axis=-1))
-
+    d = (px - v[i, j, 0], py - v[i, j, 1], z - v[i, j, 2])
+    off = n[i, j, 0] * d[0] + n[i, j, 1] * d[1] + n[i, j, 2] * d[2]
     own = cells[i, j]
-    off, _, has = plane(i, j)
-    keep = (z > 0) & (own >= 0) & (~has | (np.abs(off) <= max_off * z))
-    search = (z > 0) & ~keep
-    best = np.where(search, own, -1)
-    best_off = max_off * z
-    lim = max_step * z
-    for da in range(-radius, radius + 1):
-        for db in range(-radius, radius + 1):
-            if da == 0 and db == 0:
+    placed = (z > 0) & (pixel_voxel[:rr.shape[0], :rr.shape[1]] >= 0)
+    keep = placed & (own >= 0) & (~np.any(n[i, j] != 0, axis=-1) | (np.abs(off) <= max_off * z))
+    got = np.where(keep, own, -1)
+    near = {}
+    for r, c in zip(*np.nonzero(placed & ~keep)):
+        a0, b0 = int(i[r, c]), int(j[r, c])
+        if (a0, b0) not in near:
+            near[a0, b0] = _near_twin(cells, normal, a0, b0, radius)
+        zz, best, best_off = z[r, c], own[r, c], max_off * z[r, c]
+        p = np.array([px[r, c], py[r, c], zz])
+        for a, b in near[a0, b0]:
+            dd = p - v[a, b]
+            if dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2] > (max_step * zz) ** 2:
                 continue
-            a, b = i + da, j + db
-            inside = (a >= 0) & (a < h) & (b >= 0) & (b < w)
-            a, b = np.clip(a, 0, h - 1), np.clip(b, 0, w - 1)
-            off, dist2, has = plane(a, b)
-            off = np.abs(off)
-            take = search & inside & (cells[a, b] >= 0) & has & (dist2 <= lim * lim) & \
-                (off <= best_off)
-            best[take] = cells[a, b][take]
-            best_off = np.where(take, off, best_off)
+            o = abs(n[a, b, 0] * dd[0] + n[a, b, 1] * dd[1] + n[a, b, 2] * dd[2])
+            if o <= best_off:
+                best, best_off = cells[a, b], o
+        got[r, c] = best
     out = np.full((height, width), -1, dtype=np.int64)
-    out[:rr.shape[0], :rr.shape[1]] = np.where(keep, own, best)
+    out[:rr.shape[0], :rr.shape[1]] = got
     return out
 
 
@@ -189,19 +201,22 @@ def test_the_pixel_kernel_matches_its_twin(moved):
         vertex, normal = _cells(model)
         cells = _segments_kernel(vertex, normal, math.cos(math.radians(20.0)),
                                  4.0 * f / intr.fx, 1.0 * f / intr.fx, 2)
-        got = _pixels_kernel(model.depth, cells, vertex, normal, f, *args)
-        np.testing.assert_array_equal(got, _pixels_twin(model.depth, cells, vertex, normal, f,
-                                                        *args))
+        got = _pixels_kernel(model.depth, model.pixel_voxel, cells, vertex, normal, f, *args)
+        np.testing.assert_array_equal(got, _pixels_twin(model.depth, model.pixel_voxel, cells,
+                                                        vertex, normal, f, *args))
         by_cell = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
-        # pixels of fold and edge cells given a segment, and all others kept
+        point = model.pixel_voxel >= 0
+        # pixels of fold and edge cells given a segment, all others kept, none without a point
         assert ((got >= 0) & (by_cell < 0)).sum() > 5000
-        assert ((by_cell >= 0) & (got != by_cell) & (model.depth > 0)).sum() < 100
+        assert ((by_cell >= 0) & (got != by_cell) & point).sum() < 100
+        assert not (got[~point] >= 0).any()
     # and on noise: a depth image of random steps, cells of random labels and normals
     rng = np.random.default_rng(5)
     depth = (1000 + 40 * rng.integers(0, 3, (60, 84)) + rng.normal(0, 4, (60, 84))
              ).astype(np.uint16)
     depth[rng.random(depth.shape) < 0.1] = 0
-    cells = rng.integers(-1, 6, (15, 21))
+    pixel_voxel = np.where(rng.random(depth.shape) < 0.9, 0, -1).astype(np.int32)
+    cells = rng.integers(-1, 9, (15, 21))
     vertex = np.zeros((15, 21, 3), np.float32)
     ci, cj = np.mgrid[0:15, 0:21]
     vertex[..., 2] = 1.0 + 0.04 * rng.integers(0, 3, (15, 21))
@@ -212,11 +227,14 @@ def test_the_pixel_kernel_matches_its_twin(moved):
     normal /= np.linalg.norm(normal, axis=2, keepdims=True)
     normal[rng.random((15, 21)) < 0.2] = 0
     args = (4, 60.0, 60.0, 42.0, 30.0, 0.3, 0.02, 2)
-    got = _pixels_kernel(depth, cells, vertex, normal, *args)
-    np.testing.assert_array_equal(got, _pixels_twin(depth, cells, vertex, normal, *args))
+    got = _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, *args)
+    np.testing.assert_array_equal(got, _pixels_twin(depth, pixel_voxel, cells, vertex, normal,
+                                                    *args))
     by_cell = np.repeat(np.repeat(cells, 4, axis=0), 4, axis=1)
     assert ((got >= 0) & (by_cell < 0)).sum() > 50  # given a segment
     assert ((got >= 0) & (by_cell >= 0) & (got != by_cell)).sum() > 50  # off their cell's plane
+    # more segments around a cell than are kept: the first 4 stand for them
+    assert max(len(_near_twin(cells, normal, a, b, 2)) for a in range(15) for b in range(21)) == 4
 
 
 def test_an_object_is_cut_from_the_table_it_stands_on(moved):

@@ -13,8 +13,9 @@ bends outwards (convex, as round an object's top edge); they part where it folds
 object's foot on a table, an object against a wall), and a cell on such a fold joins nothing. A
 cell without a normal (a rim, a thin face) joins a neighbour's segment whose tangent plane it
 lies on. Then each pixel on a fold or a depth edge (its cell in no segment) joins the segment
-of the cell around it whose tangent plane its own point lies nearest to: the pixels of an
-object's foot join the object, those of the table beside it the table.
+around it (within 2 cells, each segment stood for by its nearest cell) whose tangent plane its
+own point lies nearest to: the pixels of an object's foot join the object, those of the table
+beside it the table.
 
 A segment is claimed when the pixels of changed points make up at least ``object_min_share``
 of the pixels of its points: an object found in part is completed, while a sliver on a wall or
@@ -160,27 +161,67 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
 
 
 @numba.njit(cache=True, nogil=True)
-def _pixels_kernel(depth, cells, vertex, normal, f, fx, fy, cx, cy, max_step, max_off, radius):
-    """Each pixel's segment: ``depth`` (H, W) uint16 mm, ``cells`` (h, w) int64 segment of
-    each cell of ``f`` x ``f`` pixels (-1: none), ``vertex`` / ``normal`` (h, w, 3) float32 the
-    cells' points (m) and unit normals (0: none).  A pixel whose point (p, depth z) lies within
+def _near_segments(cells, normal, i, j, radius, out):
+    """The cells around (i, j) that stand for the segments there: rings 1..``radius`` of
+    cells, each ring in row-major order, the first cell with a normal of each segment, at
+    most ``out.shape[0]`` segments; their (row, column) into ``out`` (S, 2) int32.  Returns
+    how many."""
+    h, w = cells.shape
+    n = 0
+    for d in range(1, radius + 1):
+        for a in range(i - d, i + d + 1):
+            if a < 0 or a >= h:
+                continue
+            for b in range(j - d, j + d + 1):
+                if b < 0 or b >= w or max(abs(a - i), abs(b - j)) != d:
+                    continue
+                lab = cells[a, b]
+                if lab < 0 or (normal[a, b, 0] == 0.0 and normal[a, b, 1] == 0.0
+                               and normal[a, b, 2] == 0.0):
+                    continue
+                seen = False
+                for k in range(n):
+                    if cells[out[k, 0], out[k, 1]] == lab:
+                        seen = True
+                        break
+                if not seen and n < out.shape[0]:
+                    out[n, 0] = a
+                    out[n, 1] = b
+                    n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy, max_step,
+                   max_off, radius):
+    """Each pixel's segment: ``depth`` (H, W) uint16 mm, ``pixel_voxel`` (H, W) int32 (only
+    pixels with a point, >= 0, are placed), ``cells`` (h, w) int64 segment of each cell of
+    ``f`` x ``f`` pixels (-1: none), ``vertex`` / ``normal`` (h, w, 3) float32 the cells'
+    points (m) and unit normals (0: none).  A pixel whose point (p, depth z) lies within
     ``max_off * z`` of its cell's tangent plane, or whose cell has a segment but no normal,
     takes its cell's segment.  Any other pixel (on a fold, on a depth edge, or behind the
-    surface its cell was made of) takes the segment of the cell within ``radius`` cells that
-    has a normal, lies within ``max_step * z`` of p and whose tangent plane p is nearest to,
-    if within ``max_off * z``; else its cell's (-1 for none).  Returns (H, W) int64."""
+    surface its cell was made of) takes, of the segments within ``radius`` cells (each stood
+    for by its nearest cell with a normal, :func:`_near_segments`, at most 4), the one whose
+    cell lies within ``max_step * z`` of p and whose tangent plane p is nearest to, if within
+    ``max_off * z``; else its cell's (-1 for none).  Returns (H, W) int64."""
     height, width = depth.shape
     h, w = cells.shape
     out = np.full((height, width), -1, dtype=np.int64)
+    near = np.zeros((h, w, 4, 2), dtype=np.int32)
+    n_near = np.full((h, w), -1, dtype=np.int32)  # -1: not gathered yet
+    ray_x = np.empty(width)  # x / z of each column's ray
+    for c in range(width):
+        ray_x[c] = (c - cx) / fx
     for r in range(min(height, h * f)):
         i = r // f
+        ray_y = (r - cy) / fy
         for c in range(min(width, w * f)):
-            if depth[r, c] == 0:
+            if pixel_voxel[r, c] < 0 or depth[r, c] == 0:
                 continue
             j = c // f
             z = depth[r, c] * 0.001
-            px = (c - cx) * z / fx
-            py = (r - cy) * z / fy
+            px = ray_x[c] * z
+            py = ray_y * z
             own = cells[i, j]
             nx = normal[i, j, 0]
             ny = normal[i, j, 1]
@@ -194,35 +235,31 @@ def _pixels_kernel(depth, cells, vertex, normal, f, fx, fy, cx, cy, max_step, ma
                 if abs(off) <= max_off * z:
                     out[r, c] = own
                     continue
+            if n_near[i, j] < 0:
+                n_near[i, j] = _near_segments(cells, normal, i, j, radius, near[i, j])
             best = own
             best_off = max_off * z
             lim = max_step * z
-            for a in range(max(i - radius, 0), min(i + radius + 1, h)):
-                for b in range(max(j - radius, 0), min(j + radius + 1, w)):
-                    if (a == i and b == j) or cells[a, b] < 0:
-                        continue
-                    nx = normal[a, b, 0]
-                    ny = normal[a, b, 1]
-                    nz = normal[a, b, 2]
-                    if nx == 0.0 and ny == 0.0 and nz == 0.0:
-                        continue
-                    dx = px - vertex[a, b, 0]
-                    dy = py - vertex[a, b, 1]
-                    dz = z - vertex[a, b, 2]
-                    if dx * dx + dy * dy + dz * dz > lim * lim:
-                        continue
-                    off = abs(nx * dx + ny * dy + nz * dz)
-                    if off <= best_off:
-                        best_off = off
-                        best = cells[a, b]
+            for k in range(n_near[i, j]):
+                a = near[i, j, k, 0]
+                b = near[i, j, k, 1]
+                dx = px - vertex[a, b, 0]
+                dy = py - vertex[a, b, 1]
+                dz = z - vertex[a, b, 2]
+                if dx * dx + dy * dy + dz * dz > lim * lim:
+                    continue
+                off = abs(normal[a, b, 0] * dx + normal[a, b, 1] * dy + normal[a, b, 2] * dz)
+                if off <= best_off:
+                    best_off = off
+                    best = cells[a, b]
             out[r, c] = best
     return out
 
 
 def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
-    """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image (-1: none), cut
-    on cells of ``params.object_cell_px`` pixels, then pixel by pixel where a cell is on a
-    fold or an edge (module docstring)."""
+    """(H, W) int64 surface segment of each pixel of ``epoch``'s depth image that has a point
+    (-1: none), cut on cells of ``params.object_cell_px`` pixels, then pixel by pixel where a
+    cell is on a fold or an edge (module docstring)."""
     f = params.object_cell_px
     level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
     intr = epoch.intrinsics
@@ -233,8 +270,8 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     cells = _segments_kernel(level.vertex, level.normal,
                              math.cos(math.radians(params.object_fold_deg)), max_step, max_off,
                              2)
-    return _pixels_kernel(epoch.depth, cells, level.vertex, level.normal, f, intr.fx, intr.fy,
-                          intr.cx, intr.cy, max_step, max_off, 2)
+    return _pixels_kernel(epoch.depth, epoch.pixel_voxel, cells, level.vertex, level.normal, f,
+                          intr.fx, intr.fy, intr.cx, intr.cy, max_step, max_off, 2)
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams

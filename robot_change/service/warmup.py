@@ -122,8 +122,10 @@ def _region_kernels() -> None:
     cells[..., 2] = 1.0
     labels = _segments_kernel(cells, -cells, 0.9, 0.03, 0.01, 2)
     depth = np.full((24, 24), 1000, np.uint16)
-    for image in (depth, readonly_view(depth)):
-        _pixels_kernel(image, labels, cells, -cells, 4, 500.0, 500.0, 12.0, 12.0, 0.03, 0.01, 2)
+    pixel_voxel = np.zeros((24, 24), np.int32)
+    for image, points in ((depth, pixel_voxel), (readonly_view(depth), readonly_view(pixel_voxel))):
+        _pixels_kernel(image, points, labels, cells, -cells, 4, 500.0, 500.0, 12.0, 12.0, 0.03,
+                       0.01, 2)
 
 
 def _own_share(config: Config) -> None:
