@@ -207,52 +207,60 @@ def _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy,
     height, width = depth.shape
     h, w = cells.shape
     out = np.full((height, width), -1, dtype=np.int64)
-    near = np.zeros((h, w, 4, 2), dtype=np.int32)
-    n_near = np.full((h, w), -1, dtype=np.int32)  # -1: not gathered yet
+    near = np.zeros((4, 2), dtype=np.int32)
+    plane = np.zeros((4, 6))  # a near segment's cell: normal, point
+    label = np.zeros(4, dtype=np.int64)
     ray_x = np.empty(width)  # x / z of each column's ray
     for c in range(width):
         ray_x[c] = (c - cx) / fx
-    for r in range(min(height, h * f)):
-        i = r // f
-        ray_y = (r - cy) / fy
-        for c in range(min(width, w * f)):
-            if pixel_voxel[r, c] < 0 or depth[r, c] == 0:
-                continue
-            j = c // f
-            z = depth[r, c] * 0.001
-            px = ray_x[c] * z
-            py = ray_y * z
+    for i in range(min(h, height // f)):
+        for j in range(min(w, width // f)):
             own = cells[i, j]
             nx = normal[i, j, 0]
             ny = normal[i, j, 1]
             nz = normal[i, j, 2]
-            if own >= 0:
-                if nx == 0.0 and ny == 0.0 and nz == 0.0:
-                    out[r, c] = own
-                    continue
-                off = nx * (px - vertex[i, j, 0]) + ny * (py - vertex[i, j, 1]) + \
-                    nz * (z - vertex[i, j, 2])
-                if abs(off) <= max_off * z:
-                    out[r, c] = own
-                    continue
-            if n_near[i, j] < 0:
-                n_near[i, j] = _near_segments(cells, normal, i, j, radius, near[i, j])
-            best = own
-            best_off = max_off * z
-            lim = max_step * z
-            for k in range(n_near[i, j]):
-                a = near[i, j, k, 0]
-                b = near[i, j, k, 1]
-                dx = px - vertex[a, b, 0]
-                dy = py - vertex[a, b, 1]
-                dz = z - vertex[a, b, 2]
-                if dx * dx + dy * dy + dz * dz > lim * lim:
-                    continue
-                off = abs(normal[a, b, 0] * dx + normal[a, b, 1] * dy + normal[a, b, 2] * dz)
-                if off <= best_off:
-                    best_off = off
-                    best = cells[a, b]
-            out[r, c] = best
+            flat = nx == 0.0 and ny == 0.0 and nz == 0.0
+            n_near = -1  # not gathered yet
+            for r in range(i * f, i * f + f):
+                ray_y = (r - cy) / fy
+                for c in range(j * f, j * f + f):
+                    if pixel_voxel[r, c] < 0 or depth[r, c] == 0:
+                        continue
+                    z = depth[r, c] * 0.001
+                    px = ray_x[c] * z
+                    py = ray_y * z
+                    if own >= 0:
+                        if flat:
+                            out[r, c] = own
+                            continue
+                        off = nx * (px - vertex[i, j, 0]) + ny * (py - vertex[i, j, 1]) + \
+                            nz * (z - vertex[i, j, 2])
+                        if abs(off) <= max_off * z:
+                            out[r, c] = own
+                            continue
+                    if n_near < 0:
+                        n_near = _near_segments(cells, normal, i, j, radius, near)
+                        for k in range(n_near):
+                            a = near[k, 0]
+                            b = near[k, 1]
+                            for m in range(3):
+                                plane[k, m] = normal[a, b, m]
+                                plane[k, 3 + m] = vertex[a, b, m]
+                            label[k] = cells[a, b]
+                    best = own
+                    best_off = max_off * z
+                    lim = max_step * z
+                    for k in range(n_near):
+                        dx = px - plane[k, 3]
+                        dy = py - plane[k, 4]
+                        dz = z - plane[k, 5]
+                        if dx * dx + dy * dy + dz * dz > lim * lim:
+                            continue
+                        off = abs(plane[k, 0] * dx + plane[k, 1] * dy + plane[k, 2] * dz)
+                        if off <= best_off:
+                            best_off = off
+                            best = label[k]
+                    out[r, c] = best
     return out
 
 
