@@ -274,12 +274,17 @@ def test_a_moved_object_is_found_whole(moved):
     assert recall["disappeared", True] >= recall["disappeared", False] + 0.15, recall
 
 
-def test_a_sliver_on_a_large_surface_claims_nothing(moved):
+def _reference_table(moved):
+    """The reference's epoch, the default parameters, its segments and the table's label."""
     _, ref, _ = moved
     ep = as_epoch(ref, "reference")
     params = ChangeParams()
     seg = surface_segments(ep, params)
-    table = _largest_in_cloud(seg, ep.pixel_voxel)
+    return ep, params, seg, _largest_in_cloud(seg, ep.pixel_voxel)
+
+
+def test_a_sliver_on_a_large_surface_claims_nothing(moved):
+    ep, params, seg, table = _reference_table(moved)
     # a group of 20 points of the table, as a misregistered edge would give
     on_table = np.unique(ep.pixel_voxel[(seg == table) & (ep.pixel_voxel >= 0)])
     changed = np.zeros(ep.n_points, bool)
@@ -294,11 +299,7 @@ def test_a_sliver_on_a_large_surface_claims_nothing(moved):
 def test_a_segment_large_in_view_needs_as_large_a_share(moved):
     # a registration that slid along the wall leaves strips of the table "changed": a segment
     # is claimed only when as large a share of it was found as it covers of the image
-    _, ref, _ = moved
-    ep = as_epoch(ref, "reference")
-    params = ChangeParams()
-    seg = surface_segments(ep, params)
-    table = _largest_in_cloud(seg, ep.pixel_voxel)
+    ep, params, seg, table = _reference_table(moved)
     on_table = np.zeros(ep.n_points, bool)
     on_table[ep.pixel_voxel[(seg == table) & (ep.pixel_voxel >= 0)]] = True
     in_view = ((seg == table) & (ep.pixel_voxel >= 0)).sum() / seg.size
