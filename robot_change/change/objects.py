@@ -307,9 +307,8 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the rest of the surface
     segments their pixels make up at least ``params.object_min_share`` of, and at least the
     share of the image each covers (module docstring); only ``observed`` (M,) bool points
-    are added.  Unchanged when
-    ``params.object_completion`` is off or no group of changed points has
-    ``min_region_points``."""
+    are added.  Unchanged when ``params.object_completion`` is off or no group of changed
+    points has ``min_region_points``."""
     if not params.object_completion or not changed.any():
         return changed
     idx = np.flatnonzero(changed)
@@ -325,8 +324,8 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     # half the image is claimed when half of it is
     claimed = (found > 0) & (found >= np.maximum(params.object_min_share,
                                                  size / epoch.depth.size) * size)
-    # a point's pixels in claimed segments against those in other segments (pixels on a fold
-    # or a depth edge, in no segment, do not vote)
+    # a point's pixels in claimed segments against those in other segments (pixels in no
+    # segment do not vote)
     inside = np.bincount(point[claimed[segment]], minlength=epoch.n_points)
     return changed | (observed & (2 * inside > per_point))
 

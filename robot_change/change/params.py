@@ -158,7 +158,7 @@ class ChangeParams:
     # the surface folds inwards by more than object_fold_deg (an object's foot, an object
     # against a wall) or steps in depth, and a segment is claimed when the changed points'
     # pixels make up at least object_min_share of it (chosen on the 8000 station seeds, where
-    # 0.3 / 0.2 / 0.12 gave F1 0.940 / 0.956 / 0.966 at the station; docs/benchmarks.md), and
+    # 0.3 / 0.2 / 0.12 gave F1 0.940 / 0.956 / 0.966 at the station; docs/algorithm.md), and
     # at least the share of the image it covers (a table top, a floor or a wall that fills
     # half the view is claimed only when half of it was found).
     object_completion: bool = True
