@@ -102,8 +102,11 @@ METHODS = {"ours": ours, "small_gicp": small_gicp_align, "open3d_icp": open3d_ic
 def at_revision(rev: str):
     """``register_depth`` of robot_change/change/registration as it is at git revision ``rev``
     (the package, or the single registration.py of revisions before the split), loaded under
-    the name ``registration_base`` (its numba caches under a temporary folder)."""
+    the name ``registration_base`` (its numba caches under a temporary folder, removed at
+    exit)."""
+    import atexit
     import importlib.util
+    import shutil
     import subprocess
     import tempfile
 
@@ -114,6 +117,7 @@ def at_revision(rev: str):
                               check=True).stdout
 
     folder = Path(tempfile.mkdtemp(prefix="registration_at_"))
+    atexit.register(shutil.rmtree, folder, True)  # the copy and its numba caches
     names = git("ls-tree", "--name-only", rev, "robot_change/change/registration/").split()
     if names:  # a package: its modules import each other relatively
         package = folder / "registration_base"
