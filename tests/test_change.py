@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from hw.depth import Intrinsics
 from robot_change.change import free_space, greedy
 from robot_change.change.baselines import detect_geometric, detect_nn_threshold, detect_plain
 from robot_change.change.detect import detect_changes
@@ -148,7 +149,6 @@ def test_a_point_the_background_does_not_explain_is_not_its_evidence():
 
 def test_components_seen_through_counts_each_point_once():
     from robot_change.change.detect import _components_seen_through
-    from hw.depth import Intrinsics
     from robot_change.change.epoch import Epoch
     from robot_change.mixture.model import Mixture
 
@@ -358,9 +358,49 @@ def _row_neighbours_twin(depth):
     return out
 
 
+def _unexplained_holes_twin(depth, dropout_px, shadow_bf, margin_m, per_m2):
+    """(H, W) bool: pixels with no reading whose run along the row is wider than
+    ``dropout_px``, meets the border, or is no projector shadow of the nearer reading beside
+    it on the farther one."""
+    left_mm, left_px, right_mm, right_px = _row_neighbours_twin(depth)
+    width = left_px + right_px - 1
+    both = (left_mm > 0) & (right_mm > 0)
+    z_near = np.minimum(left_mm, right_mm) * 1e-3
+    z_far = np.maximum(left_mm, right_mm) * 1e-3
+    with np.errstate(divide="ignore"):
+        shadow = (shadow_bf > 0) & (z_near < z_far - margin_m - per_m2 * z_far ** 2) & \
+            (width <= shadow_bf * (1 / np.where(both, z_near, 1.0) - 1 / np.where(both, z_far, 1.0))
+             + 1)
+    return (depth == 0) & ~(both & ((width <= dropout_px) | shadow))
+
+
+def _near_ray_clear_twin(q, own, back, intr, sensor_min_m, margin_m, per_m2, holes):
+    """(len(q),) bool: this camera (image ``own``) reads beyond every sample of the other
+    camera's ray through its pixels ``q`` (flat) at 0.4, 0.6, 0.8 and 1.0 x ``sensor_min_m``
+    that lands in its image in front of it (``back``: other frame -> this frame), none lands
+    in its unexplained ``holes`` (H, W) bool, and at least one lands in its image."""
+    h, w = own.shape
+    rays = np.stack([(q % w - intr.cx) / intr.fx, (q // w - intr.cy) / intr.fy,
+                     np.ones(q.shape)], axis=1)
+    clear = np.ones(q.shape, bool)
+    seen = np.zeros(q.shape, bool)
+    for frac in (0.4, 0.6, 0.8, 1.0):
+        p = rays * (sensor_min_m * frac) @ back[:3, :3].T + back[:3, 3]
+        front = p[:, 2] > 0.05
+        z = np.where(front, p[:, 2], 1.0)
+        c = np.floor(intr.fx * p[:, 0] / z + intr.cx + 0.5).astype(np.int64)
+        r = np.floor(intr.fy * p[:, 1] / z + intr.cy + 0.5).astype(np.int64)
+        inside = front & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+        rr, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+        d = own[rr, cc] * 1e-3
+        clear &= ~inside | np.where(d > 0, d > z + margin_m + per_m2 * z * z, ~holes[rr, cc])
+        seen |= inside
+    return clear & seen
+
+
 def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero,
                      target=None, z_other=None, shadow_bf=0.0, sensor_min_m=0.0,
-                     far_edge=False):
+                     far_edge=False, back=None, intr=None):
     near = (_window_twin(other, pose_r, True) if pose_r else other).ravel()
     far = (_window_twin(other, hole_r, False) if hole_r else other).ravel()
     if target is None:
@@ -382,8 +422,16 @@ def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_z
             (px.ravel()[q] <= reach + 1.0)
         opens |= zn > z + margin
     too_near = valid & (other.ravel()[q] == 0) & (z < sensor_min_m + margin)
-    seen = valid & ~too_near & np.where(d1 == 0, free_zero & ~shadowed & (opens | ~far_edge),
-                                        d1 > z + margin)
+    if sensor_min_m > 0:  # the near stretch of the other camera's ray, as this one saw it
+        intr = intr or Intrinsics(own.shape[1], own.shape[0], 525.0, 525.0,
+                                  (own.shape[1] - 1) / 2, (own.shape[0] - 1) / 2)
+        holes = _unexplained_holes_twin(own, 2 * hole_r, shadow_bf, margin_m, per_m2)
+        clear = _near_ray_clear_twin(q, own, np.eye(4) if back is None else back, intr,
+                                     sensor_min_m, margin_m, per_m2, holes)
+    else:
+        clear = np.ones(q.shape, bool)
+    seen = valid & ~too_near & np.where(
+        d1 == 0, free_zero & ~shadowed & (opens | ~far_edge) & clear, d1 > z + margin)
     ok = pv >= 0
     votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
     total = np.bincount(pv[ok], minlength=n).astype(np.int32)
@@ -480,9 +528,75 @@ def test_a_hole_is_seen_through_only_where_it_opens_beyond_the_point():
     np.testing.assert_array_equal(before[0], total)
 
 
+@pytest.mark.parametrize("dropout_px,baseline", [(0, 0.0), (10, 0.0), (4, 0.075), (10, 0.075)])
+def test_holes_explained_match_numpy(dropout_px, baseline):
+    rng = np.random.default_rng(dropout_px)
+    depth = rng.integers(500, 4000, size=(40, 120)).astype(np.uint16)
+    for _ in range(60):  # holes of every width, some at the border
+        r, c, n = rng.integers(0, 40), rng.integers(0, 120), rng.integers(1, 40)
+        depth[r, c:c + n] = 0
+    depth[5, :] = 0  # a row with no reading
+    flat = depth.ravel()
+    got = np.zeros(depth.shape, bool)
+    for i in np.flatnonzero(flat == 0):
+        got.flat[i] = not free_space._hole_explained(flat, depth.shape[1], i, dropout_px,
+                                                     baseline * 525.0, 0.03, 0.004)
+    want = _unexplained_holes_twin(depth, dropout_px, baseline * 525.0, 0.03, 0.004)
+    np.testing.assert_array_equal(got, want)
+    assert got[5].all()  # no reading in the row: nothing explains it
+    if dropout_px or baseline:  # some holes are dropouts or shadows
+        assert got.sum() < (depth == 0).sum()
+
+def _plates_depth(plates, camera_z, intr):
+    """(H, W) uint16 mm: what a camera at (0, 0, ``camera_z``) looking along +z reads of
+    ``plates``, (x0, x1, z) strips square to its axis and as tall as the image, with a wall
+    4 m away behind them; nothing nearer than 0.5 m is read."""
+    x = (np.arange(intr.width) - intr.cx) / intr.fx  # each column's ray, x / z
+    depth = np.full(intr.width, 4.0 - camera_z)
+    for x0, x1, z in plates:
+        d = z - camera_z
+        on = (x * d >= x0) & (x * d <= x1) & (d < depth)
+        depth[on] = d
+    depth[depth < 0.5] = 0.0
+    return np.tile(np.round(depth * 1000).astype(np.uint16), (intr.height, 1))
+
+
+@pytest.mark.parametrize("plate_in_view", [True, False])
+def test_a_hole_left_by_a_surface_too_near_to_read_is_not_seen_through(plate_in_view):
+    """A box 1.2 m away behind a plate 0.6 m away, seen by a camera that then stands 15 cm
+    nearer: there the plate is too near to read (a hole wider than the plate hides the whole
+    box), and beside the hole lies the wall 4 m away, so the hole opens beyond the box and,
+    by the other rules, the box's edges this camera saw past the plate would be seen through.
+    This camera saw the plate on the other camera's ray through the hole: the box is not
+    seen through.  Where this camera saw nothing on that ray (no plate before it: the hole
+    is then no return), the box is."""
+    intr = Intrinsics(400, 4, 200.0, 200.0, 199.5, 1.5)
+    box = (-0.11, 0.11, 1.2)
+    own = _plates_depth([box, (-0.05, 0.05, 0.6)] if plate_in_view else [box], 0.0, intr)
+    other = _plates_depth([box, (-0.05, 0.05, 0.6)], 0.15, intr)
+    pv = np.where(np.abs(own.astype(np.int64) - 1200) <= 1, 0, -1).astype(np.int32)
+    assert (pv == 0).any() and (other == 0).any()
+    T = np.eye(4)
+    T[2, 3] = -0.15  # other_from_own: the other camera 15 cm ahead
+    kwargs = dict(intrinsics=intr, other_from_own=T, hole_needs_far_edge=True)
+    votes, total, unseen = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
+                                            sensor_min_m=0.5, **kwargs)
+    assert total[0] > 0 and unseen[0] == 0
+    assert votes[0] == (0 if plate_in_view else total[0])
+    without = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True, **kwargs)
+    assert without[0][0] == total[0]  # the rules before this one see it through
+    want = _free_space_twin(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
+                            *free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
+                                                     intr.fx, intr.fy, intr.cx, intr.cy,
+                                                     intr.width, np.array(
+                                                         free_space.sensing_window(other)),
+                                                     0.0, 65.535),
+                            sensor_min_m=0.5, far_edge=True, back=np.linalg.inv(T), intr=intr)
+    np.testing.assert_array_equal(votes, want[0])
+
+
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.03, -0.02, 0.05), (0.4, 0.0, 0.0)])
 def test_free_space_through_a_transform_matches_numpy(shift):
-    from hw.depth import Intrinsics
     from robot_change.change.registration import rpy_deg_to_rotation
 
     rng = np.random.default_rng(11)
@@ -510,7 +624,8 @@ def test_free_space_through_a_transform_matches_numpy(shift):
                            other_from_own=T, depth_range_m=(0.4, 2.9), shadow_baseline_m=0.075,
                            sensor_min_m=1.2, hole_needs_far_edge=True)
     want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z,
-                            shadow_bf=0.075 * intr.fx, sensor_min_m=1.2, far_edge=True)
+                            shadow_bf=0.075 * intr.fx, sensor_min_m=1.2, far_edge=True,
+                            back=np.linalg.inv(T), intr=intr)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     assert got[2].sum() > 0  # the depth range and the image border leave some unseen

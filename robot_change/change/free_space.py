@@ -150,7 +150,8 @@ def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, wind
 @numba.njit(cache=True, nogil=True)
 def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, other, width,
                        shadow_bf, n_points, margin_m, margin_per_m2, no_reading_is_free,
-                       sensor_min_m, hole_needs_far_edge):
+                       sensor_min_m, hole_needs_far_edge, own, rot_back, trans_back, fx, fy,
+                       cx, cy, dropout_px):
     """Per point: how many of its pixels the other image sees through, how many it has, and
     how many of them the other camera could not have seen.
 
@@ -165,7 +166,11 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
     or right along its row lies beyond z by more than the margin, unless it may lie in a
     projector shadow: such a first reading nearer than z by more than the margin and no
     farther away than the shadow such a surface casts at depth z, ``shadow_bf`` (1/z_near -
-    1/z) pixels (``shadow_bf`` = baseline x fx, m px; 0: no shadows).  Seen through: reading
+    1/z) pixels (``shadow_bf`` = baseline x fx, m px; 0: no shadows), and, with
+    ``sensor_min_m``, unless this epoch's camera did not see the stretch of the other
+    camera's ray nearer than that empty (:func:`_near_ray_clear`; ``own`` (P,) uint16 mm this
+    epoch's image, (``rot_back``, ``trans_back``) the other camera's frame into this one's,
+    ``dropout_px`` the widest hole taken for a dropout).  Seen through: reading
     > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
     """
     votes = np.zeros(n_points, dtype=np.int32)
@@ -205,13 +210,85 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
             if hole_needs_far_edge and not (left_mm[q] * 0.001 > z + margin
                                             or right_mm[q] * 0.001 > z + margin):
                 continue
-            if not (_casts_shadow(left_mm[q], left_px[q], z, margin, shadow_bf)
-                    or _casts_shadow(right_mm[q], right_px[q], z, margin, shadow_bf)):
-                votes[v] += 1
+            if _casts_shadow(left_mm[q], left_px[q], z, margin, shadow_bf) \
+                    or _casts_shadow(right_mm[q], right_px[q], z, margin, shadow_bf):
+                continue
+            if sensor_min_m > 0.0 and not _near_ray_clear(
+                    q, width, own, rot_back, trans_back, fx, fy, cx, cy, sensor_min_m,
+                    margin_m, margin_per_m2, dropout_px, shadow_bf):
+                continue
+            votes[v] += 1
             continue
         if d1 * 0.001 > z + margin:
             votes[v] += 1
     return votes, total, unseen
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_ray_clear(q, width, own, rot_back, trans_back, fx, fy, cx, cy, sensor_min_m,
+                    margin_m, margin_per_m2, dropout_px, shadow_bf):
+    """Whether this epoch's camera saw the stretch of the other camera's ray through its
+    pixel ``q`` (flat, ``width`` pixels a row) nearer than ``sensor_min_m`` empty: ``own``
+    (flat uint16 mm, this epoch's image) reads beyond each of its samples (0.4, 0.6, 0.8 and
+    1.0 x ``sensor_min_m`` from the other camera) by more than the margin, or has a hole
+    there that a dropout or a projector shadow explains (:func:`_hole_explained`).  A sample
+    with a surface before it, or in a hole nothing explains, may hold a surface too near for
+    the other camera to read: the other's hole is then no evidence of free space.  Samples
+    behind this camera or outside its image say nothing; with none left the stretch was not
+    seen, and is not clear.  (``rot_back`` (3, 3), ``trans_back`` (3,)) map the other
+    camera's frame into this one's."""
+    ray_x = (q % width - cx) / fx
+    ray_y = (q // width - cy) / fy
+    height = own.shape[0] // width
+    seen = 0
+    for k in range(4):
+        s = sensor_min_m * (0.4 + 0.2 * k)
+        x = (rot_back[0, 0] * ray_x + rot_back[0, 1] * ray_y + rot_back[0, 2]) * s + trans_back[0]
+        y = (rot_back[1, 0] * ray_x + rot_back[1, 1] * ray_y + rot_back[1, 2]) * s + trans_back[1]
+        z = (rot_back[2, 0] * ray_x + rot_back[2, 1] * ray_y + rot_back[2, 2]) * s + trans_back[2]
+        if z <= 0.05:
+            continue
+        c = int(math.floor(fx * x / z + cx + 0.5))
+        r = int(math.floor(fy * y / z + cy + 0.5))
+        if c < 0 or c >= width or r < 0 or r >= height:
+            continue
+        seen += 1
+        i = r * width + c
+        if own[i] == 0:
+            if not _hole_explained(own, width, i, dropout_px, shadow_bf, margin_m,
+                                   margin_per_m2):
+                return False
+        elif own[i] * 0.001 <= z + margin_m + margin_per_m2 * z * z:
+            return False
+    return seen > 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _hole_explained(depth, width, i, dropout_px, shadow_bf, margin_m, margin_per_m2):
+    """Whether the run of pixels with no reading along the row of pixel ``i`` of ``depth``
+    (flat uint16 mm, ``width`` pixels a row) is a dropout (``dropout_px`` pixels or fewer) or
+    a projector shadow: a nearer reading on one side, a farther one (by more than the margin
+    at its depth) on the other, no farther apart than the shadow the nearer casts on the
+    farther, ``shadow_bf`` (1/z_near - 1/z_far) pixels (``shadow_bf`` = baseline x fx).  A run
+    that meets the image's border is not explained: a surface too near for the camera to
+    read may stand there."""
+    row0 = i - i % width
+    a = i
+    while a > row0 and depth[a - 1] == 0:
+        a -= 1
+    b = i + 1
+    while b < row0 + width and depth[b] == 0:
+        b += 1
+    if a == row0 or b == row0 + width:  # the run is [a, b)
+        return False
+    if b - a <= dropout_px:
+        return True
+    if shadow_bf <= 0.0:
+        return False
+    z_near = min(depth[a - 1], depth[b]) * 0.001
+    z_far = max(depth[a - 1], depth[b]) * 0.001
+    return z_near < z_far - margin_m - margin_per_m2 * z_far * z_far and \
+        b - a <= shadow_bf * (1.0 / z_near - 1.0 / z_far) + 1.0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -288,11 +365,14 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     farther), unless a nearer reading along its row could cast a projector shadow that wide
     on it (``shadow_baseline_m``: the projector's distance from the camera, 7.5 cm on a
     Kinect, PrimeSense or Xtion; 0: no shadows; a near object's shadow on a far surface is
-    wider than ``hole_radius``).  A pixel that lands behind the other camera, outside the
-    part of its image it has readings in (:func:`sensing_window`), outside ``depth_range_m``,
-    or on no reading nearer than ``sensor_min_m`` plus the margin (the camera reads nothing
-    that near) was not observed by it.  ``views``: :func:`other_views` of
-    ``other_depth`` with these radii, when already at hand.
+    wider than ``hole_radius``), and, with ``sensor_min_m``, only when this camera saw the
+    other camera's ray empty up to ``sensor_min_m`` from it (a surface that near leaves a
+    hole the other camera cannot read; a hole of this image on that stretch is taken for a
+    dropout when no wider than ``2 hole_radius`` pixels).  A pixel that lands behind the
+    other camera, outside the part of its image it has readings in (:func:`sensing_window`),
+    outside ``depth_range_m``, or on no reading nearer than ``sensor_min_m`` plus the margin
+    (the camera reads nothing that near) was not observed by it.  ``views``:
+    :func:`other_views` of ``other_depth`` with these radii, when already at hand.
 
     Returns
     -------
@@ -325,11 +405,14 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                                        intrinsics.cy, width, window,
                                        float(depth_range_m[0]), float(depth_range_m[1]))
     other = readonly_view(np.ascontiguousarray(other_depth))
+    back = np.linalg.inv(T)  # the other camera's frame into this one's
     return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
                               other.ravel(), width, float(shadow_baseline_m) * intrinsics.fx,
                               int(n_points), float(margin_m), float(margin_per_m2),
                               bool(no_reading_is_free), float(sensor_min_m),
-                              bool(hole_needs_far_edge))
+                              bool(hole_needs_far_edge), own.ravel(), back[:3, :3].copy(),
+                              back[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
+                              intrinsics.cx, intrinsics.cy, 2 * int(hole_radius))
 
 
 def free_space_views(base: Epoch, params: ChangeParams
