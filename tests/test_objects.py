@@ -332,10 +332,14 @@ def test_completion_claims_only_observed_points_and_can_be_switched_off(moved):
     assert part.sum() == full.sum() - 5
     off = complete_objects(ep, changed, observed, params.replace(object_completion=False))
     assert off is changed
-    # groups smaller than a region seed nothing
+    # a few changed points seed too, when they make up the segment's share
     few = np.zeros(ep.n_points, bool)
-    few[np.flatnonzero(t)[:params.min_region_points - 1]] = True
-    np.testing.assert_array_equal(complete_objects(ep, few, observed, params), few)
+    few[np.flatnonzero(t)[::4][:params.min_region_points - 1]] = True
+    grown = complete_objects(ep, few, np.ones(ep.n_points, bool), params)
+    assert grown.sum() > few.sum()
+    one = np.zeros(ep.n_points, bool)
+    one[np.flatnonzero(t)[0]] = True  # one point is a small part of the box: no claim
+    np.testing.assert_array_equal(complete_objects(ep, one, observed, params), one)
 
 
 @pytest.mark.parametrize("field, value", [("object_min_share", 0.0), ("object_min_share", 1.5),

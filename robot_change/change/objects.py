@@ -22,8 +22,9 @@ of the pixels of its points: an object found in part is completed, while a slive
 a table, a small part of a large segment, stays as it is. The larger a segment is in view, the
 more of it must be found: at least the share of the image it covers (a table top, a floor or a
 wall filling half the view, half of it), so that the strips of a registration slid along a
-wall do not claim the place itself. Only groups of changed points large enough to be a region
-count, and only points the other camera observed are claimed. A point is claimed when more of
+wall do not claim the place itself. Every changed point counts, however small its group (a
+moved object's found strips along its edges are often a few points each), and only points the
+other camera observed are claimed. A point is claimed when more of
 its pixels lie in claimed segments than in other segments (pixels in no segment do not vote).
 Both kernels have NumPy twins in tests/test_objects.py.
 """
@@ -37,7 +38,7 @@ import numpy as np
 
 from robot_change.change.epoch import Epoch
 from robot_change.change.params import ChangeParams
-from robot_change.change.regions import _labels, _union, label_voxel_components
+from robot_change.change.regions import _labels, _union
 from robot_change.change.registration.pyramid import surface_level
 
 __all__ = [
@@ -307,19 +308,11 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the rest of the surface
     segments their pixels make up at least ``params.object_min_share`` of, and at least the
     share of the image each covers (module docstring); only ``observed`` (M,) bool points
-    are added.  Unchanged when ``params.object_completion`` is off or no group of changed
-    points has ``min_region_points``."""
+    are added.  Unchanged when ``params.object_completion`` is off or nothing changed."""
     if not params.object_completion or not changed.any():
         return changed
-    idx = np.flatnonzero(changed)
-    labels = label_voxel_components(epoch.keys[idx], params.region_connectivity)
-    sizes = np.bincount(labels)
-    seeds = np.zeros(epoch.n_points, dtype=bool)
-    seeds[idx[sizes[labels] >= params.min_region_points]] = True
-    if not seeds.any():
-        return changed
     segment, point, size, per_point = _segment_pixels(epoch, params)
-    found = np.bincount(segment, weights=seeds[point], minlength=len(size))
+    found = np.bincount(segment, weights=changed[point], minlength=len(size))
     # the larger a segment is in view, the more of it must be found: a table top that fills
     # half the image is claimed when half of it is
     claimed = (found > 0) & (found >= np.maximum(params.object_min_share,
