@@ -4,6 +4,7 @@ found whole, a sliver that claims nothing."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -235,6 +236,24 @@ def test_the_pixel_kernel_matches_its_twin(moved):
     assert ((got >= 0) & (by_cell >= 0) & (got != by_cell)).sum() > 50  # off their cell's plane
     # more segments around a cell than are kept: the first 4 stand for them
     assert max(len(_near_twin(cells, normal, a, b, 2)) for a in range(15) for b in range(21)) == 4
+
+
+def test_segments_start_from_the_level_the_registration_kept(moved):
+    """A check leaves the current's registration pyramid in its epoch; the segments take
+    their cells from its finest level instead of making them again, and come out the same."""
+    from robot_change.change.compare import align
+
+    _sc, ref, cur = moved
+    params = ChangeParams()
+    aligned = align(ref, cur.depth, params, cur.intrinsics, {}, free_space=False)
+    kept = [v for k, v in aligned.cur.derived.items() if k[0] == "registration_levels"]
+    assert len(kept) == 1
+    level = surface_level(aligned.cur.depth, aligned.cur.intrinsics, params.object_cell_px,
+                          params.registration, aligned.cur.derived)
+    assert level is kept[0][-1]
+    np.testing.assert_array_equal(
+        surface_segments(aligned.cur, params),
+        surface_segments(dataclasses.replace(aligned.cur, derived={}), params))
 
 
 def test_an_object_is_cut_from_the_table_it_stands_on(moved):

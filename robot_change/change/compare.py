@@ -132,14 +132,18 @@ def align(reference: Reference, current: Current, params: ChangeParams, intrinsi
         def prepare() -> Epoch:
             return cur
 
+    cur_levels: dict = {}  # the current's pyramid, for its epoch once there is one
+
     def register() -> Registration | Exception:
         try:
             return register_depth(ref.depth, current_depth, ref.intrinsics, params.registration,
-                                  initial=initial_pose, keep=ref.derived)
+                                  initial=initial_pose, keep=ref.derived,
+                                  keep_current=cur_levels)
         except Exception as exc:  # raised after the pair's own checks, which come first
             return exc
 
     reg, cur = both(register, prepare, params.threads)
+    cur.derived.update(cur_levels)
     check_pair(ref, cur, params)
     if isinstance(reg, Exception):
         raise reg

@@ -270,7 +270,7 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     (-1: none), cut on cells of ``params.object_cell_px`` pixels, then pixel by pixel where a
     cell is on a fold or an edge (module docstring)."""
     f = params.object_cell_px
-    level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration)
+    level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration, epoch.derived)
     intr = epoch.intrinsics
     # one cell step spans f z / fx metres: up to 4x that along the surface (~76 deg, as the
     # normals allow), up to 1x that off it; a fold is judged across 2 cells, so a pixel of a

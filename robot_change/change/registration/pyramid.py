@@ -226,10 +226,36 @@ def _level(vertex: np.ndarray, intrinsics: Intrinsics, f: int) -> Level:
                  (intrinsics.cx + 0.5) / f - 0.5, (intrinsics.cy + 0.5) / f - 0.5)
 
 
+def _levels_key(intrinsics: Intrinsics, params: RegistrationParams) -> tuple:
+    """What :func:`levels` depends on besides the image: the key it is kept under."""
+    return ("registration_levels", intrinsics, params.levels, params.min_depth_m,
+            params.max_depth_m, params.band_m, params.band_slope)
+
+
+def kept_levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams,
+                keep: dict | None) -> list[Level]:
+    """:func:`levels` of ``depth``, taken from ``keep`` (a dict that belongs to that image
+    alone, an epoch's ``derived``) when made there before with the same intrinsics and
+    pyramid parameters, and left there (None: made, not kept)."""
+    key = _levels_key(intrinsics, params)
+    out = keep.get(key) if keep is not None else None
+    if out is None:
+        out = levels(depth, intrinsics, params)
+        if keep is not None:
+            keep[key] = out
+    return out
+
+
 def surface_level(depth: np.ndarray, intrinsics: Intrinsics, factor: int,
-                  params: RegistrationParams) -> Level:
+                  params: RegistrationParams, keep: dict | None = None) -> Level:
     """One level of cells of ``factor`` x ``factor`` pixels made from the image as the finest
-    level of :func:`levels` is (vertex and normal maps, ``params``' depth range and band)."""
+    level of :func:`levels` is (vertex and normal maps, ``params``' depth range and band):
+    that finest level itself when the registration kept it in ``keep`` (:func:`kept_levels`)
+    and its cells are ``factor`` pixels."""
+    if keep is not None and int(params.levels[-1]) == factor:
+        kept = keep.get(_levels_key(intrinsics, params))
+        if kept is not None:
+            return kept[-1]
     return _level(_cells(depth, intrinsics, factor, params)[0], intrinsics, factor)
 
 

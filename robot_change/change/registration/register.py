@@ -24,7 +24,7 @@ from .agreement import (
 )
 from .icp import Pairs, icp_level, weak_names
 from .params import RegistrationParams
-from .pyramid import Level, check_depth, levels
+from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
 from .table_top import (
     TablePlane,
@@ -38,7 +38,8 @@ from .table_top import (
 
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
-                   initial: np.ndarray | None = None, keep: dict | None = None) -> Registration:
+                   initial: np.ndarray | None = None, keep: dict | None = None,
+                   keep_current: dict | None = None) -> Registration:
     """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
     into the reference camera frame, from the two depth images.
 
@@ -54,6 +55,9 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         Where the reference's pyramid is kept between calls (a station's reference, checked
         against many frames, builds it once): an epoch's ``derived``
         (robot_change.change.epoch.Epoch), which belongs to ``reference`` alone.
+    keep_current : dict, optional
+        Where the current's pyramid is left (for the epoch made of ``current``: the object
+        completion's segments start from its finest level).
 
     Returns
     -------
@@ -74,14 +78,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if not params.enabled:
         return identity_registration(T)
     t0 = time.perf_counter()
-    key = ("registration_levels", intrinsics, params.levels, params.min_depth_m,
-           params.max_depth_m, params.band_m, params.band_slope)
-    ref_levels = keep.get(key) if keep is not None else None
-    if ref_levels is None:
-        ref_levels = levels(ref, intrinsics, params)
-        if keep is not None:
-            keep[key] = ref_levels
-    cur_levels = levels(cur, intrinsics, params)
+    ref_levels = kept_levels(ref, intrinsics, params, keep)
+    cur_levels = kept_levels(cur, intrinsics, params, keep_current)
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     iterations = 0
     converged = False
