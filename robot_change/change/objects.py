@@ -38,7 +38,7 @@ import numpy as np
 
 from robot_change.change.epoch import Epoch
 from robot_change.change.params import ChangeParams
-from robot_change.change.regions import _labels, _union
+from robot_change.change.regions import forest_labels, union_sets
 from robot_change.change.registration.pyramid import surface_level
 
 __all__ = [
@@ -128,8 +128,8 @@ def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
                         abs(off_b) > max_off * vertex[i, j, 2]:
                     continue
                 if cos >= cos_fold or bend > 0.0:
-                    _union(parent, i * w + j, a * w + b)
-    flat = _labels(parent)
+                    union_sets(parent, i * w + j, a * w + b)
+    flat = forest_labels(parent)
     out = np.full((h, w), -1, dtype=np.int64)
     count = 0
     remap = np.full(h * w, -1, dtype=np.int64)

@@ -15,9 +15,12 @@ from robot_change.cloud.voxels import KEY_BITS
 from robot_change.errors import InputError
 
 __all__ = [
+    "find_root",
+    "forest_labels",
     "group_regions",
     "label_voxel_components",
     "pixel_mask",
+    "union_sets",
 ]
 
 
@@ -25,7 +28,9 @@ _FIELD = (1 << KEY_BITS) - 1
 
 
 @numba.njit(cache=True, nogil=True)
-def _find(parent, i):
+def find_root(parent, i):
+    """The root of ``i``'s set in the union-find forest ``parent`` (M,) int64, compressing
+    the path to it."""
     root = i
     while parent[root] != root:
         root = parent[root]
@@ -37,10 +42,10 @@ def _find(parent, i):
 
 
 @numba.njit(cache=True, nogil=True)
-def _union(parent, i, j):
+def union_sets(parent, i, j):
     """Join the sets of ``i`` and ``j`` (the smaller root stays the root)."""
-    a = _find(parent, i)
-    b = _find(parent, j)
+    a = find_root(parent, i)
+    b = find_root(parent, j)
     if a != b:
         if a < b:
             parent[b] = a
@@ -67,7 +72,7 @@ def _neighbour(keys, k, dt, dm, dl):
 
 
 @numba.njit(cache=True, nogil=True)
-def _labels(parent):
+def forest_labels(parent):
     """(M,) int64 labels 0..C-1 of a union-find forest, numbered in order of each set's first
     member."""
     m = parent.shape[0]
@@ -75,7 +80,7 @@ def _labels(parent):
     remap = np.full(m, -1, dtype=np.int64)
     count = 0
     for i in range(m):
-        r = _find(parent, i)
+        r = find_root(parent, i)
         if remap[r] < 0:
             remap[r] = count
             count += 1
@@ -99,8 +104,8 @@ def _components_kernel(keys, radius):
                         continue
                     j = _neighbour(keys, keys[i], dt, dm, dl)
                     if j >= 0:
-                        _union(parent, i, j)
-    return _labels(parent)
+                        union_sets(parent, i, j)
+    return forest_labels(parent)
 
 
 def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:
