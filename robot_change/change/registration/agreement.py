@@ -267,8 +267,8 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     return fit, contradict
 
 
-def contradiction(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams
-                  ) -> tuple[float, float]:
+def seen_through_shares(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams
+                        ) -> tuple[float, float]:
     """(the larger of the fractions of each view that the other sees through, the fraction of
     the current's cells that lie behind a nearer reading of the reference), finest levels."""
     out = 0.0

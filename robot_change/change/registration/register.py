@@ -15,10 +15,10 @@ from hw.depth import Intrinsics
 from robot_change.errors import InputError
 
 from .agreement import (
-    contradiction,
     fine_search,
     fitness,
     score_poses,
+    seen_through_shares,
     slide_support,
     weak_search,
 )
@@ -135,7 +135,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             iterations += n_it
     fit, rmse, n_pairs, n_cells = fitness(ref_levels[-1], cur_levels[-1], T, params, min_cos,
                                           pairs)
-    through, behind = contradiction(ref_levels[-1], cur_levels[-1], T, params)
+    through, behind = seen_through_shares(ref_levels[-1], cur_levels[-1], T, params)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
     # on a table top the objects that changed were left out of the estimate and the table's
     # own checks judge what stayed: their contradiction does not contest the slide
