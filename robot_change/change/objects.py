@@ -24,9 +24,9 @@ more of it must be found: at least the share of the image it covers (a table top
 wall filling half the view, half of it), so that the strips of a registration slid along a
 wall do not claim the place itself. Every changed point counts, however small its group (a
 moved object's found strips along its edges are often a few points each), and only points the
-other camera observed are claimed. A point is claimed when more of
-its pixels lie in claimed segments than in other segments (pixels in no segment do not vote).
-Both kernels have NumPy twins in tests/test_objects.py.
+other camera observed are claimed. A point is claimed when more of its pixels lie in claimed
+segments than in other segments (pixels in no segment do not vote). Both kernels have NumPy
+twins in tests/test_objects.py.
 """
 
 from __future__ import annotations
