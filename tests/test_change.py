@@ -547,6 +547,7 @@ def test_holes_explained_match_numpy(dropout_px, baseline):
     if dropout_px or baseline:  # some holes are dropouts or shadows
         assert got.sum() < (depth == 0).sum()
 
+
 def _plates_depth(plates, camera_z, intr):
     """(H, W) uint16 mm: what a camera at (0, 0, ``camera_z``) looking along +z reads of
     ``plates``, (x0, x1, z) strips square to its axis and as tall as the image, with a wall
