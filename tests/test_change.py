@@ -562,19 +562,23 @@ def _plates_depth(plates, camera_z, intr):
     return np.tile(np.round(depth * 1000).astype(np.uint16), (intr.height, 1))
 
 
-@pytest.mark.parametrize("plate_in_view", [True, False])
+@pytest.mark.parametrize("plate_in_view", [True, False, "too near for both"])
 def test_a_hole_left_by_a_surface_too_near_to_read_is_not_seen_through(plate_in_view):
     """A box 1.2 m away behind a plate 0.6 m away, seen by a camera that then stands 15 cm
     nearer: there the plate is too near to read (a hole wider than the plate hides the whole
     box), and beside the hole lies the wall 4 m away, so the hole opens beyond the box and,
     by the other rules, the box's edges this camera saw past the plate would be seen through.
     This camera saw the plate on the other camera's ray through the hole: the box is not
-    seen through.  Where this camera saw nothing on that ray (no plate before it: the hole
-    is then no return), the box is."""
+    seen through.  Where the plate is too near for this camera as well, its hole, bordered by
+    the box on both sides, is neither a dropout nor a shadow: it may hold the plate, and the
+    box is not seen through either.  Where this camera saw nothing on that ray (no plate
+    before it: the hole is then no return), the box is."""
     intr = Intrinsics(400, 4, 200.0, 200.0, 199.5, 1.5)
-    box = (-0.11, 0.11, 1.2)
-    own = _plates_depth([box, (-0.05, 0.05, 0.6)] if plate_in_view else [box], 0.0, intr)
-    other = _plates_depth([box, (-0.05, 0.05, 0.6)], 0.15, intr)
+    # a plate 0.45 m away is a hole for this camera too; the box is then wider, to show past it
+    plate_z, box = (0.45, (-0.17, 0.17, 1.2)) if plate_in_view == "too near for both" \
+        else (0.6, (-0.11, 0.11, 1.2))
+    own = _plates_depth([box, (-0.05, 0.05, plate_z)] if plate_in_view else [box], 0.0, intr)
+    other = _plates_depth([box, (-0.05, 0.05, plate_z)], 0.15, intr)
     pv = np.where(np.abs(own.astype(np.int64) - 1200) <= 1, 0, -1).astype(np.int32)
     assert (pv == 0).any() and (other == 0).any()
     T = np.eye(4)
@@ -593,6 +597,31 @@ def test_a_hole_left_by_a_surface_too_near_to_read_is_not_seen_through(plate_in_
                                                          free_space.sensing_window(other)),
                                                      0.0, 65.535),
                             sensor_min_m=0.5, far_edge=True, back=np.linalg.inv(T), intr=intr)
+    np.testing.assert_array_equal(votes, want[0])
+
+
+def test_a_hole_whose_near_stretch_this_camera_never_saw_is_not_seen_through():
+    """The other camera stands 30 cm to the side: the stretch of its ray within 0.5 m of it
+    lies outside this camera's narrow view, so a hole there may hide a surface too near for
+    it, and a wall point landing on the hole is not seen through (it is without the rule)."""
+    intr = Intrinsics(40, 4, 200.0, 200.0, 19.5, 1.5)
+    own = np.full((4, 40), 4000, np.uint16)
+    other = own.copy()
+    other[:, 5:20] = 0
+    pv = np.zeros((4, 40), np.int32)
+    T = np.eye(4)
+    T[0, 3] = -0.3  # other_from_own: the other camera 30 cm along +x
+    kwargs = dict(intrinsics=intr, other_from_own=T)
+    votes, total, _ = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
+                                       sensor_min_m=0.5, **kwargs)
+    without = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True, **kwargs)
+    assert without[0][0] > 0 and votes[0] == 0
+    target, z_other = free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
+                                              intr.fx, intr.fy, intr.cx, intr.cy, intr.width,
+                                              np.array(free_space.sensing_window(other)),
+                                              0.0, 65.535)
+    want = _free_space_twin(pv, own, other, 1, 0.03, 0.004, 0, 0, True, target, z_other,
+                            sensor_min_m=0.5, back=np.linalg.inv(T), intr=intr)
     np.testing.assert_array_equal(votes, want[0])
 
 
