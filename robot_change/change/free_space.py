@@ -283,12 +283,9 @@ def _hole_explained(depth, width, i, dropout_px, shadow_bf, margin_m, margin_per
         return False
     if b - a <= dropout_px:
         return True
-    if shadow_bf <= 0.0:
-        return False
-    z_near = min(depth[a - 1], depth[b]) * 0.001
     z_far = max(depth[a - 1], depth[b]) * 0.001
-    return z_near < z_far - margin_m - margin_per_m2 * z_far * z_far and \
-        b - a <= shadow_bf * (1.0 / z_near - 1.0 / z_far) + 1.0
+    return _casts_shadow(min(depth[a - 1], depth[b]), b - a, z_far,
+                         margin_m + margin_per_m2 * z_far * z_far, shadow_bf)
 
 
 @numba.njit(cache=True, nogil=True)
