@@ -26,7 +26,9 @@ Truth and scoring (point level):
   ``not_at_station``.
 * the real table tops' truth is geometric (an object's pixels that the other frame saw
   through, sim_fixtures/tabletop.py); they are scored too with the changed objects whole as
-  truth (every pixel of an object any pixel of which is truth), as the simulated scenes are;
+  truth, as the simulated scenes are (``changed_objects``: every pixel of an object with at
+  least 20 truth pixels more than 3 px inside it; before 2026-12-05, any truth pixel, which
+  took in the unchanged neighbours a change's edge touched);
 * a changed scene is *missed* when no region hits its truth; a change of which the other
   camera saw fewer points than the smallest region reported (``min_region_points``: hidden
   behind another object) is listed apart, below resolution, and not counted as missed.
@@ -71,7 +73,7 @@ from robot_change.change.detect import detect_changes  # noqa: E402
 from robot_change.change.params import ChangeParams  # noqa: E402
 from robot_change.change.scene import SceneParams, build_scene  # noqa: E402
 from robot_change.cloud.chain import CloudParams  # noqa: E402
-from sim_fixtures.tabletop import OBJECT_LABEL_MIN  # noqa: E402
+from sim_fixtures.tabletop import changed_objects  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
@@ -181,13 +183,12 @@ def score(cs, ref_model, cur_model, truth_app, truth_dis, scene=None) -> dict:
         out[f"{name}_true"] = int(t.sum())
     if scene is not None and hasattr(scene, "current_labels"):
         # the real table tops' truth is geometric (an object's pixels the other frame saw
-        # through); scored too against whole objects: every pixel of an object any of whose
-        # pixels is truth
+        # through); scored too against the changed objects whole (sim_fixtures.tabletop.
+        # changed_objects)
         for name, p, model, truth, labels in (
                 ("app", p_app, cur_model, truth_app, scene.current_labels),
                 ("dis", p_dis, ref_model, truth_dis, scene.reference_labels)):
-            objects = np.isin(labels, np.unique(labels[truth])) & (labels >= OBJECT_LABEL_MIN)
-            t = point_truth(model.pixel_voxel, objects, len(model))
+            t = point_truth(model.pixel_voxel, changed_objects(labels, truth), len(model))
             out[f"{name}_obj_tp"] = int((p & t).sum())
             out[f"{name}_obj_true"] = int(t.sum())
     # regions that hit the truth (more than half their points truth-changed)

@@ -27,10 +27,10 @@ A 0 (no reading) in the *other* frame is never evidence by itself:
   the enclosed holes filled; a pixel outside the other frame's footprint is never truth;
 * sensor dropouts and shadows (holes inside the footprint): the hole is filled from its edge
   inward, ring by ring, each pixel taking the *nearest* depth among its 3x3 neighbours already
-  known, so a static object with a dropout in one frame is not a change.  Conservative: a new object over a hole next to a
-  nearer surface is missed rather than invented (test14 -> test15: 38 disappeared pixels with the
-  fill before the speck step below, 461 if a hole counted as "seen through" -- the added box's
-  shadows on the hidden box).
+  known, so a static object with a dropout in one frame is not a change.  Conservative: a new
+  object over a hole next to a nearer surface is missed rather than invented (test14 -> test15:
+  38 disappeared pixels with the fill before the speck step below, 461 if a hole counted as
+  "seen through" -- the added box's shadows on the hidden box).
 
 Last, 8-connected truth specks of fewer than :data:`MIN_REGION_PX` = 20 pixels are dropped: they
 are depth-edge flicker along static objects (<= 110 pixels per pair; a 20-pixel patch at 1.2 m is
@@ -66,6 +66,7 @@ __all__ = [
     "tabletop_pairs",
     "load_tabletop_pair",
     "tabletop_truth",
+    "changed_objects",
     "footprint",
     "fill_dropouts",
     "drop_specks",
@@ -83,6 +84,10 @@ TRUTH_MARGIN_MM = 20
 MIN_REGION_PX = 20
 #: Labels >= this are objects (20-29 object 1, 30-39 object 2, ...); 1-9 is the table.
 OBJECT_LABEL_MIN = 20
+#: Truth pixels within this many pixels of an object's edge do not make the object a changed
+#: one: depth-edge flicker and a neighbour's truth spill there (module docstring: the table's
+#: differing pixels lie within 2 px of an object or a hole).
+OBJECT_EDGE_PX = 3
 SHAPE = (480, 640)
 
 #: name -> (reference frame, current frame, what changes per the data README).
@@ -239,6 +244,28 @@ def tabletop_truth(reference: np.ndarray, reference_labels: np.ndarray, current:
     appeared = _seen_through(current, current_labels, reference, margin_mm)
     disappeared = _seen_through(reference, reference_labels, current, margin_mm)
     return drop_specks(appeared, min_region_px), drop_specks(disappeared, min_region_px)
+
+
+def changed_objects(labels: np.ndarray, truth: np.ndarray, edge_px: int = OBJECT_EDGE_PX,
+                    min_px: int = MIN_REGION_PX) -> np.ndarray:
+    """(H, W) bool: every pixel of each object that changed, all its parts.
+
+    ``labels``: (H, W) integer labels of one frame (object id = label // 10, labels >=
+    :data:`OBJECT_LABEL_MIN`); ``truth``: (H, W) bool, that frame's truth.  An object changed
+    when at least ``min_px`` of its truth pixels lie more than ``edge_px`` pixels inside it; a
+    few truth pixels along its edge (a neighbour's change spilling over, depth-edge flicker) do
+    not make it one.  The simulated scenes' truth is whole objects; this is the same for the
+    real pairs, whose geometric truth leaves out what a moved object covers in both frames.
+    """
+    objects = np.where(labels >= OBJECT_LABEL_MIN, labels // 10, 0)
+    out = np.zeros(objects.shape, bool)
+    for obj in np.unique(objects[truth & (objects > 0)]):
+        mask = objects == obj
+        # (iterations=0 would erode until nothing changes)
+        core = ndimage.binary_erosion(mask, iterations=edge_px) if edge_px > 0 else mask
+        if int((core & truth).sum()) >= min_px:
+            out |= mask
+    return out
 
 
 def _read(path: Path, reader) -> np.ndarray:

@@ -15,7 +15,9 @@ from sim_fixtures.tabletop import (
     MIN_REGION_PX,
     PAIRS,
     TRUTH_MARGIN_MM,
+    OBJECT_EDGE_PX,
     TabletopDataMissing,
+    changed_objects,
     drop_specks,
     fill_dropouts,
     footprint,
@@ -227,7 +229,52 @@ def test_stacked_pot_and_tin(pairs):
     assert len(appeared) == 2 and min(appeared.values()) >= 0.8
 
 
+def test_changed_objects_are_the_readme_ones(pairs):
+    """The changed objects whole: test9 -> test10 the rear box only (its edge touches the
+    front box's, whose 9 truth pixels lie on that edge); test37 -> test38 the tin only;
+    learn39 -> learn40 all four reference objects changed (a cup removed, one swapped, the tin
+    shifted, the right-hand one too: 31 % truth, well inside it)."""
+    def ids(labels, truth):
+        mask = changed_objects(labels, truth)
+        return sorted(set((labels[mask] // 10).tolist()))
+
+    p = pairs["test9-test10"]
+    fractions = object_fractions(p.truth_appeared, p.current_labels)
+    front = min(fractions, key=fractions.get)
+    assert 0 < fractions[front] < 0.01  # the front box's edge is touched
+    assert ids(p.current_labels, p.truth_appeared) == [max(fractions, key=fractions.get)]
+    assert ids(p.reference_labels, p.truth_disappeared) == [3]
+    p = pairs["test37-test38"]
+    assert len(ids(p.current_labels, p.truth_appeared)) == 1
+    p = pairs["learn39-learn40"]
+    assert ids(p.reference_labels, p.truth_disappeared) == [2, 3, 4]
+    for p in pairs.values():
+        for labels, truth in ((p.current_labels, p.truth_appeared),
+                              (p.reference_labels, p.truth_disappeared)):
+            mask = changed_objects(labels, truth)
+            assert not (mask & (labels < 20)).any()
+            assert truth[mask].sum() >= truth.sum() * 0.95  # a changed object's truth is kept
+
+
 # ---- the rule on small synthetic images ------------------------------------------------------
+
+def test_changed_objects_whole_and_not_by_an_edge():
+    """An object with truth well inside is changed whole, every part of it; one whose truth
+    lies only along its edge (a neighbour's change touching it) is not; below min_px inside is
+    not either."""
+    labels = np.full((40, 60), TABLE, np.uint16)
+    labels[5:25, 5:25] = OBJ_A                  # touched along its right edge only
+    labels[5:25, 30:40] = OBJ_B                 # object 3, part 0
+    labels[5:25, 40:50] = OBJ_B + 1             # object 3, part 1
+    truth = np.zeros(labels.shape, bool)
+    truth[5:25, 25 - OBJECT_EDGE_PX:25] = True  # 60 px, all within the edge band of OBJ_A
+    truth[10:20, 32:37] = True                  # 50 px inside object 3's part 0
+    mask = changed_objects(labels, truth)
+    assert mask[5:25, 30:50].all() and not mask[labels < OBJ_B].any()
+    assert not changed_objects(labels, truth, min_px=51).any()
+    assert changed_objects(labels, truth, edge_px=0)[5:25, 5:25].all()
+
+
 
 def scene(h=40, w=60, table_mm=1000):
     """(depth uint16 mm, labels uint16): a flat table filling the image."""
