@@ -231,6 +231,24 @@ def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
+def slide_peaks(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
+                params: RegistrationParams, min_cos: float, pairs: Pairs) -> list[np.ndarray]:
+    """Up to ``final_search_starts`` poses of ``T`` (4, 4) slid along the least constrained
+    translation of ``A`` (6, 6), ``final_search_step_m`` apart out to ``final_search_reach_m``
+    each way: the local peaks of the score taken both ways (:func:`score_poses`, with
+    ``table_hole_weight``) at this level, best first, none of them ``T`` itself."""
+    slid = _slides(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
+    half = len(slid) // 2
+    line_poses = slid[:half] + [T] + slid[half:]  # in order along the line, T in the middle
+    line = score_poses(rl, cl, line_poses, params, min_cos, pairs, True,
+                       params.table_hole_weight)
+    peaks = [i for i in range(len(line)) if i != half
+             and (i == 0 or line[i] >= line[i - 1])
+             and (i == len(line) - 1 or line[i] >= line[i + 1])]
+    peaks.sort(key=lambda i: -line[i])
+    return [line_poses[i] for i in peaks[:params.final_search_starts]]
+
+
 def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
             pairs: Pairs) -> tuple[float, float, int, int]:
     """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level

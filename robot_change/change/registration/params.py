@@ -52,6 +52,23 @@ class RegistrationParams:
     fine_search_step_m: float = 0.01
     fine_search_reach_m: float = 0.04
     fine_search_ratio: float = 0.05
+    # At the end, when the estimate is weak along a translation (the normal equations, or a
+    # slide nothing pins: weak_eigenvalue, slide_support_share), poses along its least
+    # constrained translation, final_search_step_m apart out to final_search_reach_m each way,
+    # are scored both ways at search_level (each view's inliers, less the cells either sees
+    # through, less table_hole_weight times those landing on no reading); ICP runs at the
+    # finest level from the final_search_starts best peaks, and the best end replaces the
+    # estimate when its score, taken the same way at the finest level, is higher by more
+    # than final_search_margin of the two views' cells with a normal (reach 0: none).
+    # Where every object on a table moved, the objects outnumber the legs and edges that pin
+    # the slide along the wall, and ICP stays where they line up; taken both ways, the
+    # score prefers the pose where the structure does (docs/algorithm.md, step 6).
+    # Margins of right against wrong ends on the 8000 and 9000 table stations: wrong ones
+    # won by 0.04-0.45 % (one by 1.0 %), right ones by 0.5-8.9 %.
+    final_search_step_m: float = 0.01
+    final_search_reach_m: float = 0.3
+    final_search_starts: int = 2
+    final_search_margin: float = 0.005
     # At the coarsest level ICP also runs with Tukey's cut at least wide_cut_m (metres; 0:
     # not), and goes on from the better-scoring of the two ends (inliers less seen-through
     # cells, as the search).  On a table top the plane aligns first, the residual scale
@@ -174,6 +191,11 @@ class RegistrationParams:
         _num("fine_search_step_m", self.fine_search_step_m, 0.0, 1.0, low_open=True,
              unit=" metres")
         _num("fine_search_reach_m", self.fine_search_reach_m, 0.0, 1.0, unit=" metres")
+        _num("final_search_step_m", self.final_search_step_m, 0.0, 1.0, low_open=True,
+             unit=" metres")
+        _num("final_search_reach_m", self.final_search_reach_m, 0.0, 1.0, unit=" metres")
+        _int("final_search_starts", self.final_search_starts, 1, 20)
+        _num("final_search_margin", self.final_search_margin, 0.0, 1.0)
         _num("fine_search_ratio", self.fine_search_ratio, 0.0, 1.0)
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _int("table_starts", self.table_starts, 0, 20)

@@ -1,7 +1,8 @@
 """register_depth: the current view registered to the station's reference, coarse to fine
 (docs/algorithm.md, "Registration"): ICP per level (:mod:`.icp`), at the coarsest level also
-with a wide cut, the search along weak directions at the middle level (:mod:`.agreement`), and
-on a table top the table-plane tracks, the trimming and the checks of :mod:`.table_top`.
+with a wide cut, the search along weak directions at the middle level and, for an estimate
+weak along a translation, once more at the end (:mod:`.agreement`), and on a table top the
+table-plane tracks, the trimming and the checks of :mod:`.table_top`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from .agreement import (
     fitness,
     score_poses,
     seen_through_shares,
+    slide_peaks,
     slide_support,
     weak_search,
 )
@@ -133,20 +135,60 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, T, params, li, min_cos,
                                                           Pairs(cl))
             iterations += n_it
-    fit, rmse, n_pairs, n_cells = fitness(ref_levels[-1], cur_levels[-1], T, params, min_cos,
-                                          pairs)
-    through, behind = seen_through_shares(ref_levels[-1], cur_levels[-1], T, params)
+    weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
+                          min_cos, pairs)
+    if params.final_search_reach_m > 0 and A is not None and any(a in weak for a in AXES[3:]):
+        found = _final_search(ref_levels, cur_levels, T, A, params, min_cos, pairs)
+        if found is not None:
+            T, n_it, converged, lam_n, vec, A = found
+            iterations += n_it
+            weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
+                                  params, min_cos, pairs)
+    fit, rmse, n_pairs, n_cells, through, behind = judged
+    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
+                        (time.perf_counter() - t0) * 1e3, through, behind)
+
+
+def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
+           vec: np.ndarray, planes: tuple[TablePlane, TablePlane] | None,
+           params: RegistrationParams, min_cos: float, pairs: Pairs):
+    """What the finest levels (``rl``, ``cl``) say of the estimate ``T``: (weak direction
+    names, (fitness, rmse_m, inlier pairs, current cells with a normal, seen-through share,
+    behind share))."""
+    fit, rmse, n_pairs, n_cells = fitness(rl, cl, T, params, min_cos, pairs)
+    through, behind = seen_through_shares(rl, cl, T, params)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
     # on a table top the objects that changed were left out of the estimate and the table's
     # own checks judge what stayed: their contradiction does not contest the slide
-    slide = _unsupported_slide(ref_levels[-1], cur_levels[-1], T, A, params, min_cos, n_cells,
-                               contested=planes is None)
-    if planes is not None and table_pose_weak(ref_levels[-1], cur_levels[-1], T, planes,
-                                              weak + slide, params, min_cos):
+    slide = _unsupported_slide(rl, cl, T, A, params, min_cos, n_cells, contested=planes is None)
+    if planes is not None and table_pose_weak(rl, cl, T, planes, weak + slide, params,
+                                              min_cos):
         weak = weak + in_plane_names(planes[1])
     weak = tuple(dict.fromkeys(weak + slide))
-    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
-                        (time.perf_counter() - t0) * 1e3, through, behind)
+    return weak, (fit, rmse, n_pairs, n_cells, through, behind)
+
+
+def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
+                  A: np.ndarray, params: RegistrationParams, min_cos: float, pairs: Pairs):
+    """The finest level's ICP (:func:`icp_level`'s tuple) from the best peak of ``T`` slid
+    along its least constrained translation (:func:`slide_peaks`, at ``search_level``) when
+    it ends scoring higher than ``T`` both ways by more than ``final_search_margin`` of the
+    two views' cells with a normal; None otherwise."""
+    mid = params.search_level
+    starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos,
+                         Pairs(cur_levels[mid]))
+    rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
+    ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
+    if not ends:
+        return None
+    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs, True,
+                         params.table_hole_weight)
+    best = int(np.argmax(scores[1:]))
+    margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
+    if scores[1 + best] <= scores[0] + margin:
+        return None
+    end = ends[best]
+    return (end[0], sum(e[1] for e in ends), *end[2:])  # every start's iterations counted
 
 
 def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
