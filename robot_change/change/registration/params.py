@@ -61,8 +61,9 @@ class RegistrationParams:
     # estimate when its score, taken the same way at the finest level, is higher by more
     # than final_search_margin of the two views' cells with a normal (reach 0: none).
     # Where every object on a table moved, the objects outnumber the legs and edges that pin
-    # the slide along the wall, and ICP stays where they line up; taken both ways, the
-    # score prefers the pose where the structure does (docs/algorithm.md, step 6).
+    # the slide along the wall, and ICP stays where they line up; taken both ways at the
+    # finest level, the score often prefers the pose where the structure lines up
+    # (docs/algorithm.md, registration step 7b).
     # Margins of right against wrong ends on the 8000 and 9000 table stations: wrong ones
     # won by 0.04-0.45 % (one by 1.0 %), right ones by 0.5-8.9 %.
     final_search_step_m: float = 0.01
