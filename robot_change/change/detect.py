@@ -21,7 +21,9 @@ numbers in docs/evaluation.md).  For what appeared (current points):
    exceeds ``posterior_threshold`` (0.5) and it passed the free-space check.
 5. **Objects completed** (:func:`robot_change.change.objects.complete_objects`): a surface
    segment of the depth image that the changed points make up ``object_min_share`` of is
-   claimed whole (a moved object stands partly where it stood).
+   claimed whole (a moved object stands partly where it stood); then, with both directions
+   done, a segment that stands where a changed surface of the other epoch stood
+   (:func:`robot_change.change.objects.claim_counterparts`).
 6. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys),
    regions below ``min_region_points`` dropped.
 
@@ -41,12 +43,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Callable
 
 import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.change.baselines import detect_plain
 from robot_change.change.compare import (
+    Aligned,
     Current,
     Direction,
     Reference,
@@ -60,7 +64,7 @@ from robot_change.change.compare import (
 )
 from robot_change.change.epoch import Epoch
 from robot_change.change.greedy import greedy_trace, posteriors
-from robot_change.change.objects import complete_objects
+from robot_change.change.objects import claim_counterparts, complete_objects
 from robot_change.change.params import ChangeParams
 from robot_change.change.parallel import both
 from robot_change.change.regions import label_voxel_components
@@ -235,6 +239,24 @@ def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, param
     return cand, fitted, post, trace
 
 
+def _counterparts(aligned: Aligned, app: Direction, dis: Direction, params: ChangeParams,
+                  timings: dict) -> tuple[Direction, Direction]:
+    """Both directions with the surfaces that stand where the other epoch's changed surfaces
+    stood (:func:`robot_change.change.objects.claim_counterparts`), each judged against the
+    other's changed points as completed, timed as ``counterparts_ms``."""
+    t0 = time.perf_counter()
+    reg = aligned.registration
+    ref_from_cur = None if reg.is_identity else reg.T_ref_from_cur
+    cur_from_ref = None if reg.is_identity else reg.inverse()
+    app_changed = claim_counterparts(aligned.cur, app.changed, app.observed, aligned.ref,
+                                     dis.changed, ref_from_cur, params)
+    dis_changed = claim_counterparts(aligned.ref, dis.changed, dis.observed, aligned.cur,
+                                     app.changed, cur_from_ref, params)
+    timings["counterparts_ms"] = (time.perf_counter() - t0) * 1e3
+    return (dataclasses.replace(app, changed=app_changed),
+            dataclasses.replace(dis, changed=dis_changed))
+
+
 def detect_changes(reference: Reference, current: Current, params: ChangeParams = ChangeParams(), *,
                    intrinsics: Intrinsics | None = None,
                    initial_pose: np.ndarray | None = None) -> ChangeSet:
@@ -299,12 +321,7 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         t0 = time.perf_counter()
         cand = complete_objects(cur, cand, observed, params)
         timings["appeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
-        direction = Direction(cand, post, mix, trace, observed)
-        direction = dataclasses.replace(
-            direction, regions=direction_regions("appeared", cur, direction, params))
-        timings["appeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
-        return direction
+        return Direction(cand, post, mix, trace, observed)
 
     def disappeared() -> tuple[Direction | None, int]:
         if not params.disappeared:
@@ -322,14 +339,24 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         t0 = time.perf_counter()
         cand = complete_objects(ref, cand, observed, params)
         timings["disappeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
-        direction = Direction(cand, post, mix, trace, observed)
-        direction = dataclasses.replace(
-            direction, regions=direction_regions("disappeared", ref, direction, params))
-        timings["disappeared_regions_ms"] = (time.perf_counter() - t0) * 1e3
-        return direction, cur_mix.n_components
+        return Direction(cand, post, mix, trace, observed), cur_mix.n_components
 
-    app, (dis, k_cur) = both(appeared, disappeared,
-                             params.threads if params.disappeared else 1)
+    threads = params.threads if params.disappeared else 1
+    app, (dis, k_cur) = both(appeared, disappeared, threads)
+    if dis is not None:
+        app, dis = _counterparts(aligned, app, dis, params, timings)
+
+    def grouped(kind: str, epoch: Epoch, direction: Direction) -> Callable[[], Direction]:
+        def run() -> Direction:
+            t0 = time.perf_counter()
+            out = dataclasses.replace(
+                direction, regions=direction_regions(kind, epoch, direction, params))
+            timings[f"{kind}_regions_ms"] = (time.perf_counter() - t0) * 1e3
+            return out
+        return run
+
+    app, dis = both(grouped("appeared", cur, app),
+                    (lambda: None) if dis is None else grouped("disappeared", ref, dis),
+                    threads)
     return finish("novelty", params, aligned, app, dis, ref_mix.n_components, k_cur, timings,
                    t_start)

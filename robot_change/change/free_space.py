@@ -24,6 +24,7 @@ __all__ = [
     "free_space_views",
     "free_space_votes",
     "other_views",
+    "pixel_targets",
     "sensing_window",
 ]
 
@@ -393,14 +394,8 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                                                                     hole_radius)
     own = readonly_view(np.ascontiguousarray(own_depth))
     pv = readonly_view(np.ascontiguousarray(pixel_voxel, dtype=np.int32))
-    if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
-        target = np.where(own.ravel() > 0, np.arange(own.size), -1)
-        z_other = own.ravel() * 0.001
-    else:
-        target, z_other = _warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
-                                       intrinsics.fx, intrinsics.fy, intrinsics.cx,
-                                       intrinsics.cy, width, window,
-                                       float(depth_range_m[0]), float(depth_range_m[1]))
+    target, z_other = pixel_targets(own, pv, intrinsics,
+                                    None if other_from_own is None else T, window, depth_range_m)
     other = readonly_view(np.ascontiguousarray(other_depth))
     back = np.linalg.inv(T)  # the other camera's frame into this one's
     return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
@@ -410,6 +405,29 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                               bool(hole_needs_far_edge), own.ravel(), back[:3, :3].copy(),
                               back[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
                               intrinsics.cx, intrinsics.cy, 2 * int(hole_radius))
+
+
+def pixel_targets(own_depth: np.ndarray, pixel_voxel: np.ndarray, intrinsics: Intrinsics,
+                  other_from_own: np.ndarray | None, window: np.ndarray,
+                  depth_range_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel of ``own_depth`` ((H, W) uint16 mm) that belongs to a point
+    (``pixel_voxel`` (H, W) int32 >= 0) lands in the other epoch's image, moved by
+    ``other_from_own`` ((4, 4); None: the same camera, each pixel is its own projection).
+
+    Returns ``target`` (H*W,) int64, the flat index of the other image's pixel (-1: no
+    reading or no point here; -2: the other camera could not have seen it, behind it,
+    outside its sensing ``window`` (row0, row1, col0, col1) or outside ``depth_range_m``)
+    and ``z_other`` (H*W,) float64, the depth there in the other camera's frame (m)."""
+    own = readonly_view(np.ascontiguousarray(own_depth))
+    if other_from_own is None:
+        flat = own.ravel()
+        has = (flat > 0) & (np.asarray(pixel_voxel).ravel() >= 0)
+        return np.where(has, np.arange(own.size), -1), flat * 0.001
+    T = np.asarray(other_from_own, dtype=np.float64)
+    return _warp_kernel(own, readonly_view(np.ascontiguousarray(pixel_voxel, dtype=np.int32)),
+                        T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
+                        intrinsics.cx, intrinsics.cy, own.shape[1], window,
+                        float(depth_range_m[0]), float(depth_range_m[1]))
 
 
 def free_space_views(base: Epoch, params: ChangeParams

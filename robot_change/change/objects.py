@@ -27,6 +27,18 @@ moved object's found strips along its edges are often a few points each), and on
 other camera observed are claimed. A point is claimed when more of its pixels lie in claimed
 segments than in other segments (pixels in no segment do not vote). Both kernels have NumPy
 twins in tests/test_objects.py.
+
+Then each epoch's segments are judged against the other epoch's changed points as completed
+(:func:`claim_counterparts`): an object moved by less than its own size may have left only
+one epoch with evidence (its new place stands where the old one stood, within the free-space
+margin), and a surface standing where the other epoch's changed surface stood is that
+object's other place.  A pixel lands on the other image (through the registration) on the
+same surface when the reading there lies within the free-space margin of it and the two
+cells' normals agree within ``object_fold_deg``; a segment is claimed when more than
+``object_counterpart_share`` of its pixels that land on the same surface land on changed
+pixels of the other epoch (its changed pixels less a band of ``free_space_pose_radius_px``
+along their outline: a changed object's foot is claimed with it, and is table), and those make
+up the share a segment needs above.
 """
 
 from __future__ import annotations
@@ -35,13 +47,17 @@ import math
 
 import numba
 import numpy as np
+from scipy import ndimage
 
 from robot_change.change.epoch import Epoch
+from robot_change.change.free_space import free_space_views, pixel_targets
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import forest_labels, union_sets
 from robot_change.change.registration.pyramid import surface_level
+from robot_change.cloud.chain import CloudParams
 
 __all__ = [
+    "claim_counterparts",
     "complete_objects",
     "surface_segments",
 ]
@@ -284,23 +300,47 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) int32 and
-    points (P,) int32, each segment's count of them (S,) and each point's (M,).  A function
-    of the image and the cloud alone, so it is kept in ``epoch.derived``: a station's
-    reference pays for it once."""
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) int32,
+    points (P,) int32 and flat pixel indices (P,) int64, each segment's count of them (S,)
+    and each point's (M,).  A function of the image and the cloud alone, so it is kept in
+    ``epoch.derived``: a station's reference pays for it once."""
     reg = params.registration
     key = ("segment_pixels", params.object_cell_px, params.object_fold_deg, reg.band_m,
            reg.band_slope, reg.min_depth_m, reg.max_depth_m)
     if key not in epoch.derived:
         segment = surface_segments(epoch, params).ravel()
         point = epoch.pixel_voxel.ravel()
-        on = (segment >= 0) & (point >= 0)
-        segment, point = segment[on].astype(np.int32), point[on].astype(np.int32)
+        pixel = np.flatnonzero((segment >= 0) & (point >= 0))
+        segment, point = segment[pixel].astype(np.int32), point[pixel].astype(np.int32)
         size = np.bincount(segment, minlength=int(segment.max()) + 1 if segment.size else 0)
-        epoch.derived[key] = (segment, point, size,
+        epoch.derived[key] = (segment, point, pixel, size,
                               np.bincount(point, minlength=epoch.n_points))
     return epoch.derived[key]
+
+
+def _claim(epoch: Epoch, found: np.ndarray, size: np.ndarray, params: ChangeParams
+           ) -> np.ndarray:
+    """(S,) bool: the segments whose ``found`` (S,) pixels make up at least
+    ``params.object_min_share`` of their ``size`` (S,) pixels, and at least the share of the
+    image each covers: a table top that fills half the image is claimed when half of it is."""
+    return (found > 0) & (found >= np.maximum(params.object_min_share,
+                                              size / epoch.depth.size) * size)
+
+
+def _joined(claimed: np.ndarray, segment: np.ndarray, point: np.ndarray,
+            per_point: np.ndarray, n_points: int) -> np.ndarray:
+    """(M,) bool: the points with more of their pixels in ``claimed`` (S,) segments than in
+    other segments (pixels in no segment do not vote)."""
+    inside = np.bincount(point[claimed[segment]], minlength=n_points)
+    return 2 * inside > per_point
+
+
+def _cell_normals(epoch: Epoch, params: ChangeParams) -> np.ndarray:
+    """(H / f, W / f, 3) unit normals of ``epoch``'s cells of ``params.object_cell_px`` pixels
+    (0: none), as the segments are cut on them."""
+    return surface_level(epoch.depth, epoch.intrinsics, params.object_cell_px,
+                         params.registration, epoch.derived).normal
 
 
 def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
@@ -311,14 +351,58 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     are added.  Unchanged when ``params.object_completion`` is off or nothing changed."""
     if not params.object_completion or not changed.any():
         return changed
-    segment, point, size, per_point = _segment_pixels(epoch, params)
+    segment, point, _, size, per_point = _segment_pixels(epoch, params)
     found = np.bincount(segment, weights=changed[point], minlength=len(size))
-    # the larger a segment is in view, the more of it must be found: a table top that fills
-    # half the image is claimed when half of it is
-    claimed = (found > 0) & (found >= np.maximum(params.object_min_share,
-                                                 size / epoch.depth.size) * size)
-    # a point's pixels in claimed segments against those in other segments (pixels in no
-    # segment do not vote)
-    inside = np.bincount(point[claimed[segment]], minlength=epoch.n_points)
-    return changed | (observed & (2 * inside > per_point))
+    claimed = _claim(epoch, found, size, params)
+    return changed | (observed & _joined(claimed, segment, point, per_point, epoch.n_points))
 
+
+def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, other: Epoch,
+                       other_changed: np.ndarray, other_from_own: np.ndarray | None,
+                       params: ChangeParams) -> np.ndarray:
+    """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the surface segments that
+    stand where a changed surface of the ``other`` epoch stood (module docstring): of a
+    segment's pixels that land, moved by ``other_from_own`` ((4, 4); None: the same camera),
+    on a reading of ``other``'s image within the free-space margin, more than
+    ``params.object_counterpart_share`` land on its ``other_changed`` (M',) bool points, and
+    those make up the share :func:`complete_objects` asks of a segment.  Only ``observed``
+    (M,) bool points are added.  Unchanged when ``params.object_counterparts`` or
+    ``params.object_completion`` is off or nothing of ``other`` changed."""
+    if not (params.object_counterparts and params.object_completion) or \
+            not other_changed.any():
+        return changed
+    segment, point, pixel, size, per_point = _segment_pixels(epoch, params)
+    cp = other.cloud_params or CloudParams()
+    window = free_space_views(other, params)[2]
+    target, z = pixel_targets(epoch.depth, epoch.pixel_voxel, epoch.intrinsics, other_from_own,
+                              window, (cp.min_depth_m, cp.max_depth_m))
+    target, z = target[pixel], z[pixel]
+    lands = np.flatnonzero(target >= 0)
+    reading = other.depth.ravel()[target[lands]] * 0.001
+    margin = params.free_space_margin_m + params.free_space_margin_per_m2 * z[lands] ** 2
+    lands = lands[(reading > 0) & (np.abs(reading - z[lands]) <= margin)]
+    # the same surface: at the same place and facing the same way (within object_fold_deg);
+    # an object's foot lies within the margin of the table beside it, but faces another way
+    own_n, other_n = (_cell_normals(e, params) for e in (epoch, other))
+    width = epoch.depth.shape[1]
+    n_own = own_n[pixel[lands] // width // params.object_cell_px,
+                  pixel[lands] % width // params.object_cell_px]
+    if other_from_own is not None:
+        n_own = n_own @ np.asarray(other_from_own, dtype=np.float64)[:3, :3].T
+    n_other = other_n[target[lands] // width // params.object_cell_px,
+                      target[lands] % width // params.object_cell_px]
+    facing = np.sum(n_own * n_other, axis=1) >= math.cos(math.radians(params.object_fold_deg))
+    lands = lands[facing]
+    # on the other's changed pixels less a band of the pose window along their outline: a
+    # changed object's foot, claimed with it, is table beside it
+    pv = other.pixel_voxel.ravel()
+    changed_px = np.zeros(pv.shape, np.uint8)
+    changed_px[pv >= 0] = other_changed[pv[pv >= 0]]
+    inner = ndimage.minimum_filter(changed_px.reshape(other.pixel_voxel.shape),
+                                   size=2 * params.free_space_pose_radius_px + 1).ravel()
+    on_changed = lands[inner[target[lands]] > 0]
+    same = np.bincount(segment[lands], minlength=len(size))
+    found = np.bincount(segment[on_changed], minlength=len(size))
+    claimed = (found > params.object_counterpart_share * same) & \
+        _claim(epoch, found, size, params)
+    return changed | (observed & _joined(claimed, segment, point, per_point, epoch.n_points))

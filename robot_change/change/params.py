@@ -165,6 +165,13 @@ class ChangeParams:
     object_min_share: float = 0.12
     object_fold_deg: float = 20.0
     object_cell_px: int = 4
+    # With completion, a segment also changed when it stands where a changed surface of the
+    # other epoch stood: of its pixels that land on the other image's readings within the
+    # free-space margin, more than object_counterpart_share land on changed points (a
+    # majority), and those make up object_min_share of it (an object moved by less than its
+    # own size: what the other epoch's completion claimed is its other place).
+    object_counterparts: bool = True
+    object_counterpart_share: float = 0.5
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -189,7 +196,7 @@ class ChangeParams:
         _choice("current_mixture", self.current_mixture, ("fit", "from_reference"))
         for name in ("novelty", "novelty_fix_weights", "novelty_split", "greedy", "free_space",
                      "free_space_no_reading_is_free", "free_space_hole_needs_far_edge",
-                     "object_completion", "disappeared"):
+                     "object_completion", "object_counterparts", "disappeared"):
             _bool(name, getattr(self, name))
         _num("novelty_tol", self.novelty_tol, 0.0, 1.0, low_open=True)
         _num("novelty_quantile", self.novelty_quantile, 0.0, 0.5, low_open=True)
@@ -214,6 +221,7 @@ class ChangeParams:
         _int("min_region_points", self.min_region_points, 1, 10**9)
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
         _num("object_min_share", self.object_min_share, 0.0, 1.0, low_open=True)
+        _num("object_counterpart_share", self.object_counterpart_share, 0.0, 1.0)
         _num("object_fold_deg", self.object_fold_deg, 0.0, 180.0, unit=" degrees")
         _int("object_cell_px", self.object_cell_px, 1, 64, unit=" pixels")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
