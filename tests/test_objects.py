@@ -9,25 +9,31 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from robot_change.change.detect import detect_changes
 from robot_change.change.epoch import as_epoch
-from robot_change.change.free_space import free_space_views, pixel_targets
+from robot_change.change.free_space import free_space_views
 from robot_change.change.objects import (
+    _cell_normals,
+    _counterparts_kernel,
     _pixels_kernel,
+    _segment_pixels,
     _segments_kernel,
     claim_counterparts,
     complete_objects,
     surface_segments,
 )
 from robot_change.change.params import ChangeParams
+from robot_change.change.registration import rpy_deg_to_rotation
 from robot_change.change.registration.pyramid import surface_level
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from sim_fixtures.stations import station_scene
 from sim_fixtures.truth import point_truth
+from test_change import _warp_twin
 
 
 def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
@@ -433,27 +439,63 @@ def test_counterparts_raise_recall_where_an_object_moved_by_less_than_its_size(a
     assert found[True][1] <= found[False][1] + 0.1 * (found[True][0] - found[False][0]), found
 
 
-def test_pixel_targets_of_the_identity_are_the_pixels_themselves(moved):
-    _, ref, cur = moved
+def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_range,
+                       other_depth, other_pixel_voxel, other_changed, radius, own_normal,
+                       other_normal, f, margin_m, margin_per_m2, cos_fold, step):
+    """NumPy twin of ``_counterparts_kernel``: the pixels warped as the free-space check's
+    twin does, the other's changed pixels off their outline by a minimum filter (outside the
+    image counts as changed: the kernel's window is clipped)."""
+    h, w = own_depth.shape
+    target, z = _warp_twin(own_depth, T, intr, depth_range, window)
+    rows, cols = np.mgrid[0:h, 0:w]
+    take = ((rows % step == 0) & (cols % step == 0) & (segments >= 0)).ravel()
+    take &= target >= 0
+    k = np.flatnonzero(take)
+    q = target[k]
+    reading = other_depth.ravel()[q] * 0.001
+    ok = (other_depth.ravel()[q] > 0) & \
+        (np.abs(reading - z[k]) <= margin_m + margin_per_m2 * z[k] ** 2)
+    r, c, v, u = rows.ravel()[k], cols.ravel()[k], q // w, q % w
+    a = own_normal[r // f, c // f].astype(np.float64)
+    b = other_normal[v // f, u // f].astype(np.float64)
+    ok &= a.any(axis=1) & b.any(axis=1)
+    ok &= np.sum((a @ T[:3, :3].T) * b, axis=1) >= cos_fold
+    changed_px = np.zeros(h * w, bool)
+    has = other_pixel_voxel.ravel() >= 0
+    changed_px[has] = other_changed[other_pixel_voxel.ravel()[has]]
+    inner = ndimage.minimum_filter(changed_px.reshape(h, w), size=2 * radius + 1,
+                                   mode="constant", cval=True).ravel()
+    seg = segments.ravel()[k]
+    same = np.bincount(seg[ok], minlength=n_segments)
+    found = np.bincount(seg[ok & inner[q]], minlength=n_segments)
+    return same, found
+
+
+@pytest.mark.parametrize("step, moved_by", [(1, None), (2, None), (1, "turn"), (2, "turn")])
+def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by):
+    sc, ref, cur = moved
+    params = ChangeParams()
     ep, other = as_epoch(cur, "current"), as_epoch(ref, "reference")
-    window = free_space_views(other, ChangeParams())[2]
-    same, z_same = pixel_targets(ep.depth, ep.pixel_voxel, ep.intrinsics, None, window,
-                                 (0.0, 65.0))
-    moved_, z_moved = pixel_targets(ep.depth, ep.pixel_voxel, ep.intrinsics, np.eye(4), window,
-                                    (0.0, 65.0))
-    inside = moved_ >= 0
-    assert inside.sum() > 0.5 * (same >= 0).sum()
-    np.testing.assert_array_equal(moved_[inside], same[inside])
-    np.testing.assert_allclose(z_moved[inside], z_same[inside])
-    # a pixel of no point lands nowhere, either way
-    none = (ep.pixel_voxel.ravel() < 0)
-    assert (same[none] == -1).all() and (moved_[none] == -1).all()
-    # a camera moved 10 cm back sees every pixel 10 cm deeper
-    back = np.eye(4)
-    back[2, 3] = 0.1
-    _, z_back = pixel_targets(ep.depth, ep.pixel_voxel, ep.intrinsics, back, window,
-                              (0.0, 65.0))
-    np.testing.assert_allclose(z_back[inside], z_same[inside] + 0.1)
+    other_changed = point_truth(other.pixel_voxel, sc.truth_disappeared, other.n_points)
+    T = np.eye(4)
+    if moved_by:  # a camera 4 cm and a few degrees away: pixels land elsewhere
+        T[:3, :3] = rpy_deg_to_rotation(1.0, -2.0, 1.5)
+        T[:3, 3] = (0.03, -0.01, 0.02)
+    segments = _segment_pixels(ep, params)[-1]
+    n = int(segments.max()) + 1
+    window = free_space_views(other, params)[2]
+    args = (segments, n, ep.depth)
+    common = (other.depth, other.pixel_voxel.astype(np.int32), other_changed, 3,
+              _cell_normals(ep, params), _cell_normals(other, params), 4, 0.03, 0.004,
+              math.cos(math.radians(20.0)), step)
+    intr = ep.intrinsics
+    got = _counterparts_kernel(*args, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
+                               intr.cx, intr.cy, window, 0.4, 8.0, *common)
+    want = _counterparts_twin(*args, T, intr, window, (0.4, 8.0), *common)
+    for g, x in zip(got, want):
+        np.testing.assert_array_equal(g, x)
+    same, found = got
+    assert (found <= same).all() and found.sum() > 0 and same.sum() > 10 * found.sum()
 
 
 @pytest.mark.parametrize("field, value", [("object_min_share", 0.0), ("object_min_share", 1.5),

@@ -23,8 +23,8 @@ __all__ = [
     "free_and_observed",
     "free_space_views",
     "free_space_votes",
+    "land_pixel",
     "other_views",
-    "pixel_targets",
     "sensing_window",
 ]
 
@@ -106,11 +106,33 @@ def sensing_window(depth: np.ndarray, min_fraction: float = 0.05) -> tuple[int, 
     return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def land_pixel(d_mm, r, c, rot, trans, fx, fy, cx, cy, window, min_m, max_m):
+    """Where the reading ``d_mm`` (mm) of pixel (``r``, ``c``) lands in the other camera
+    (``rot`` (3, 3), ``trans`` (3,) map this camera's frame into the other's; same
+    intrinsics): (row, column, depth in the other frame (m)); row -1 when the other camera
+    could not have seen it (behind it, outside its sensing ``window`` (row0, row1, col0,
+    col1, inclusive), or outside its depth range ``min_m``..``max_m``)."""
+    z = d_mm * 0.001
+    x = (c - cx) * z / fx
+    y = (r - cy) * z / fy
+    px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+    py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+    pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+    if pz < min_m or pz > max_m:
+        return -1, -1, pz
+    u = int(math.floor(fx * px / pz + cx + 0.5))
+    v = int(math.floor(fy * py / pz + cy + 0.5))
+    if v < window[0] or v > window[1] or u < window[2] or u > window[3]:
+        return -1, -1, pz
+    return v, u, pz
+
+
 @numba.njit(cache=True, nogil=True)
 def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, window, min_m,
                  max_m):
     """Where each pixel of this epoch's depth image that belongs to a point lands in the other
-    epoch's image.
+    epoch's image (:func:`land_pixel`).
 
     ``own_depth`` (H, W) uint16 mm; ``pixel_voxel`` (H, W) int32, the point of each pixel (-1:
     none, e.g. the removed floor: not warped); (``rot`` (3, 3), ``trans`` (3,)) maps this
@@ -130,18 +152,9 @@ def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, wind
             if d == 0 or pixel_voxel[r, c] < 0:
                 continue
             p = r * w + c
-            z = d * 0.001
-            x = (c - cx) * z / fx
-            y = (r - cy) * z / fy
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            target[p] = -2
-            if pz < min_m or pz > max_m:
-                continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if v < window[0] or v > window[1] or u < window[2] or u > window[3]:
+            v, u, pz = land_pixel(d, r, c, rot, trans, fx, fy, cx, cy, window, min_m, max_m)
+            if v < 0:
+                target[p] = -2
                 continue
             target[p] = v * width + u
             z_other[p] = pz
@@ -394,8 +407,14 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                                                                     hole_radius)
     own = readonly_view(np.ascontiguousarray(own_depth))
     pv = readonly_view(np.ascontiguousarray(pixel_voxel, dtype=np.int32))
-    target, z_other = pixel_targets(own, pv, intrinsics,
-                                    None if other_from_own is None else T, window, depth_range_m)
+    if other_from_own is None:  # the pixel grid is shared: each pixel is its own projection
+        target = np.where(own.ravel() > 0, np.arange(own.size), -1)
+        z_other = own.ravel() * 0.001
+    else:
+        target, z_other = _warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
+                                       intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                       intrinsics.cy, width, window,
+                                       float(depth_range_m[0]), float(depth_range_m[1]))
     other = readonly_view(np.ascontiguousarray(other_depth))
     back = np.linalg.inv(T)  # the other camera's frame into this one's
     return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
@@ -405,29 +424,6 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                               bool(hole_needs_far_edge), own.ravel(), back[:3, :3].copy(),
                               back[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
                               intrinsics.cx, intrinsics.cy, 2 * int(hole_radius))
-
-
-def pixel_targets(own_depth: np.ndarray, pixel_voxel: np.ndarray, intrinsics: Intrinsics,
-                  other_from_own: np.ndarray | None, window: np.ndarray,
-                  depth_range_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Where each pixel of ``own_depth`` ((H, W) uint16 mm) that belongs to a point
-    (``pixel_voxel`` (H, W) int32 >= 0) lands in the other epoch's image, moved by
-    ``other_from_own`` ((4, 4); None: the same camera, each pixel is its own projection).
-
-    Returns ``target`` (H*W,) int64, the flat index of the other image's pixel (-1: no
-    reading or no point here; -2: the other camera could not have seen it, behind it,
-    outside its sensing ``window`` (row0, row1, col0, col1) or outside ``depth_range_m``)
-    and ``z_other`` (H*W,) float64, the depth there in the other camera's frame (m)."""
-    own = readonly_view(np.ascontiguousarray(own_depth))
-    if other_from_own is None:
-        flat = own.ravel()
-        has = (flat > 0) & (np.asarray(pixel_voxel).ravel() >= 0)
-        return np.where(has, np.arange(own.size), -1), flat * 0.001
-    T = np.asarray(other_from_own, dtype=np.float64)
-    return _warp_kernel(own, readonly_view(np.ascontiguousarray(pixel_voxel, dtype=np.int32)),
-                        T[:3, :3].copy(), T[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
-                        intrinsics.cx, intrinsics.cy, own.shape[1], window,
-                        float(depth_range_m[0]), float(depth_range_m[1]))
 
 
 def free_space_views(base: Epoch, params: ChangeParams

@@ -47,14 +47,18 @@ import math
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 from robot_change.change.epoch import Epoch
-from robot_change.change.free_space import free_space_views, pixel_targets
+from robot_change.arrays import readonly_view
+from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import forest_labels, union_sets
 from robot_change.change.registration.pyramid import surface_level
 from robot_change.cloud.chain import CloudParams
+
+#: Counterparts are counted on every second row and column: shares of a segment, a quarter of
+#: the work (a segment of fewer than ~4 pixels in a 2 x 2 block is never claimed so).
+_COUNTERPART_STEP = 2
 
 __all__ = [
     "claim_counterparts",
@@ -301,21 +305,22 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) int32,
-    points (P,) int32 and flat pixel indices (P,) int64, each segment's count of them (S,)
-    and each point's (M,).  A function of the image and the cloud alone, so it is kept in
-    ``epoch.derived``: a station's reference pays for it once."""
+    """The pixels of ``epoch`` in a segment and with a point: their segments (P,) int32 and
+    points (P,) int32, each segment's count of them (S,), each point's (M,), and the
+    segments as an image (H, W) int32 (-1: none, or no point).  A function of the image and
+    the cloud alone, so it is kept in ``epoch.derived``: a station's reference pays for it
+    once."""
     reg = params.registration
     key = ("segment_pixels", params.object_cell_px, params.object_fold_deg, reg.band_m,
            reg.band_slope, reg.min_depth_m, reg.max_depth_m)
     if key not in epoch.derived:
-        segment = surface_segments(epoch, params).ravel()
-        point = epoch.pixel_voxel.ravel()
-        pixel = np.flatnonzero((segment >= 0) & (point >= 0))
-        segment, point = segment[pixel].astype(np.int32), point[pixel].astype(np.int32)
+        image = surface_segments(epoch, params).astype(np.int32)
+        image[epoch.pixel_voxel < 0] = -1
+        on = image.ravel() >= 0
+        segment, point = image.ravel()[on], epoch.pixel_voxel.ravel()[on].astype(np.int32)
         size = np.bincount(segment, minlength=int(segment.max()) + 1 if segment.size else 0)
-        epoch.derived[key] = (segment, point, pixel, size,
-                              np.bincount(point, minlength=epoch.n_points))
+        epoch.derived[key] = (segment, point, size,
+                              np.bincount(point, minlength=epoch.n_points), image)
     return epoch.derived[key]
 
 
@@ -351,10 +356,72 @@ def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
     are added.  Unchanged when ``params.object_completion`` is off or nothing changed."""
     if not params.object_completion or not changed.any():
         return changed
-    segment, point, _, size, per_point = _segment_pixels(epoch, params)
+    segment, point, size, per_point, _ = _segment_pixels(epoch, params)
     found = np.bincount(segment, weights=changed[point], minlength=len(size))
     claimed = _claim(epoch, found, size, params)
     return changed | (observed & _joined(claimed, segment, point, per_point, epoch.n_points))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
+    """Whether every pixel within ``radius`` of (``v``, ``u``) (a square window, clipped to
+    the image) belongs to a changed point of the other epoch."""
+    h, w = other_pixel_voxel.shape
+    for i in range(max(v - radius, 0), min(v + radius + 1, h)):
+        for j in range(max(u - radius, 0), min(u + radius + 1, w)):
+            k = other_pixel_voxel[i, j]
+            if k < 0 or not other_changed[k]:
+                return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx, cy, window,
+                         min_m, max_m, other_depth, other_pixel_voxel, other_changed, radius,
+                         own_normal, other_normal, f, margin_m, margin_per_m2, cos_fold, step):
+    """Per segment: how many of its pixels (of every ``step``-th row and column) land on the
+    same surface of the other image, and how many of those on its changed surface.
+
+    ``segments`` (H, W) int32, each pixel's segment (-1: none); ``own_depth``,
+    ``other_depth`` (H, W) uint16 mm; each pixel lands in the other image by
+    :func:`robot_change.change.free_space.land_pixel` (``rot``, ``trans`` .. ``max_m`` as
+    there).  The same surface: a reading there within ``margin_m + margin_per_m2 z^2`` of the
+    pixel's depth z in the other frame, and the two cells' normals (``own_normal``,
+    ``other_normal`` (H / f, W / f, 3), 0: none; this one's turned by ``rot``) within
+    ``acos(cos_fold)``.  Its changed surface: every pixel within ``radius`` belongs to a point
+    (``other_pixel_voxel`` (H, W) int32) of ``other_changed`` (M',) bool.  Returns (same,
+    found), (n_segments,) int64 each."""
+    same = np.zeros(n_segments, dtype=np.int64)
+    found = np.zeros(n_segments, dtype=np.int64)
+    h, w = own_depth.shape
+    cell = np.arange(max(h, w)) // f  # pixel -> cell, without a division per pixel
+    for r in range(0, h, step):
+        for c in range(0, w, step):
+            s = segments[r, c]
+            if s < 0:
+                continue
+            v, u, z = land_pixel(own_depth[r, c], r, c, rot, trans, fx, fy, cx, cy, window,
+                                 min_m, max_m)
+            if v < 0:
+                continue
+            reading = other_depth[v, u]
+            if reading == 0 or abs(reading * 0.001 - z) > margin_m + margin_per_m2 * z * z:
+                continue
+            ra, ca, rb, cb = cell[r], cell[c], cell[v], cell[u]
+            a0, a1, a2 = own_normal[ra, ca, 0], own_normal[ra, ca, 1], own_normal[ra, ca, 2]
+            b0, b1, b2 = (other_normal[rb, cb, 0], other_normal[rb, cb, 1],
+                          other_normal[rb, cb, 2])
+            if (a0 == 0 and a1 == 0 and a2 == 0) or (b0 == 0 and b1 == 0 and b2 == 0):
+                continue
+            dot = (rot[0, 0] * a0 + rot[0, 1] * a1 + rot[0, 2] * a2) * b0 + \
+                (rot[1, 0] * a0 + rot[1, 1] * a1 + rot[1, 2] * a2) * b1 + \
+                (rot[2, 0] * a0 + rot[2, 1] * a1 + rot[2, 2] * a2) * b2
+            if dot < cos_fold:
+                continue
+            same[s] += 1
+            if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
+                found[s] += 1
+    return same, found
 
 
 def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, other: Epoch,
@@ -363,46 +430,32 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     """(M,) bool: ``changed`` (M,) bool points of ``epoch`` with the surface segments that
     stand where a changed surface of the ``other`` epoch stood (module docstring): of a
     segment's pixels that land, moved by ``other_from_own`` ((4, 4); None: the same camera),
-    on a reading of ``other``'s image within the free-space margin, more than
-    ``params.object_counterpart_share`` land on its ``other_changed`` (M',) bool points, and
-    those make up the share :func:`complete_objects` asks of a segment.  Only ``observed``
-    (M,) bool points are added.  Unchanged when ``params.object_counterparts`` or
+    on the same surface of ``other``'s image (a reading within the free-space margin, the
+    cells' normals within ``object_fold_deg``), more than ``params.object_counterpart_share``
+    land on its ``other_changed`` (M',) bool points more than the pose window inside their
+    outline, and those make up the share :func:`complete_objects` asks of a segment.  Only
+    ``observed`` (M,) bool points are added.  Unchanged when ``params.object_counterparts`` or
     ``params.object_completion`` is off or nothing of ``other`` changed."""
     if not (params.object_counterparts and params.object_completion) or \
             not other_changed.any():
         return changed
-    segment, point, pixel, size, per_point = _segment_pixels(epoch, params)
+    segment, point, size, per_point, image = _segment_pixels(epoch, params)
     cp = other.cloud_params or CloudParams()
-    window = free_space_views(other, params)[2]
-    target, z = pixel_targets(epoch.depth, epoch.pixel_voxel, epoch.intrinsics, other_from_own,
-                              window, (cp.min_depth_m, cp.max_depth_m))
-    target, z = target[pixel], z[pixel]
-    lands = np.flatnonzero(target >= 0)
-    reading = other.depth.ravel()[target[lands]] * 0.001
-    margin = params.free_space_margin_m + params.free_space_margin_per_m2 * z[lands] ** 2
-    lands = lands[(reading > 0) & (np.abs(reading - z[lands]) <= margin)]
-    # the same surface: at the same place and facing the same way (within object_fold_deg);
-    # an object's foot lies within the margin of the table beside it, but faces another way
-    own_n, other_n = (_cell_normals(e, params) for e in (epoch, other))
-    width = epoch.depth.shape[1]
-    n_own = own_n[pixel[lands] // width // params.object_cell_px,
-                  pixel[lands] % width // params.object_cell_px]
-    if other_from_own is not None:
-        n_own = n_own @ np.asarray(other_from_own, dtype=np.float64)[:3, :3].T
-    n_other = other_n[target[lands] // width // params.object_cell_px,
-                      target[lands] % width // params.object_cell_px]
-    facing = np.sum(n_own * n_other, axis=1) >= math.cos(math.radians(params.object_fold_deg))
-    lands = lands[facing]
-    # on the other's changed pixels less a band of the pose window along their outline: a
-    # changed object's foot, claimed with it, is table beside it
-    pv = other.pixel_voxel.ravel()
-    changed_px = np.zeros(pv.shape, np.uint8)
-    changed_px[pv >= 0] = other_changed[pv[pv >= 0]]
-    inner = ndimage.minimum_filter(changed_px.reshape(other.pixel_voxel.shape),
-                                   size=2 * params.free_space_pose_radius_px + 1).ravel()
-    on_changed = lands[inner[target[lands]] > 0]
-    same = np.bincount(segment[lands], minlength=len(size))
-    found = np.bincount(segment[on_changed], minlength=len(size))
+    T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
+    intr = epoch.intrinsics
+    same, found = _counterparts_kernel(
+        image, len(size), readonly_view(np.ascontiguousarray(epoch.depth)),
+        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), intr.fx, intr.fy,
+        intr.cx, intr.cy, free_space_views(other, params)[2], float(cp.min_depth_m),
+        float(cp.max_depth_m), readonly_view(np.ascontiguousarray(other.depth)),
+        readonly_view(np.ascontiguousarray(other.pixel_voxel, dtype=np.int32)),
+        np.ascontiguousarray(other_changed, dtype=np.bool_),
+        params.free_space_pose_radius_px, _cell_normals(epoch, params),
+        _cell_normals(other, params), params.object_cell_px, params.free_space_margin_m,
+        params.free_space_margin_per_m2, math.cos(math.radians(params.object_fold_deg)),
+        _COUNTERPART_STEP)
     claimed = (found > params.object_counterpart_share * same) & \
-        _claim(epoch, found, size, params)
+        _claim(epoch, found * _COUNTERPART_STEP ** 2, size, params)
+    if not claimed.any():
+        return changed
     return changed | (observed & _joined(claimed, segment, point, per_point, epoch.n_points))
