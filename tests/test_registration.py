@@ -418,6 +418,28 @@ def test_a_weak_slide_is_searched_again_at_the_end():
         assert metres > 0.1 and "x" in got.weak
 
 
+_STATION_FELL_OFF = (10003, "one_moved", (0.15, 6.0, 79566))
+
+
+def test_a_coarse_end_that_is_no_pose_of_the_view_restarts():
+    """From the initial pose, 15 cm / 6 deg from the truth, the coarsest level's ICP turns
+    right but slides 27 cm off, to a pose where more cells are seen through or unpaired than
+    paired (score < 0). The restarts around the initial pose (10 cm along, 5 deg about each
+    axis) reach the truth from 3 of 12 starts; without them the check ends `not_at_station`
+    with a fitness under 0.1."""
+    metres, degrees, got = _station_error(_STATION_FELL_OFF)
+    assert metres < 0.005 and degrees < 0.1 and got.fitness > 0.5
+    metres, _degrees, got = _station_error(
+        _STATION_FELL_OFF, RegistrationParams(restart_step_m=0.0, restart_step_deg=0.0))
+    assert metres > 0.2 and got.fitness < 0.1
+    # a right coarse end (score > 0) never restarts: the same estimate with or without
+    _, _, with_ = _station_error(_STATION_ONE_MOVED)
+    _, _, without = _station_error(_STATION_ONE_MOVED,
+                                   RegistrationParams(restart_step_m=0.0, restart_step_deg=0.0))
+    np.testing.assert_array_equal(with_.T_ref_from_cur, without.T_ref_from_cur)
+    assert with_.iterations == without.iterations
+
+
 def test_slide_peaks_lie_on_the_weak_line_best_first():
     """From that wrong estimate, the starts slide_peaks gives lie on the line of its least
     constrained translation, 1 cm steps from it, not at it, best first; the best is within a
@@ -566,13 +588,16 @@ def test_bad_input_is_refused_with_typed_errors(office_pair):
     for name in ("table_outline_holes", "table_static_share", "fine_search_step_m",
                  "fine_search_reach_m", "fine_search_ratio", "slide_support_share",
                  "slide_contested_share", "final_search_step_m", "final_search_reach_m",
-                 "final_search_margin"):
+                 "final_search_margin", "restart_step_m"):
         for bad in (-0.1, 1.5, "0.02", float("nan")):
             with pytest.raises(InputError, match=name):
                 RegistrationParams(**{name: bad})
     for bad in (0, 21, 2.5, "2"):
         with pytest.raises(InputError, match="final_search_starts"):
             RegistrationParams(final_search_starts=bad)
+    for bad in (-1.0, 46.0, "5"):
+        with pytest.raises(InputError, match="restart_step_deg"):
+            RegistrationParams(restart_step_deg=bad)
 
 
 # --------------------------------------------------------------------------- table-plane starts

@@ -28,6 +28,7 @@ from .icp import Pairs, icp_level, weak_names
 from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
+from .rigid import rpy_deg_to_rotation
 from .table_top import (
     TablePlane,
     in_plane_names,
@@ -100,6 +101,11 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             scores = score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
             if scores[1] > scores[0]:  # the narrow cut wins ties
                 T, n_it, converged, lam_n, vec, A = wide
+        if li == 0 and (params.restart_step_m > 0 or params.restart_step_deg > 0):
+            restarted = _restart(rl, cl, start, T, params, min_cos, pairs)
+            if restarted is not None:
+                T, n_it, converged, lam_n, vec, A = restarted
+                iterations += n_it
         if li == 0 and (params.table_starts > 0 or params.trim_rounds > 0):
             planes = table_planes(ref_levels, cur_levels, params)
             if planes is not None and params.table_starts > 0:
@@ -147,6 +153,37 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     fit, rmse, n_pairs, n_cells, through, behind = judged
     return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
                         (time.perf_counter() - t0) * 1e3, through, behind)
+
+
+def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
+             params: RegistrationParams, min_cos: float, pairs: Pairs):
+    """The coarsest level's ICP (:func:`icp_level`'s tuple) from the best of ``start`` moved
+    by ``restart_step_m`` along and turned by ``restart_step_deg`` about each axis of the
+    current camera, when ``T`` (ICP's end from ``start``) scores no more than 0 (as many of
+    its cells seen through or unpaired as paired: not a pose of this view) and that best ends
+    scoring higher; None otherwise.  Every restart's iterations are counted."""
+    if score_poses(rl, cl, [T], params, min_cos, pairs)[0] > 0:
+        return None
+    starts = []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            if params.restart_step_m > 0:
+                M = np.eye(4)
+                M[axis, 3] = sign * params.restart_step_m
+                starts.append(start @ M)
+            if params.restart_step_deg > 0:
+                angles = [0.0, 0.0, 0.0]
+                angles[axis] = sign * params.restart_step_deg
+                M = np.eye(4)
+                M[:3, :3] = rpy_deg_to_rotation(*angles)
+                starts.append(start @ M)
+    ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs) for st in starts]
+    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs)
+    best = int(np.argmax(scores))
+    if best == 0:
+        return None
+    end = ends[best - 1]
+    return (end[0], sum(e[1] for e in ends), *end[2:])
 
 
 def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
