@@ -160,8 +160,9 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
     """The coarsest level's ICP (:func:`icp_level`'s tuple) from the best of ``start`` moved
     by ``restart_step_m`` along and turned by ``restart_step_deg`` about each axis of the
     current camera, when ``T`` (ICP's end from ``start``) scores no more than 0 (as many of
-    its cells seen through or unpaired as paired: not a pose of this view) and that best ends
-    scoring higher; None otherwise.  Every restart's iterations are counted."""
+    its cells seen through or unpaired as paired: not a pose of this view) and that best
+    scores more than ``restart_min_score`` of the two levels' cells with a normal (a pose
+    that fits); None otherwise.  Every restart's iterations are counted."""
     if score_poses(rl, cl, [T], params, min_cos, pairs)[0] > 0:
         return None
     starts = []
@@ -178,11 +179,11 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
                 M[:3, :3] = rpy_deg_to_rotation(*angles)
                 starts.append(start @ M)
     ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs) for st in starts]
-    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs)
+    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos, pairs)
     best = int(np.argmax(scores))
-    if best == 0:
+    if scores[best] <= params.restart_min_score * (rl.n_normals + cl.n_normals):
         return None
-    end = ends[best - 1]
+    end = ends[best]
     return (end[0], sum(e[1] for e in ends), *end[2:])
 
 
