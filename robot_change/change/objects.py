@@ -48,8 +48,8 @@ import math
 import numba
 import numpy as np
 
-from robot_change.change.epoch import Epoch
 from robot_change.arrays import readonly_view
+from robot_change.change.epoch import Epoch
 from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import forest_labels, union_sets
@@ -408,6 +408,8 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
             if reading == 0 or abs(reading * 0.001 - z) > margin_m + margin_per_m2 * z * z:
                 continue
             ra, ca, rb, cb = cell[r], cell[c], cell[v], cell[u]
+            if rb >= other_normal.shape[0] or cb >= other_normal.shape[1]:
+                continue  # past the last whole cell (an image not a multiple of f)
             a0, a1, a2 = own_normal[ra, ca, 0], own_normal[ra, ca, 1], own_normal[ra, ca, 2]
             b0, b1, b2 = (other_normal[rb, cb, 0], other_normal[rb, cb, 1],
                           other_normal[rb, cb, 2])
