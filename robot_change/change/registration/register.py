@@ -146,10 +146,14 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if params.final_search_reach_m > 0 and A is not None and any(a in weak for a in AXES[3:]):
         found = _final_search(ref_levels, cur_levels, T, A, params, min_cos, pairs)
         if found is not None:
+            searched = tuple(a for a in weak if a in AXES[3:])
             T, n_it, converged, lam_n, vec, A = found
             iterations += n_it
             weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
                                   params, min_cos, pairs)
+            # where along that line the estimate stands the search's score chose, not the
+            # geometry: it stays said (a wrong end can look pinned once there)
+            weak = tuple(dict.fromkeys(weak + searched))
     fit, rmse, n_pairs, n_cells, through, behind = judged
     return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
                         (time.perf_counter() - t0) * 1e3, through, behind)
