@@ -166,10 +166,12 @@ class ChangeParams:
     object_fold_deg: float = 20.0
     object_cell_px: int = 4
     # With completion, a segment also changed when it stands where a changed surface of the
-    # other epoch stood: of its pixels that land on the other image's readings within the
-    # free-space margin, more than object_counterpart_share land on changed points (a
-    # majority), and those make up object_min_share of it (an object moved by less than its
-    # own size: what the other epoch's completion claimed is its other place).
+    # other epoch stood: of its pixels that land on the same surface of the other image (a
+    # reading within the free-space margin, the cells' normals within object_fold_deg), more
+    # than object_counterpart_share land on changed points at least free_space_pose_radius_px
+    # inside their outline (a majority; an object's foot is table), and those make up
+    # object_min_share of it (an object moved by less than its own size: what the other
+    # epoch's completion claimed is its other place).
     object_counterparts: bool = True
     object_counterpart_share: float = 0.5
     # Run the mirror (what disappeared); False reports appearances only (the paper).
