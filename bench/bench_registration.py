@@ -18,10 +18,10 @@ With ``--station``: table stations as a robot sees them (sim_fixtures.stations: 
 objects on it, the wall behind, the floor; every kind of change, every object moved among them)
 from a camera displaced by 5 / 10 / 15 cm; seeds from 0 were looked at while choosing the fine
 search and the slide support (issue 12), ``--station-seed-base 1000 --station-tag held`` once
-in between, ``2000 ... held2`` once after every choice.  With ``--tabletop``: the real table-top pairs
-(../shared/data/osd-tabletop, the change in view) with the current re-rendered from a camera
-displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its back-projected points moved and splatted into
-a z-buffer (disocclusions stay holes);
+in between, ``2000 ... held2`` once after every choice.  With ``--tabletop``: the real
+table-top pairs (../shared/data/osd-tabletop, the change in view) with the current
+re-rendered from a camera displaced by 5 / 10 / 15 cm (2 / 4 / 6 deg): its back-projected
+points moved and splatted into a z-buffer (disocclusions stay holes);
 ``--tabletop-static`` re-renders the reference instead (no change in view), and
 ``--tabletop-seed-base`` / ``--tabletop-tag`` draw other offsets (base 93000, tag "held": the
 held-out table-top set of issue 12, looked at once after the choice).
@@ -88,8 +88,8 @@ def open3d_icp(ref, cur, intrinsics):
 def small_gicp_align(ref, cur, intrinsics):
     import small_gicp
 
-    target = depth_to_points(ref, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0].astype(np.float64)
-    source = depth_to_points(cur, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0].astype(np.float64)
+    target, source = (depth_to_points(d, intrinsics, min_depth_m=0.4, max_depth_m=5.0)[0]
+                      .astype(np.float64) for d in (ref, cur))
     result = small_gicp.align(target, source, np.eye(4), registration_type="GICP",
                               downsampling_resolution=LEAF, max_correspondence_distance=0.25,
                               num_threads=1)
@@ -101,7 +101,8 @@ METHODS = {"ours": ours, "small_gicp": small_gicp_align, "open3d_icp": open3d_ic
 
 def at_revision(rev: str):
     """``register_depth`` of robot_change/change/registration as it is at git revision ``rev``
-    (the package, or the single registration.py of revisions before the split), loaded under
+    (the package, or the single registration.py of revisions before the split, in change/ or,
+    earlier, in robot_change/), loaded under
     the name ``registration_base`` (its numba caches under a temporary folder, removed at
     exit)."""
     import atexit
@@ -129,7 +130,12 @@ def at_revision(rev: str):
             submodule_search_locations=[str(package)])
     else:
         path = folder / "registration_base.py"
-        path.write_text(git("show", f"{rev}:robot_change/change/registration.py"))
+        single = [name for name in ("robot_change/change/registration.py",
+                                    "robot_change/registration.py")  # before the change/ layer
+                  if git("ls-tree", "--name-only", rev, name).strip()]
+        if not single:
+            raise SystemExit(f"--against {rev}: no registration module at that revision")
+        path.write_text(git("show", f"{rev}:{single[0]}"))
         spec = importlib.util.spec_from_file_location("registration_base", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules["registration_base"] = module  # its dataclasses look themselves up there

@@ -11,6 +11,7 @@ import pytest
 
 from hw.depth import Intrinsics
 from robot_change.change.registration import agreement, icp, pyramid, table_top
+from robot_change.change.registration.rigid import exp_so3
 from robot_change.change.detect import detect_changes
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import (
@@ -182,12 +183,14 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(res[:n], w_res, atol=1e-6)
     np.testing.assert_allclose(jac[:n], w_jac, atol=1e-6)
     np.testing.assert_allclose(zs[:n], w_zs, atol=1e-6)
-    inliers = icp.count_inliers(cl.vertex, cl.normal, rl.vertex, rl.normal,
-                                     T[:3, :3].copy(), T[:3, 3].copy(), rl.fx, rl.fy, rl.cx,
-                                     rl.cy, 0.1, 0.8, 3.0, res, jac, zs)
+    inliers, sq_sum, *_ = agreement.agreement_counts(
+        cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
+        rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, True)
     sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
     quant = 2.85e-3 * w_zs ** 2 / math.sqrt(12.0)
-    assert inliers == int((np.abs(w_res) <= 3.0 * np.hypot(sig, quant)).sum())
+    inl = np.abs(w_res) <= 3.0 * np.hypot(sig, quant)
+    assert inliers == int(inl.sum())
+    assert sq_sum == pytest.approx(float(np.square(w_res[inl]).sum()), rel=1e-9)
     np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
 
 
@@ -208,7 +211,9 @@ def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
     rl = pyramid.levels(ref, INTR, params)[-1]
     cl = pyramid.levels(cur, INTR, params)[-1]
     pairs = icp.Pairs(cl)
-    n = pairs.associate(rl, cl, np.eye(4), 0.1, 0.8)  # identity: many large residuals
+    n = icp._associate(cl.vertex, cl.normal, rl.vertex, rl.normal, np.eye(3), np.zeros(3),
+                       rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8, pairs.res, pairs.jac,
+                       pairs.zs)  # identity: many large residuals
     A, b, wsum, radius = icp._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
                                                   min_cut_m)
     wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
@@ -218,6 +223,82 @@ def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
     np.testing.assert_allclose(b, wb, rtol=1e-9, atol=1e-9)
     assert wsum == pytest.approx(wwsum, rel=1e-12)
     assert radius == pytest.approx(wradius, rel=1e-12)
+
+
+def _exp_so3_twin(w):
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = w / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+
+
+def test_exp_so3_matches_numpy_and_scipy():
+    from scipy.spatial.transform import Rotation
+
+    for w in (np.zeros(3), np.array([1e-13, 0.0, 0.0]), np.array([0.1, -0.2, 0.3]),
+              np.array([0.0, 0.0, math.pi - 1e-3])):
+        got = exp_so3(w)
+        np.testing.assert_allclose(got, _exp_so3_twin(w), atol=1e-14)
+        np.testing.assert_allclose(got, Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+
+
+def _icp_twin(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min_cos, tukey_c,
+              min_cut_m, weak_eigenvalue, iterations, tol_m):
+    """The Gauss-Newton iterations of one level, in NumPy (icp._icp_iterations' twin)."""
+    lam_n, vec, A = np.zeros(6), np.eye(6), None
+    for it in range(iterations):
+        res, jac, zs = _associate_twin(cur_v, cur_n, ref_v, ref_n, T[:3, :3], T[:3, 3], fx, fy,
+                                       cx, cy, max_dist, min_cos)
+        if len(res) < 6:
+            return T, it, False, lam_n, vec, A
+        A, b, wsum, radius = _weighted_system_twin(res, jac, zs, tukey_c, min_cut_m)
+        s = np.array([radius] * 3 + [1.0] * 3)
+        lam, vec = np.linalg.eigh(A / np.outer(s, s))
+        lam_n = lam / max(wsum, 1e-300)
+        strong = lam_n >= weak_eigenvalue
+        step = -(vec[:, strong] @ ((vec[:, strong].T @ (b / s)) / lam[strong])) / s
+        length = math.sqrt(float(step[:3] @ step[:3]) * radius ** 2 + float(step[3:] @ step[3:]))
+        if length > 0.5 * max_dist:
+            step, length = step * (0.5 * max_dist / length), 0.5 * max_dist
+        inc = np.eye(4)
+        inc[:3, :3], inc[:3, 3] = _exp_so3_twin(step[:3]), step[3:]
+        T = inc @ T
+        if length < tol_m:
+            return T, it + 1, True, lam_n, vec, A
+    return T, iterations, False, lam_n, vec, A
+
+
+@pytest.mark.parametrize("level,min_cut_m", [(0, 0.0), (0, 0.2), (1, 0.0), (2, 0.0)])
+def test_icp_iterations_match_numpy(office_pair, level, min_cut_m):
+    """From within each level's basin (4 cm and 2 degrees off at the coarsest level, a
+    quarter of that at the finest), the iterations of each level (with and without a wide
+    cut) end where the NumPy twin's do, after as many steps, with the same system, nearer the
+    truth."""
+    ref, cur, sc = office_pair
+    params = RegistrationParams()
+    rl = pyramid.levels(ref, INTR, params)[level]
+    cl = pyramid.levels(cur, INTR, params)[level]
+    start = np.eye(4)
+    start[:3, :3] = rpy_deg_to_rotation(*np.array([1.0, -1.0, 1.0]) / 2 ** level)
+    start[:3, 3] = np.array([0.02, -0.03, 0.01]) / 2 ** level
+    start = start @ sc.T_ref_from_cur
+    min_cos = math.cos(math.radians(params.max_normal_angle_deg))
+    args = (rl.fx, rl.fy, rl.cx, rl.cy, params.max_distance_m[level], min_cos, params.tukey_c,
+            min_cut_m, params.weak_eigenvalue, params.iterations[level], params.tol_m)
+    pairs = icp.Pairs(cl)
+    T, n_it, converged, lam_n, _vec, A, has_system = icp._icp_iterations(
+        cl.vertex, cl.normal, rl.vertex, rl.normal, start, *args, pairs.res, pairs.jac, pairs.zs)
+    wT, w_it, w_converged, w_lam_n, _w_vec, wA = _icp_twin(cl.vertex, cl.normal, rl.vertex,
+                                                          rl.normal, start, *args)
+    assert (n_it, converged, has_system) == (w_it, w_converged, wA is not None) and n_it > 0
+    np.testing.assert_allclose(T, wT, atol=1e-7)
+    np.testing.assert_allclose(lam_n, w_lam_n, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(A, wA, rtol=1e-6, atol=1e-6)
+    # and it went towards the truth
+    err = np.linalg.norm((T @ np.linalg.inv(sc.T_ref_from_cur))[:3, 3])
+    assert err < np.linalg.norm((start @ np.linalg.inv(sc.T_ref_from_cur))[:3, 3])
 
 
 def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
@@ -236,19 +317,31 @@ def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
             int((rz[ok] < pz[ok] - m).sum()))
 
 
-def test_seen_through_matches_numpy(office_pair):
+def test_agreement_counts_match_numpy(office_pair):
+    """Seen through, compared, on no reading, behind; and, counting pairs, the inliers of
+    the association and their squared residuals."""
     ref, cur, sc = office_pair
     params = RegistrationParams()
     rl = pyramid.levels(ref, INTR, params)[-1]
     cl = pyramid.levels(cur, INTR, params)[-1]
     T = sc.T_ref_from_cur
-    got = agreement.seen_through(cl.vertex, rl.vertex, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
-                                rl.fy, rl.cx, rl.cy, 0.03, 0.004)
-    want = _seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx,
-                              rl.cy, 0.03, 0.004)
-    assert got == want and 0 < got[0] < 0.1 * got[1]  # the added box, and little else
-    assert 0 < got[2] < 0.2 * got[1]  # cells landing on no reading: few at the true pose
-    assert 0 < got[3] < 0.1 * got[1]  # behind what the reference saw nearer: few as well
+    for count_pairs in (False, True):
+        inliers, sq_sum, *got = agreement.agreement_counts(
+            cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(),
+            rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, 3.0, 0.03, 0.004, count_pairs)
+        through, compared, holes, behind = _seen_through_twin(
+            cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.03, 0.004)
+        assert tuple(got) == (through, compared, holes, behind)
+        res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3],
+                                        T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8)
+        inl = np.abs(res) <= 3.0 * depth_sigma(zs)
+        assert inliers == (int(inl.sum()) if count_pairs else 0)
+        assert sq_sum == pytest.approx(float(np.square(res[inl]).sum()) if count_pairs else 0.0,
+                                       rel=1e-9)
+    assert inliers > 0.7 * compared  # at the true pose most cells pair
+    assert 0 < through < 0.1 * compared  # the added box, and little else
+    assert 0 < holes < 0.2 * compared  # cells landing on no reading: few at the true pose
+    assert 0 < behind < 0.1 * compared  # behind what the reference saw nearer: few as well
 
 
 @pytest.mark.parametrize("both_ways,hole_weight", [(False, 0.0), (True, 0.0), (True, 1.0),
@@ -265,10 +358,9 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     tilt = rpy_deg_to_rotation(1.0, -2.0, 3.0)
     rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
     transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
-    pairs = icp.Pairs(cl)
     got = agreement._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
-                               rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways,
-                               hole_weight, pairs.res, pairs.jac, pairs.zs)
+                                 rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways,
+                                 hole_weight)
     for score, rot, t in zip(got, rots, transs):
         inliers = 0
         for own, other, R, tt in ((cl, rl, rot, t), (rl, cl, rot.T, -rot.T @ t))[:1 + both_ways]:
@@ -464,7 +556,7 @@ def test_slide_peaks_lie_on_the_weak_line_best_first():
     rl, cl = (pyramid.levels(d, intrinsics, params)[params.search_level] for d in (ref, cur))
     A = icp.icp_level(rl, cl, T, params, params.search_level, min_cos, icp.Pairs(cl))[5]
     direction = np.linalg.eigh(A[3:, 3:])[1][:, 0]
-    starts = agreement.slide_peaks(rl, cl, T, A, params, min_cos, icp.Pairs(cl))
+    starts = agreement.slide_peaks(rl, cl, T, A, params, min_cos)
     assert 1 <= len(starts) <= params.final_search_starts
     for st in starts:
         np.testing.assert_allclose(st[:3, :3], T[:3, :3])
@@ -472,7 +564,7 @@ def test_slide_peaks_lie_on_the_weak_line_best_first():
         assert abs(step - round(step)) < 1e-6 and round(step) != 0
         np.testing.assert_allclose(st[:3, 3], T[:3, 3] + step * params.final_search_step_m
                                    * direction, atol=1e-9)
-    scores = agreement.score_poses(rl, cl, starts, params, min_cos, icp.Pairs(cl), True,
+    scores = agreement.score_poses(rl, cl, starts, params, min_cos, True,
                                    params.table_hole_weight)
     assert list(scores) == sorted(scores, reverse=True)
     assert abs((truth[:3, 3] - starts[0][:3, 3]) @ direction) < 0.025

@@ -12,51 +12,9 @@ import math
 import numba
 import numpy as np
 
-from .icp import Pairs, count_inliers
 from .params import RegistrationParams
 from .pyramid import Level, depth_sigma
 from .rigid import exp_so3, invert
-
-
-@numba.njit(cache=True, nogil=True)
-def seen_through(cur_v, ref_v, rot, trans, fx, fy, cx, cy, margin_m, margin_per_m2):
-    """Of the current cells (``cur_v`` (h, w, 3)) that, moved by (rot, trans), land in the
-    reference image, how many the reference sees *through* (its reading there is farther than
-    the point by more than ``margin_m + margin_per_m2 * z^2``), how many land on a reading
-    (compared), how many land on no reading (a hole), and how many lie *behind* the reading
-    they land on (nearer than the point by more than the margin: hidden from the reference).
-    Returns (through, compared, holes, behind)."""
-    through = 0
-    compared = 0
-    holes = 0
-    behind = 0
-    for i in range(cur_v.shape[0]):
-        for j in range(cur_v.shape[1]):
-            x = cur_v[i, j, 0]
-            y = cur_v[i, j, 1]
-            z = cur_v[i, j, 2]
-            if z <= 0.0:
-                continue
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            if pz <= 0.0:
-                continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
-                continue
-            rz = ref_v[v, u, 2]
-            if rz <= 0.0:
-                holes += 1
-                continue
-            compared += 1
-            margin = margin_m + margin_per_m2 * pz * pz
-            if rz > pz + margin:
-                through += 1
-            elif rz < pz - margin:
-                behind += 1
-    return through, compared, holes, behind
 
 
 @numba.njit(cache=True, nogil=True)
@@ -128,17 +86,92 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
 
 
 @numba.njit(cache=True, nogil=True)
+def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist,
+                     min_cos, sigmas, margin_m, margin_per_m2, count_pairs):
+    """What the other view says of one view's cells (``own_v``, ``own_n`` (h, w, 3)) moved
+    by (``rot`` (3, 3), ``trans`` (3,) m) into its image (intrinsics fx, fy, cx, cy of
+    ``other_v``, ``other_n``), in one pass.  Of the cells that land inside its image: those
+    that land on no reading (holes); those that land on one (compared), of them those it sees
+    *through* (its reading farther than the point by more than ``margin_m + margin_per_m2 *
+    z^2``) and those that lie *behind* it (its reading nearer by as much: hidden from it).
+    When ``count_pairs``: the inliers, the pairs of
+    :func:`robot_change.change.registration.icp._associate` (within ``max_dist``, normals
+    within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas, and the
+    sum of their squared residuals (m^2); else both 0.
+    Returns (inliers, squared residuals, through, compared, holes, behind)."""
+    inliers = 0
+    sq_sum = 0.0
+    through = 0
+    compared = 0
+    holes = 0
+    behind = 0
+    md2 = max_dist * max_dist
+    h = other_v.shape[0]
+    w = other_v.shape[1]
+    for i in range(own_v.shape[0]):
+        for j in range(own_v.shape[1]):
+            x = own_v[i, j, 0]
+            y = own_v[i, j, 1]
+            z = own_v[i, j, 2]
+            if z <= 0.0:
+                continue
+            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+            if pz <= 0.0:
+                continue
+            u = int(math.floor(fx * px / pz + cx + 0.5))
+            v = int(math.floor(fy * py / pz + cy + 0.5))
+            if u < 0 or v < 0 or u >= w or v >= h:
+                continue
+            rz = other_v[v, u, 2]
+            if rz <= 0.0:
+                holes += 1
+                continue
+            compared += 1
+            margin = margin_m + margin_per_m2 * pz * pz
+            if rz > pz + margin:
+                through += 1
+            elif rz < pz - margin:
+                behind += 1
+            if not count_pairs:
+                continue
+            nx0 = own_n[i, j, 0]
+            ny0 = own_n[i, j, 1]
+            nz0 = own_n[i, j, 2]
+            mx = other_n[v, u, 0]
+            my = other_n[v, u, 1]
+            mz = other_n[v, u, 2]
+            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
+                                                                and mz == 0.0):
+                continue
+            dx = px - other_v[v, u, 0]
+            dy = py - other_v[v, u, 1]
+            dz = pz - rz
+            if dx * dx + dy * dy + dz * dz > md2:
+                continue
+            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+            if nx * mx + ny * my + nz * mz < min_cos:
+                continue
+            r = mx * dx + my * dy + mz * dz
+            if abs(r) <= sigmas * depth_sigma(pz):
+                inliers += 1
+                sq_sum += r * r
+    return inliers, sq_sum, through, compared, holes, behind
+
+
+@numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
-                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight, res, jac, zs):
+                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
-    metres): per pose, the inlier pairs of :func:`count_inliers` (with ``both_ways`` those of
-    the reference's cells moved into the current view too) minus the cells of either view the
-    other sees through, minus ``hole_weight`` times the cells of either view that land on no
-    reading of the other inside its image (:func:`seen_through`, both ways).  A wrong slide
-    along a room fits floor and walls (inliers) but puts surfaces where the other camera saw
-    free space; a wrong turn on a table top puts the table where the other saw none.
-    ``res``, ``jac``, ``zs``: scratch arrays of :func:`_associate`, one row per cell (the two
-    views' levels are the same size).  Returns (n,) float64."""
+    metres): per pose, the current's inlier pairs (:func:`agreement_counts`; with ``both_ways``
+    those of the reference's cells moved into the current view too) minus the cells of either
+    view the other sees through, minus ``hole_weight`` times the cells of either view that
+    land on no reading of the other inside its image.  A wrong slide along a room fits floor
+    and walls (inliers) but puts surfaces where the other camera saw free space; a wrong turn
+    on a table top puts the table where the other saw none.  Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
     for m in range(rots.shape[0]):
@@ -147,22 +180,20 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         rot_t = np.ascontiguousarray(rot.T)
         for a in range(3):
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
-        inliers = count_inliers(cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist,
-                                min_cos, sigmas, res, jac, zs)
-        if both_ways:
-            inliers += count_inliers(ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy,
-                                     max_dist, min_cos, sigmas, res, jac, zs)
-        through_cur, _, holes_cur, _ = seen_through(cur_v, ref_v, rot, t, fx, fy, cx, cy,
-                                                    margin_m, margin_per_m2)
-        through_ref, _, holes_ref, _ = seen_through(ref_v, cur_v, rot_t, back, fx, fy, cx, cy,
-                                                    margin_m, margin_per_m2)
-        out[m] = inliers - through_cur - through_ref - hole_weight * (holes_cur + holes_ref)
+        inliers_cur, _, through_cur, _, holes_cur, _ = agreement_counts(
+            cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, sigmas,
+            margin_m, margin_per_m2, True)
+        inliers_ref, _, through_ref, _, holes_ref, _ = agreement_counts(
+            ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy, max_dist, min_cos, sigmas,
+            margin_m, margin_per_m2, both_ways)
+        out[m] = (inliers_cur + inliers_ref - through_cur - through_ref
+                  - hole_weight * (holes_cur + holes_ref))
     return out
 
 
 def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
-                min_cos: float, pairs: Pairs, both_ways: bool = False,
-                hole_weight: float = 0.0) -> np.ndarray:
+                min_cos: float, both_ways: bool = False, hole_weight: float = 0.0
+                ) -> np.ndarray:
     """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
     search step (of the current's cells; ``both_ways``: of both views' cells), less the cells
     either view sees through and ``hole_weight`` times those landing on no reading."""
@@ -171,7 +202,7 @@ def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: Registrat
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
                         params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                        bool(both_ways), float(hole_weight), pairs.res, pairs.jac, pairs.zs)
+                        bool(both_ways), float(hole_weight))
 
 
 def _slides(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int
@@ -191,7 +222,7 @@ def _slides(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs:
 
 
 def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
-                params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
+                params: RegistrationParams, min_cos: float) -> np.ndarray | None:
     """The best-scoring (:func:`score_poses`) of ``T`` moved along the least constrained
     directions of the normal matrix ``A`` (6, 6): translation offsets along the two weakest
     directions of its translation block, and screw motions along the two weakest directions
@@ -210,12 +241,12 @@ def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
                 inc[:3, :3] = exp_so3(st * d[:3])
                 inc[:3, 3] = st * d[3:]
                 poses.append(inc @ T)
-    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos, pairs)))
+    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos)))
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
 def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
-                params: RegistrationParams, min_cos: float, pairs: Pairs) -> np.ndarray | None:
+                params: RegistrationParams, min_cos: float) -> np.ndarray | None:
     """The best-scoring (:func:`score_poses`) of ``T`` slid along the least constrained
     direction of the translation block of ``A`` (6, 6), ``fine_search_step_m`` apart out to
     ``fine_search_reach_m`` each way; None when ``T`` itself scores best, or when that
@@ -227,12 +258,12 @@ def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     if params.fine_search_reach_m <= 0 or not lam[0] < params.fine_search_ratio * lam[1]:
         return None
     poses = [T] + _slides(T, A, params.fine_search_step_m, params.fine_search_reach_m, 1)
-    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos, pairs)))
+    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos)))
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
 def slide_peaks(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
-                params: RegistrationParams, min_cos: float, pairs: Pairs) -> list[np.ndarray]:
+                params: RegistrationParams, min_cos: float) -> list[np.ndarray]:
     """Up to ``final_search_starts`` poses of ``T`` (4, 4) slid along the least constrained
     translation of ``A`` (6, 6), ``final_search_step_m`` apart out to ``final_search_reach_m``
     each way: the local peaks of the score taken both ways (:func:`score_poses`, with
@@ -240,27 +271,13 @@ def slide_peaks(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     slid = _slides(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
     half = len(slid) // 2
     line_poses = slid[:half] + [T] + slid[half:]  # in order along the line, T in the middle
-    line = score_poses(rl, cl, line_poses, params, min_cos, pairs, True,
+    line = score_poses(rl, cl, line_poses, params, min_cos, True,
                        params.table_hole_weight)
     peaks = [i for i in range(len(line)) if i != half
              and (i == 0 or line[i] >= line[i - 1])
              and (i == len(line) - 1 or line[i] >= line[i + 1])]
     peaks.sort(key=lambda i: -line[i])
     return [line_poses[i] for i in peaks[:params.final_search_starts]]
-
-
-def fitness(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, min_cos: float,
-            pairs: Pairs) -> tuple[float, float, int, int]:
-    """(fitness, rmse_m, inlier pairs, current cells with a normal) at the finest level
-    (``pairs``: that level's scratch arrays)."""
-    n_cells = cl.n_normals
-    if n_cells == 0:
-        return 0.0, 0.0, 0, 0
-    n = pairs.associate(rl, cl, T, params.max_distance_m[-1], min_cos)
-    inl = pairs.inliers(n, params.inlier_sigmas)
-    k = int(np.count_nonzero(inl))
-    rmse = math.sqrt(float(np.square(pairs.res[:n][inl]).mean())) if k else 0.0
-    return k / n_cells, rmse, k, n_cells
 
 
 def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
@@ -285,18 +302,29 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     return fit, contradict
 
 
-def seen_through_shares(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams
-                        ) -> tuple[float, float]:
-    """(the larger of the fractions of each view that the other sees through, the fraction of
-    the current's cells that lie behind a nearer reading of the reference), finest levels."""
-    out = 0.0
-    behind_share = 0.0
-    for own, other, M in ((cl, rl, T), (rl, cl, invert(T))):
-        through, compared, _, behind = seen_through(
-            own.vertex, other.vertex, M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy,
-            other.cx, other.cy, params.seen_through_margin_m, params.seen_through_margin_per_m2)
-        out = max(out, through / compared if compared else 0.0)
+def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams,
+                    min_cos: float) -> tuple[float, float, int, int, float, float]:
+    """What the finest levels (``rl``, ``cl``) say of the estimate ``T`` (4, 4): (fitness, the
+    share of the current's cells with a normal that have an inlier pair (within
+    ``max_distance_m`` of the level and ``inlier_sigmas`` noise sigmas); the inliers' rmse, m;
+    the inliers; the current's cells with a normal; the larger of the fractions of each view
+    that the other sees through; the fraction of the current's cells that lie behind a nearer
+    reading of the reference)."""
+    n_cells = cl.n_normals
+    through_share = 0.0
+    fit = rmse = behind_share = 0.0
+    inliers = 0
+    for own, other, M, pairs in ((cl, rl, T, True), (rl, cl, invert(T), False)):
+        k, sq_sum, through, compared, _, behind = agreement_counts(
+            own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
+            M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, params.max_distance_m[-1],
+            min_cos, params.inlier_sigmas, params.seen_through_margin_m,
+            params.seen_through_margin_per_m2, pairs)
+        through_share = max(through_share, through / compared if compared else 0.0)
         if own is cl:
+            inliers = k
+            fit = k / n_cells if n_cells else 0.0
+            rmse = math.sqrt(sq_sum / k) if k else 0.0
             cells = int(np.count_nonzero(own.vertex[:, :, 2] > 0))
             behind_share = behind / cells if cells else 0.0
-    return out, behind_share
+    return fit, rmse, inliers, n_cells, through_share, behind_share

@@ -85,20 +85,6 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
 
 
 @numba.njit(cache=True, nogil=True)
-def count_inliers(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                  sigmas, res, jac, zs):
-    """The pairs of :func:`_associate` (filling its scratch arrays ``res``, ``jac``, ``zs``)
-    whose residual is within ``sigmas`` depth noise sigmas (:func:`depth_sigma`), counted."""
-    n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                   res, jac, zs)
-    k = 0
-    for m in range(n):
-        if abs(res[m]) <= sigmas * depth_sigma(zs[m]):
-            k += 1
-    return k
-
-
-@numba.njit(cache=True, nogil=True)
 def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
     ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
@@ -123,7 +109,7 @@ def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     b = np.zeros(6)
     wsum = 0.0
     for k in range(n):
-        u = e[k] / max(cut, min_cut_m * math.sqrt(inv_var[k]))
+        u = e[k] / (max(cut, min_cut_m * math.sqrt(inv_var[k])) if min_cut_m > 0.0 else cut)
         if u >= 1.0:
             continue
         wt = (1.0 - u * u) ** 2 * inv_var[k]
@@ -139,23 +125,81 @@ def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     return A, b, wsum, radius
 
 
-def _solve(A: np.ndarray, b: np.ndarray, radius: float, wsum: float, weak_eigenvalue: float
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton step of the 6x6 system, not moving along weak directions.
+@numba.njit(cache=True, nogil=True)
+def _gauss_newton_step(A, b, radius, wsum, weak_eigenvalue):
+    """Gauss-Newton step of the 6x6 system ``A`` step = -``b``, not moving along weak
+    directions.
 
     Rotations are scaled by ``radius`` (m) so all six are metres; eigenvalues per unit weight
-    below ``weak_eigenvalue`` are weak.  Returns (step (6,) rotation vector then translation,
-    eigenvalues (6,) ascending, eigenvectors (6, 6) as columns, scaled)."""
+    (``wsum``) below ``weak_eigenvalue`` are weak.  Returns (step (6,) rotation vector then
+    translation, eigenvalues (6,) ascending per unit weight, eigenvectors (6, 6) as columns,
+    scaled)."""
     s = np.array([radius, radius, radius, 1.0, 1.0, 1.0])
-    As = A / np.outer(s, s)
-    bs = b / s
+    As = np.empty((6, 6))
+    bs = np.empty(6)
+    for a in range(6):
+        bs[a] = b[a] / s[a]
+        for c in range(6):
+            As[a, c] = A[a, c] / (s[a] * s[c])
     lam, vec = np.linalg.eigh(As)
     lam_n = lam / max(wsum, 1e-300)
-    step_s = np.zeros(6)
+    step = np.zeros(6)
     for i in range(6):
         if lam_n[i] >= weak_eigenvalue:
-            step_s -= (vec[:, i] @ bs) / lam[i] * vec[:, i]
-    return step_s / s, lam_n, vec
+            proj = 0.0
+            for a in range(6):
+                proj += vec[a, i] * bs[a]
+            for a in range(6):
+                step[a] -= proj / lam[i] * vec[a, i]
+    for a in range(6):
+        step[a] /= s[a]
+    return step, lam_n, vec
+
+
+@numba.njit(cache=True, nogil=True)
+def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min_cos, tukey_c,
+                    min_cut_m, weak_eigenvalue, iterations, tol_m, res, jac, zs):
+    """Gauss-Newton iterations of one level from ``T`` (4, 4) (T_ref_from_cur): per
+    iteration :func:`_associate`, :func:`_weighted_system` and :func:`_gauss_newton_step`, a
+    trust region (no step moves a point by more than half of ``max_dist``: a first step from
+    many wrong pairs must not throw the estimate out of the basin), the step applied on the
+    left; at most ``iterations``, ending early when fewer than 6 pairs are left or a step
+    moves a point by less than ``tol_m``.  ``res``, ``jac``, ``zs``: scratch arrays of
+    :func:`_associate`.  Returns (T, iterations done, converged, eigenvalues (6,) per unit
+    weight, eigenvectors (6, 6), the last normal matrix (6, 6), whether there was one)."""
+    T = T.copy()
+    lam_n = np.zeros(6)
+    vec = np.eye(6)
+    A = np.zeros((6, 6))
+    has_system = False
+    n_it = 0
+    cap = 0.5 * max_dist
+    rot = np.empty((3, 3))
+    trans = np.empty(3)
+    inc = np.eye(4)
+    for _ in range(iterations):
+        rot[:, :] = T[:3, :3]
+        trans[:] = T[:3, 3]
+        n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
+                       min_cos, res, jac, zs)
+        if n < 6:
+            break
+        A, b, wsum, radius = _weighted_system(res, jac, zs, n, tukey_c, min_cut_m)
+        has_system = True
+        step, lam_n, vec = _gauss_newton_step(A, b, radius, wsum, weak_eigenvalue)
+        length = math.sqrt((step[0] ** 2 + step[1] ** 2 + step[2] ** 2) * radius * radius
+                           + (step[3] ** 2 + step[4] ** 2 + step[5] ** 2))
+        if length > cap:
+            step = step * (cap / length)
+            length = math.sqrt((step[0] ** 2 + step[1] ** 2 + step[2] ** 2) * radius * radius
+                               + (step[3] ** 2 + step[4] ** 2 + step[5] ** 2))
+        n_it += 1
+        inc[:3, :3] = exp_so3(step[:3])
+        inc[:3, 3] = step[3:]
+        T = inc @ T
+        if length < tol_m:
+            return T, n_it, True, lam_n, vec, A, has_system
+    return T, n_it, False, lam_n, vec, A, has_system
 
 
 def weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> tuple[str, ...]:
@@ -179,44 +223,15 @@ class Pairs:
         self.jac = np.empty((size, 6))
         self.zs = np.empty(size)
 
-    def associate(self, rl: Level, cl: Level, T: np.ndarray, max_dist: float, min_cos: float
-                  ) -> int:
-        return _associate(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(),
-                          T[:3, 3].copy(), rl.fx, rl.fy, rl.cx, rl.cy, max_dist, min_cos,
-                          self.res, self.jac, self.zs)
-
-    def inliers(self, n: int, sigmas: float) -> np.ndarray:
-        """(n,) bool: pairs whose residual is within ``sigmas`` depth-noise sigmas."""
-        return np.abs(self.res[:n]) <= sigmas * depth_sigma(self.zs[:n])
-
 
 def icp_level(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, li: int,
               min_cos: float, pairs: Pairs, min_cut_m: float = 0.0):
-    """Gauss-Newton iterations of one level from ``T`` (Tukey's cut at least ``min_cut_m``
+    """:func:`_icp_iterations` of level ``li`` from ``T`` (Tukey's cut at least ``min_cut_m``
     metres); returns (T, iterations, converged, eigenvalues, eigenvectors, last normal matrix
     or None)."""
-    lam_n, vec, A = np.zeros(6), np.eye(6), None
-    n_it = 0
-    for _ in range(params.iterations[li]):
-        n = pairs.associate(rl, cl, T, params.max_distance_m[li], min_cos)
-        if n < 6:
-            break
-        A, b, wsum, radius = _weighted_system(pairs.res, pairs.jac, pairs.zs, n,
-                                              params.tukey_c, min_cut_m)
-        step, lam_n, vec = _solve(A, b, radius, wsum, params.weak_eigenvalue)
-        # a trust region: no step moves a point by more than half the pairing distance (a
-        # first step from many wrong pairs must not throw the estimate out of the basin)
-        length = math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
-                           + float((step[3:] ** 2).sum()))
-        cap = 0.5 * params.max_distance_m[li]
-        if length > cap:
-            step = step * (cap / length)
-        n_it += 1
-        inc = np.eye(4)
-        inc[:3, :3] = exp_so3(step[:3])
-        inc[:3, 3] = step[3:]
-        T = inc @ T
-        if math.sqrt(float((step[:3] ** 2).sum()) * radius * radius
-                     + float((step[3:] ** 2).sum())) < params.tol_m:
-            return T, n_it, True, lam_n, vec, A
-    return T, n_it, False, lam_n, vec, A
+    T, n_it, converged, lam_n, vec, A, has_system = _icp_iterations(
+        cl.vertex, cl.normal, rl.vertex, rl.normal, np.ascontiguousarray(T, dtype=np.float64),
+        rl.fx, rl.fy, rl.cx, rl.cy, params.max_distance_m[li], min_cos, params.tukey_c,
+        min_cut_m, params.weak_eigenvalue, params.iterations[li], params.tol_m, pairs.res,
+        pairs.jac, pairs.zs)
+    return T, n_it, converged, lam_n, vec, (A if has_system else None)

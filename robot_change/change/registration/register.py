@@ -16,10 +16,9 @@ from hw.depth import Intrinsics
 from robot_change.errors import InputError
 
 from .agreement import (
+    final_agreement,
     fine_search,
-    fitness,
     score_poses,
-    seen_through_shares,
     slide_peaks,
     slide_support,
     weak_search,
@@ -98,7 +97,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         if li == 0 and params.wide_cut_m > 0:
             wide = icp_level(rl, cl, start, params, li, min_cos, pairs, params.wide_cut_m)
             iterations += wide[1]
-            scores = score_poses(rl, cl, [T, wide[0]], params, min_cos, pairs)
+            scores = score_poses(rl, cl, [T, wide[0]], params, min_cos)
             if scores[1] > scores[0]:  # the narrow cut wins ties
                 T, n_it, converged, lam_n, vec, A = wide
         if li == 0 and (params.restart_step_m > 0 or params.restart_step_deg > 0):
@@ -115,7 +114,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             iterations += sum(e[1] for e in ends)
             tracks = [e[0] for e in ends]
         if li == params.search_level and params.search_reach_m > 0 and A is not None:
-            moved = weak_search(rl, cl, T, A, params, min_cos, pairs)
+            moved = weak_search(rl, cl, T, A, params, min_cos)
             if moved is not None:
                 T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, moved, params, li,
                                                               min_cos, pairs)
@@ -128,8 +127,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                 iterations += n_it
         if tracks and li == params.search_level:
             # the table-plane tracks against the main one, on the score taken both ways
-            scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs,
-                                 True, params.table_hole_weight)
+            scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, True,
+                                  params.table_hole_weight)
             best = int(np.argmax(scores))  # the first of equal scores: the main track
             if best > 0:
                 T, n_it, converged, lam_n, vec, _ = ends[best - 1]
@@ -142,7 +141,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
                                                           Pairs(cl))
             iterations += n_it
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
-                          min_cos, pairs)
+                          min_cos)
     if params.final_search_reach_m > 0 and A is not None and any(a in weak for a in AXES[3:]):
         found = _final_search(ref_levels, cur_levels, T, A, params, min_cos, pairs)
         if found is not None:
@@ -150,7 +149,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             T, n_it, converged, lam_n, vec, A = found
             iterations += n_it
             weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
-                                  params, min_cos, pairs)
+                                  params, min_cos)
             # where along that line the estimate stands the search's score chose, not the
             # geometry: it stays said (a wrong end can look pinned once there)
             weak = tuple(dict.fromkeys(weak + searched))
@@ -167,7 +166,7 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
     its cells seen through or unpaired as paired: not a pose of this view) and that best
     scores more than ``restart_min_score`` of the two levels' cells with a normal (a pose
     that fits); None otherwise.  Every restart's iterations are counted."""
-    if score_poses(rl, cl, [T], params, min_cos, pairs)[0] > 0:
+    if score_poses(rl, cl, [T], params, min_cos)[0] > 0:
         return None
     starts = []
     for axis in range(3):
@@ -183,7 +182,7 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
                 M[:3, :3] = rpy_deg_to_rotation(*angles)
                 starts.append(start @ M)
     ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs) for st in starts]
-    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos, pairs)
+    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos)
     best = int(np.argmax(scores))
     if scores[best] <= params.restart_min_score * (rl.n_normals + cl.n_normals):
         return None
@@ -193,12 +192,11 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
 
 def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
            vec: np.ndarray, planes: tuple[TablePlane, TablePlane] | None,
-           params: RegistrationParams, min_cos: float, pairs: Pairs):
+           params: RegistrationParams, min_cos: float):
     """What the finest levels (``rl``, ``cl``) say of the estimate ``T``: (weak direction
     names, (fitness, rmse_m, inlier pairs, current cells with a normal, seen-through share,
     behind share))."""
-    fit, rmse, n_pairs, n_cells = fitness(rl, cl, T, params, min_cos, pairs)
-    through, behind = seen_through_shares(rl, cl, T, params)
+    fit, rmse, n_pairs, n_cells, through, behind = final_agreement(rl, cl, T, params, min_cos)
     weak = weak_names(lam_n, vec, params.weak_eigenvalue)
     # on a table top the objects that changed were left out of the estimate and the table's
     # own checks judge what stayed: their contradiction does not contest the slide
@@ -217,13 +215,12 @@ def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarra
     it ends scoring higher than ``T`` both ways by more than ``final_search_margin`` of the
     two views' cells with a normal; None otherwise."""
     mid = params.search_level
-    starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos,
-                         Pairs(cur_levels[mid]))
+    starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos)
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
     ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
     if not ends:
         return None
-    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, pairs, True,
+    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, True,
                          params.table_hole_weight)
     best = int(np.argmax(scores[1:]))
     margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
@@ -240,11 +237,11 @@ def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
     None otherwise."""
     if A is None:
         return None
-    moved = fine_search(rl, cl, T, A, params, min_cos, pairs)
+    moved = fine_search(rl, cl, T, A, params, min_cos)
     if moved is None:
         return None
     end = icp_level(rl, cl, moved, params, li, min_cos, pairs)
-    scores = score_poses(rl, cl, [T, end[0]], params, min_cos, pairs)
+    scores = score_poses(rl, cl, [T, end[0]], params, min_cos)
     return end if scores[1] > scores[0] else None
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 
@@ -48,11 +49,22 @@ def rpy_deg_to_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
                      [-sp, cp * sr, cp * cr]])
 
 
-def exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: (3, 3) rotation of the rotation vector ``w`` (radians)."""
-    theta = float(np.linalg.norm(w))
+@numba.njit(cache=True, nogil=True)
+def exp_so3(w):
+    """Rodrigues: (3, 3) rotation of the rotation vector ``w`` (3,) radians (a kernel, so that
+    the ICP iterations call it too; NumPy twin in tests/test_registration.py)."""
+    out = np.eye(3)
+    theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+        return out
+    kx = w[0] / theta
+    ky = w[1] / theta
+    kz = w[2] / theta
+    K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    s = math.sin(theta)
+    c = 1.0 - math.cos(theta)
+    for a in range(3):
+        for b in range(3):
+            kk = K[a, 0] * K[0, b] + K[a, 1] * K[1, b] + K[a, 2] * K[2, b]
+            out[a, b] += s * K[a, b] + c * kk
+    return out

@@ -31,7 +31,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from .agreement import cell_states, seen_through
+from .agreement import agreement_counts, cell_states
 from .params import RegistrationParams
 from .pyramid import Level
 from .result import AXES
@@ -303,12 +303,13 @@ def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
                  params: RegistrationParams) -> float:
     """Of the cells of ``own`` on its table ``plane`` (within ``_ON_PLANE_M``) that land in the
     image of ``other`` when moved by ``M`` (4, 4) other-from-own, the share that land on no
-    reading there (:func:`seen_through`'s holes)."""
+    reading there (:func:`~.agreement.agreement_counts`' holes)."""
     on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < _ON_PLANE_M)
     table = np.where(on[:, :, None], own.vertex, 0.0)
-    _through, compared, holes, _behind = seen_through(
-        table, other.vertex, M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
-        other.cy, params.seen_through_margin_m, params.seen_through_margin_per_m2)
+    _, _, _, compared, holes, _ = agreement_counts(
+        table, own.normal, other.vertex, other.normal, M[:3, :3].copy(), M[:3, 3].copy(),
+        other.fx, other.fy, other.cx, other.cy, 0.0, 1.0, 0.0, params.seen_through_margin_m,
+        params.seen_through_margin_per_m2, False)
     return holes / (holes + compared) if holes + compared else 0.0
 
 
