@@ -5,7 +5,7 @@ ICP, side by side on the same pairs in one run (docs/benchmarks.md, docs/algorit
         [--sweep SEEDS [--no-fixtures] [--sweep-levels 2,5,10,15] [--sweep-seed-base N]
          [--sweep-tag T]] [--tabletop SEEDS [--tabletop-seed-base N] [--tabletop-tag T]
         [--tabletop-static]] [--station SEEDS [--station-seed-base N] [--station-tag T]]
-        [--methods ours,small_gicp,open3d_icp] [--against REV]
+        [--methods ours,small_gicp,open3d_icp] [--against REV] [--kept-reference]
 
 Pairs: the revisit fixtures (``*_pose_2cm/5cm/10cm``: the reference fused from 3 frames, the
 current one frame, the change in view) and, with ``--sweep``, freshly rendered pairs at 2, 5,
@@ -31,12 +31,15 @@ from ``git show`` beside this one, in the same process), for an A/B of speed and
 median over pairs of the per-pair time ratio ours / base is printed per group.  For ours (and
 base) each group also counts the wrong estimates (beyond 1 cm / 0.5 deg) and the right ones
 that name weak directions (``Registration.weak``): a wrong pose should say so.
+``--kept-reference`` times a check as the daemon makes it: the station's reference keeps its
+pyramid (``register_depth(..., keep=)``), so only the current's is built per call.
 Needs the ``bench`` extra (``pip install -e '.[bench]'``).  A benchmark, never a test.
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
@@ -66,8 +69,8 @@ def _cloud(depth, intrinsics):
     return pc.voxel_down_sample(LEAF)
 
 
-def ours(ref, cur, intrinsics):
-    got = register_depth(ref, cur, intrinsics)
+def ours(ref, cur, intrinsics, keep=None):
+    got = register_depth(ref, cur, intrinsics, keep=keep)
     return got.T_ref_from_cur, got.weak
 
 
@@ -107,6 +110,7 @@ def at_revision(rev: str):
     exit)."""
     import atexit
     import importlib.util
+    import inspect
     import shutil
     import subprocess
     import tempfile
@@ -141,9 +145,14 @@ def at_revision(rev: str):
     sys.modules["registration_base"] = module  # its dataclasses look themselves up there
     spec.loader.exec_module(module)
 
-    def base(ref, cur, intrinsics):
-        got = module.register_depth(ref, cur, intrinsics)
-        return got.T_ref_from_cur, got.weak
+    if "keep" in inspect.signature(module.register_depth).parameters:
+        def base(ref, cur, intrinsics, keep=None):
+            got = module.register_depth(ref, cur, intrinsics, keep=keep)
+            return got.T_ref_from_cur, got.weak
+    else:  # before the reference's pyramid could be kept
+        def base(ref, cur, intrinsics):
+            got = module.register_depth(ref, cur, intrinsics)
+            return got.T_ref_from_cur, got.weak
 
     return base
 
@@ -266,6 +275,11 @@ def main(argv=None):
                          "threads and caches in between)")
     ap.add_argument("--against", metavar="REV",
                     help="add method base: the registration at this git revision (A/B)")
+    ap.add_argument("--kept-reference", action="store_true",
+                    help="methods that can keep the reference's pyramid between calls (ours, "
+                         "base where its revision could) keep it between the runs of a pair, "
+                         "built in an untimed first call: what a check pays in the daemon, "
+                         "whose station reference keeps it")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     methods = {}
@@ -284,15 +298,20 @@ def main(argv=None):
          if args.station else [])
     for fn in methods.values():  # compile / load every library once
         fn(pairs[0][1], pairs[0][2], pairs[0][4])
+    keeps = [m for m, fn in methods.items()
+             if args.kept_reference and "keep" in inspect.signature(fn).parameters]
     rows = []
     for name, ref, cur, truth, intr in pairs:
         times = {m: [] for m in methods}
         est = {}
+        kw = {m: {"keep": {}} if m in keeps else {} for m in methods}
+        for m in keeps:
+            methods[m](ref, cur, intr, **kw[m])  # builds the kept pyramid, untimed
         for run in range(args.runs):
             order = list(methods) if run % 2 == 0 else list(methods)[::-1]
             for m in order:
                 t0 = time.perf_counter()
-                est[m] = methods[m](ref, cur, intr)
+                est[m] = methods[m](ref, cur, intr, **kw[m])
                 times[m].append((time.perf_counter() - t0) * 1e3)
         row = {"pair": name}
         for m in methods:

@@ -358,9 +358,16 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     tilt = rpy_deg_to_rotation(1.0, -2.0, 3.0)
     rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
     transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
-    got = agreement._pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx,
-                                 rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways,
-                                 hole_weight)
+    args = (cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy, rl.cx,
+            rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways, hole_weight)
+    got = agreement._pose_scores(*args, False)
+    # pruned (for the best alone): the same first best; a pose is either scored as it was
+    # or -inf, and then below the best
+    pruned = agreement._pose_scores(*args, True)
+    assert np.argmax(pruned) == np.argmax(got)
+    kept = np.isfinite(pruned)
+    np.testing.assert_array_equal(pruned[kept], got[kept])
+    assert (got[~kept] < got.max()).all() and (kept.all() if both_ways else not kept.all())
     for score, rot, t in zip(got, rots, transs):
         inliers = 0
         for own, other, R, tt in ((cl, rl, rot, t), (rl, cl, rot.T, -rot.T @ t))[:1 + both_ways]:

@@ -164,45 +164,63 @@ def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy,
 
 @numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
-                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight):
+                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight, prune):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
     metres): per pose, the current's inlier pairs (:func:`agreement_counts`; with ``both_ways``
     those of the reference's cells moved into the current view too) minus the cells of either
     view the other sees through, minus ``hole_weight`` times the cells of either view that
     land on no reading of the other inside its image.  A wrong slide along a room fits floor
     and walls (inliers) but puts surfaces where the other camera saw free space; a wrong turn
-    on a table top puts the table where the other saw none.  Returns (n,) float64."""
+    on a table top puts the table where the other saw none.
+
+    With ``prune`` (and not ``both_ways``), for a caller that wants the best pose alone: the
+    reference's side only subtracts, so a pose whose current side already scores below the
+    best so far is not counted further and scores -inf (the first best pose is the same).
+    Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
+    best = -np.inf
     for m in range(rots.shape[0]):
         rot = rots[m]
         t = transs[m]
-        rot_t = np.ascontiguousarray(rot.T)
-        for a in range(3):
-            back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers_cur, _, through_cur, _, holes_cur, _ = agreement_counts(
             cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, sigmas,
             margin_m, margin_per_m2, True)
+        if prune and not both_ways and (
+                inliers_cur - through_cur - hole_weight * holes_cur < best):
+            out[m] = -np.inf
+            continue
+        rot_t = np.ascontiguousarray(rot.T)
+        for a in range(3):
+            back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers_ref, _, through_ref, _, holes_ref, _ = agreement_counts(
             ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy, max_dist, min_cos, sigmas,
             margin_m, margin_per_m2, both_ways)
         out[m] = (inliers_cur + inliers_ref - through_cur - through_ref
                   - hole_weight * (holes_cur + holes_ref))
+        best = max(best, out[m])
     return out
 
 
 def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
-                min_cos: float, both_ways: bool = False, hole_weight: float = 0.0
-                ) -> np.ndarray:
+                min_cos: float, both_ways: bool = False, hole_weight: float = 0.0, *,
+                prune: bool = False) -> np.ndarray:
     """(n,) :func:`_pose_scores` of the (4, 4) ``poses`` at one level: inliers within one
     search step (of the current's cells; ``both_ways``: of both views' cells), less the cells
-    either view sees through and ``hole_weight`` times those landing on no reading."""
+    either view sees through and ``hole_weight`` times those landing on no reading
+    (``prune``: -inf for poses that cannot be the best)."""
     rots = np.array([T[:3, :3] for T in poses])
     transs = np.array([T[:3, 3] for T in poses])
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
                         params.seen_through_margin_m, params.seen_through_margin_per_m2,
-                        bool(both_ways), float(hole_weight))
+                        bool(both_ways), float(hole_weight), bool(prune))
+
+
+def best_pose(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
+              min_cos: float) -> int:
+    """The index of the first best-scoring of ``poses`` (:func:`score_poses`, one way)."""
+    return int(np.argmax(score_poses(rl, cl, poses, params, min_cos, prune=True)))
 
 
 def _slides(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int
@@ -241,7 +259,7 @@ def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
                 inc[:3, :3] = exp_so3(st * d[:3])
                 inc[:3, 3] = st * d[3:]
                 poses.append(inc @ T)
-    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos)))
+    best = best_pose(rl, cl, poses, params, min_cos)
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 
@@ -258,7 +276,7 @@ def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     if params.fine_search_reach_m <= 0 or not lam[0] < params.fine_search_ratio * lam[1]:
         return None
     poses = [T] + _slides(T, A, params.fine_search_step_m, params.fine_search_reach_m, 1)
-    best = int(np.argmax(score_poses(rl, cl, poses, params, min_cos)))
+    best = best_pose(rl, cl, poses, params, min_cos)
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
 

@@ -16,6 +16,7 @@ from hw.depth import Intrinsics
 from robot_change.errors import InputError
 
 from .agreement import (
+    best_pose,
     final_agreement,
     fine_search,
     score_poses,
@@ -97,8 +98,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         if li == 0 and params.wide_cut_m > 0:
             wide = icp_level(rl, cl, start, params, li, min_cos, pairs, params.wide_cut_m)
             iterations += wide[1]
-            scores = score_poses(rl, cl, [T, wide[0]], params, min_cos)
-            if scores[1] > scores[0]:  # the narrow cut wins ties
+            if best_pose(rl, cl, [T, wide[0]], params, min_cos) == 1:  # narrow wins ties
                 T, n_it, converged, lam_n, vec, A = wide
         if li == 0 and (params.restart_step_m > 0 or params.restart_step_deg > 0):
             restarted = _restart(rl, cl, start, T, params, min_cos, pairs)
@@ -241,8 +241,7 @@ def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
     if moved is None:
         return None
     end = icp_level(rl, cl, moved, params, li, min_cos, pairs)
-    scores = score_poses(rl, cl, [T, end[0]], params, min_cos)
-    return end if scores[1] > scores[0] else None
+    return end if best_pose(rl, cl, [T, end[0]], params, min_cos) == 1 else None
 
 
 def _unsupported_slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 
 import numba
 import numpy as np
@@ -41,6 +42,19 @@ from .rigid import invert
 _ON_PLANE_M = 0.01
 #: :func:`~.agreement.cell_states` judges every cell with this direction and 0 (any normal).
 _EVERY_CELL = np.zeros(3)
+
+
+#: :func:`_dominant_plane` of each level still alive: a station's reference keeps its pyramid
+#: between checks (``register_depth(..., keep=)``), and its plane with it.
+_PLANES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _kept_dominant_plane(level: Level) -> tuple[np.ndarray, float, float]:
+    """:func:`_dominant_plane` of ``level``, made once per level object."""
+    out = _PLANES.get(level)
+    if out is None:
+        out = _PLANES[level] = _dominant_plane(level)
+    return out
 
 
 def _dominant_plane(level: Level, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
@@ -155,7 +169,7 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
     revisit displaced sideways sees less of the table and more of what lies beyond it."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
-        n, d, frac = _dominant_plane(level)
+        n, d, frac = _kept_dominant_plane(level)
         if frac == 0.0 or (not planes and frac < params.table_plane_fraction):
             return None
         if planes and float(n @ planes[0].frame[:3, 2]) < math.cos(
