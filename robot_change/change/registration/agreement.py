@@ -86,19 +86,12 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
 
 
 @numba.njit(cache=True, nogil=True)
-def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist,
-                     min_cos, sigmas, margin_m, margin_per_m2, count_pairs):
-    """What the other view says of one view's cells (``own_v``, ``own_n`` (h, w, 3)) moved
-    by (``rot`` (3, 3), ``trans`` (3,) m) into its image (intrinsics fx, fy, cx, cy of
-    ``other_v``, ``other_n``), in one pass.  Of the cells that land inside its image: those
-    that land on no reading (holes); those that land on one (compared), of them those it sees
-    *through* (its reading farther than the point by more than ``margin_m + margin_per_m2 *
-    z^2``) and those that lie *behind* it (its reading nearer by as much: hidden from it).
-    When ``count_pairs``: the inliers, the pairs of
-    :func:`robot_change.change.registration.icp._associate` (within ``max_dist``, normals
-    within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas, and the
-    sum of their squared residuals (m^2); else both 0.
-    Returns (inliers, squared residuals, through, compared, holes, behind)."""
+def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
+                  sigmas, margin_m, margin_per_m2, count_pairs, stop_below, pairable_after):
+    """:func:`agreement_counts`, given up after a row ``i`` where the inliers less the cells
+    seen through, plus ``pairable_after[i]`` (the view's cells with a normal in the rows
+    after it: the most inliers still to come), fall below ``stop_below`` (-inf: never).
+    Returns agreement_counts' tuple and whether the pass went to the end."""
     inliers = 0
     sq_sum = 0.0
     through = 0
@@ -159,6 +152,28 @@ def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy,
             if abs(r) <= sigmas * depth_sigma(pz):
                 inliers += 1
                 sq_sum += r * r
+        if inliers - through + pairable_after[i] < stop_below:
+            return inliers, sq_sum, through, compared, holes, behind, False
+    return inliers, sq_sum, through, compared, holes, behind, True
+
+
+@numba.njit(cache=True, nogil=True)
+def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist,
+                     min_cos, sigmas, margin_m, margin_per_m2, count_pairs):
+    """What the other view says of one view's cells (``own_v``, ``own_n`` (h, w, 3)) moved
+    by (``rot`` (3, 3), ``trans`` (3,) m) into its image (intrinsics fx, fy, cx, cy of
+    ``other_v``, ``other_n``), in one pass.  Of the cells that land inside its image: those
+    that land on no reading (holes); those that land on one (compared), of them those it sees
+    *through* (its reading farther than the point by more than ``margin_m + margin_per_m2 *
+    z^2``) and those that lie *behind* it (its reading nearer by as much: hidden from it).
+    When ``count_pairs``: the inliers, the pairs of
+    :func:`robot_change.change.registration.icp._associate` (within ``max_dist``, normals
+    within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas, and the
+    sum of their squared residuals (m^2); else both 0.
+    Returns (inliers, squared residuals, through, compared, holes, behind)."""
+    inliers, sq_sum, through, compared, holes, behind, _ = _counts_until(
+        own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos, sigmas,
+        margin_m, margin_per_m2, count_pairs, -np.inf, np.zeros(own_v.shape[0], np.int64))
     return inliers, sq_sum, through, compared, holes, behind
 
 
@@ -174,20 +189,27 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
     on a table top puts the table where the other saw none.
 
     With ``prune`` (and not ``both_ways``), for a caller that wants the best pose alone: the
-    reference's side only subtracts, so a pose whose current side already scores below the
-    best so far is not counted further and scores -inf (the first best pose is the same).
+    reference's side only subtracts, so a pose whose current side, with every cell still to
+    come counted as an inlier, already scores below the best so far is not counted further
+    and scores -inf (the first best pose is the same).
     Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
     best = -np.inf
+    prune = prune and not both_ways
+    pairable_after = np.zeros(cur_v.shape[0], np.int64)  # cells with a normal below row i
+    for i in range(cur_v.shape[0] - 2, -1, -1):
+        pairable_after[i] = pairable_after[i + 1]
+        for j in range(cur_v.shape[1]):
+            if cur_n[i + 1, j, 0] != 0.0 or cur_n[i + 1, j, 1] != 0.0 or cur_n[i + 1, j, 2] != 0.0:
+                pairable_after[i] += 1
     for m in range(rots.shape[0]):
         rot = rots[m]
         t = transs[m]
-        inliers_cur, _, through_cur, _, holes_cur, _ = agreement_counts(
+        inliers_cur, _, through_cur, _, holes_cur, _, whole = _counts_until(
             cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, sigmas,
-            margin_m, margin_per_m2, True)
-        if prune and not both_ways and (
-                inliers_cur - through_cur - hole_weight * holes_cur < best):
+            margin_m, margin_per_m2, True, best if prune else -np.inf, pairable_after)
+        if prune and (not whole or inliers_cur - through_cur - hole_weight * holes_cur < best):
             out[m] = -np.inf
             continue
         rot_t = np.ascontiguousarray(rot.T)
