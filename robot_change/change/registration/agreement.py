@@ -354,12 +354,12 @@ def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationPar
     through_share = 0.0
     fit = rmse = behind_share = 0.0
     inliers = 0
-    for own, other, M, pairs in ((cl, rl, T, True), (rl, cl, invert(T), False)):
+    for own, other, M, count_pairs in ((cl, rl, T, True), (rl, cl, invert(T), False)):
         k, sq_sum, through, compared, _, behind = agreement_counts(
             own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
             M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, params.max_distance_m[-1],
             min_cos, params.inlier_sigmas, params.seen_through_margin_m,
-            params.seen_through_margin_per_m2, pairs)
+            params.seen_through_margin_per_m2, count_pairs)
         through_share = max(through_share, through / compared if compared else 0.0)
         if own is cl:
             inliers = k

@@ -128,7 +128,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         if tracks and li == params.search_level:
             # the table-plane tracks against the main one, on the score taken both ways
             scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, True,
-                                  params.table_hole_weight)
+                                 params.table_hole_weight)
             best = int(np.argmax(scores))  # the first of equal scores: the main track
             if best > 0:
                 T, n_it, converged, lam_n, vec, _ = ends[best - 1]
