@@ -12,6 +12,7 @@ import math
 import numba
 import numpy as np
 
+from .icp import land, pair
 from .params import RegistrationParams
 from .pyramid import Level, depth_sigma
 from .rigid import exp_so3, invert
@@ -22,8 +23,8 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
                 sigmas, margin_m, margin_per_m2, facing, min_facing):
     """What the reference says of each current cell (``cur_v``, ``cur_n`` (h, w, 3)) moved by
     (rot, trans) and projected into it: 2 (contradicts) when it sees through the cell (its
-    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it as
-    :func:`_associate` does with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
+    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it
+    (:func:`~.icp.pair`) with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
     when it pairs it within them; 0 otherwise (outside its image, on no reading, hidden
     behind a nearer reading, or not paired).  Only the cells whose normal has
     |n . ``facing``| >= ``min_facing`` (``facing`` (3,), current frame) are judged; the
@@ -33,22 +34,14 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
     md2 = max_dist * max_dist
     for i in range(h):
         for j in range(w):
-            x = cur_v[i, j, 0]
-            y = cur_v[i, j, 1]
-            z = cur_v[i, j, 2]
-            if z <= 0.0:
+            if cur_v[i, j, 2] <= 0.0:
                 continue
             if min_facing > 0.0 and abs(cur_n[i, j, 0] * facing[0] + cur_n[i, j, 1] * facing[1]
                                         + cur_n[i, j, 2] * facing[2]) < min_facing:
                 continue
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            if pz <= 0.0:
-                continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= ref_v.shape[1] or v >= ref_v.shape[0]:
+            px, py, pz, u, v = land(cur_v[i, j, 0], cur_v[i, j, 1], cur_v[i, j, 2], rot, trans,
+                                    fx, fy, cx, cy, ref_v.shape[0], ref_v.shape[1])
+            if u < 0:
                 continue
             rz = ref_v[v, u, 2]
             if rz <= 0.0:
@@ -59,29 +52,11 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
                 continue
             if rz < pz - margin:
                 continue
-            nx0 = cur_n[i, j, 0]
-            ny0 = cur_n[i, j, 1]
-            nz0 = cur_n[i, j, 2]
-            mx = ref_n[v, u, 0]
-            my = ref_n[v, u, 1]
-            mz = ref_n[v, u, 2]
-            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
-                                                                and mz == 0.0):
+            paired, r, _, _, _ = pair(cur_n[i, j], ref_v, ref_n, v, u, px, py, pz, rot, md2,
+                                      min_cos)
+            if not paired:
                 continue
-            dx = px - ref_v[v, u, 0]
-            dy = py - ref_v[v, u, 1]
-            dz = pz - ref_v[v, u, 2]
-            if dx * dx + dy * dy + dz * dz > md2:
-                continue
-            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
-            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
-            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
-            if nx * mx + ny * my + nz * mz < min_cos:
-                continue
-            if abs(mx * dx + my * dy + mz * dz) <= sigmas * depth_sigma(pz):
-                out[i, j] = 1
-            else:
-                out[i, j] = 2
+            out[i, j] = 1 if abs(r) <= sigmas * depth_sigma(pz) else 2
     return out
 
 
@@ -103,19 +78,11 @@ def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, ma
     w = other_v.shape[1]
     for i in range(own_v.shape[0]):
         for j in range(own_v.shape[1]):
-            x = own_v[i, j, 0]
-            y = own_v[i, j, 1]
-            z = own_v[i, j, 2]
-            if z <= 0.0:
+            if own_v[i, j, 2] <= 0.0:
                 continue
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            if pz <= 0.0:
-                continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= w or v >= h:
+            px, py, pz, u, v = land(own_v[i, j, 0], own_v[i, j, 1], own_v[i, j, 2], rot, trans,
+                                    fx, fy, cx, cy, h, w)
+            if u < 0:
                 continue
             rz = other_v[v, u, 2]
             if rz <= 0.0:
@@ -129,27 +96,9 @@ def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, ma
                 behind += 1
             if not count_pairs:
                 continue
-            nx0 = own_n[i, j, 0]
-            ny0 = own_n[i, j, 1]
-            nz0 = own_n[i, j, 2]
-            mx = other_n[v, u, 0]
-            my = other_n[v, u, 1]
-            mz = other_n[v, u, 2]
-            if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0
-                                                                and mz == 0.0):
-                continue
-            dx = px - other_v[v, u, 0]
-            dy = py - other_v[v, u, 1]
-            dz = pz - rz
-            if dx * dx + dy * dy + dz * dz > md2:
-                continue
-            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
-            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
-            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
-            if nx * mx + ny * my + nz * mz < min_cos:
-                continue
-            r = mx * dx + my * dy + mz * dz
-            if abs(r) <= sigmas * depth_sigma(pz):
+            paired, r, _, _, _ = pair(own_n[i, j], other_v, other_n, v, u, px, py, pz, rot,
+                                      md2, min_cos)
+            if paired and abs(r) <= sigmas * depth_sigma(pz):
                 inliers += 1
                 sq_sum += r * r
         if inliers - through + pairable_after[i] < stop_below:
@@ -166,10 +115,9 @@ def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy,
     that land on no reading (holes); those that land on one (compared), of them those it sees
     *through* (its reading farther than the point by more than ``margin_m + margin_per_m2 *
     z^2``) and those that lie *behind* it (its reading nearer by as much: hidden from it).
-    When ``count_pairs``: the inliers, the pairs of
-    :func:`robot_change.change.registration.icp._associate` (within ``max_dist``, normals
-    within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas, and the
-    sum of their squared residuals (m^2); else both 0.
+    When ``count_pairs``: the inliers, the pairs (:func:`~.icp.pair`: within ``max_dist``,
+    normals within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas,
+    and the sum of their squared residuals (m^2); else both 0.
     Returns (inliers, squared residuals, through, compared, holes, behind)."""
     inliers, sq_sum, through, compared, holes, behind, _ = _counts_until(
         own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos, sigmas,

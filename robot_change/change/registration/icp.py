@@ -18,21 +18,63 @@ from .result import AXES
 from .rigid import exp_so3
 
 
+@numba.njit(inline="always")
+def land(x, y, z, rot, trans, fx, fy, cx, cy, h, w):
+    """The point (``x``, ``y``, ``z``) m moved by (``rot`` (3, 3), ``trans`` (3,)) and the
+    cell of an (``h``, ``w``) level (intrinsics fx, fy, cx, cy) it lands on: (px, py, pz, u,
+    v); u = v = -1 when it lands behind the camera or outside the level.  Inlined into the
+    kernels that walk the cells (a called helper returning a tuple made them five times
+    slower)."""
+    px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+    py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+    pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+    if pz <= 0.0:
+        return px, py, pz, -1, -1
+    u = int(math.floor(fx * px / pz + cx + 0.5))
+    v = int(math.floor(fy * py / pz + cy + 0.5))
+    if u < 0 or v < 0 or u >= w or v >= h:
+        return px, py, pz, -1, -1
+    return px, py, pz, u, v
+
+
+@numba.njit(inline="always")
+def pair(own_normal, other_v, other_n, v, u, px, py, pz, rot, max_dist2, min_cos):
+    """Whether a cell moved to (``px``, ``py``, ``pz``) m, of normal ``own_normal`` (3,) before
+    the move by ``rot``, pairs with the other level's cell (``v``, ``u``) it lands on: both
+    have a normal, the points are within sqrt(``max_dist2``) m and the normals' cosine is at
+    least ``min_cos``.  Returns (paired, residual n . (p - q) m, the other's normal n)."""
+    nx0 = own_normal[0]
+    ny0 = own_normal[1]
+    nz0 = own_normal[2]
+    mx = other_n[v, u, 0]
+    my = other_n[v, u, 1]
+    mz = other_n[v, u, 2]
+    if (nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0) or (mx == 0.0 and my == 0.0 and mz == 0.0):
+        return False, 0.0, mx, my, mz
+    dx = px - other_v[v, u, 0]
+    dy = py - other_v[v, u, 1]
+    dz = pz - other_v[v, u, 2]
+    if dx * dx + dy * dy + dz * dz > max_dist2:
+        return False, 0.0, mx, my, mz
+    nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
+    ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
+    nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
+    if nx * mx + ny * my + nz * mz < min_cos:
+        return False, 0.0, mx, my, mz
+    return True, mx * dx + my * dy + mz * dz, mx, my, mz
+
+
 @numba.njit(cache=True, nogil=True)
 def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
                res, jac, zs):
     """Projective data association and point-to-plane residuals of one ICP step.
 
     Each current cell with a normal (``cur_v``, ``cur_n`` (h, w, 3)) is moved by (``rot``
-    (3, 3), ``trans`` (3,)), projected with the level's intrinsics into the reference level and
-    paired with the cell it lands on when that has a normal, the two points are within
-    ``max_dist`` and the normals' cosine is at least ``min_cos``.  Fills, per pair k, ``res[k]``
-    = n_ref . (p - q) (metres), ``jac[k]`` = (p x n_ref, n_ref) (derivative of the residual
-    under a left perturbation (rotation vector, translation)) and ``zs[k]`` the depth of p in
-    the reference frame.  Returns the number of pairs.
-
-    (The body is written out, not split into a per-cell helper: numba's call of a helper
-    returning a tuple made this loop five times slower.)
+    (3, 3), ``trans`` (3,)), projected with the level's intrinsics into the reference level
+    (:func:`land`) and paired with the cell it lands on (:func:`pair`).  Fills, per pair k,
+    ``res[k]`` = n_ref . (p - q) (metres), ``jac[k]`` = (p x n_ref, n_ref) (derivative of the
+    residual under a left perturbation (rotation vector, translation)) and ``zs[k]`` the depth
+    of p in the reference frame.  Returns the number of pairs.
     """
     k = 0
     md2 = max_dist * max_dist
@@ -40,39 +82,18 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
     w = ref_v.shape[1]
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
-            nx0 = cur_n[i, j, 0]
-            ny0 = cur_n[i, j, 1]
-            nz0 = cur_n[i, j, 2]
-            if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
+            normal = cur_n[i, j]
+            if normal[0] == 0.0 and normal[1] == 0.0 and normal[2] == 0.0:
                 continue
-            x = cur_v[i, j, 0]
-            y = cur_v[i, j, 1]
-            z = cur_v[i, j, 2]
-            px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-            py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-            pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-            if pz <= 0.0:
+            px, py, pz, u, v = land(cur_v[i, j, 0], cur_v[i, j, 1], cur_v[i, j, 2], rot, trans,
+                                    fx, fy, cx, cy, h, w)
+            if u < 0:
                 continue
-            u = int(math.floor(fx * px / pz + cx + 0.5))
-            v = int(math.floor(fy * py / pz + cy + 0.5))
-            if u < 0 or v < 0 or u >= w or v >= h:
+            paired, r, mx, my, mz = pair(normal, ref_v, ref_n, v, u, px, py, pz, rot, md2,
+                                         min_cos)
+            if not paired:
                 continue
-            mx = ref_n[v, u, 0]
-            my = ref_n[v, u, 1]
-            mz = ref_n[v, u, 2]
-            if mx == 0.0 and my == 0.0 and mz == 0.0:
-                continue
-            dx = px - ref_v[v, u, 0]
-            dy = py - ref_v[v, u, 1]
-            dz = pz - ref_v[v, u, 2]
-            if dx * dx + dy * dy + dz * dz > md2:
-                continue
-            nx = rot[0, 0] * nx0 + rot[0, 1] * ny0 + rot[0, 2] * nz0
-            ny = rot[1, 0] * nx0 + rot[1, 1] * ny0 + rot[1, 2] * nz0
-            nz = rot[2, 0] * nx0 + rot[2, 1] * ny0 + rot[2, 2] * nz0
-            if nx * mx + ny * my + nz * mz < min_cos:
-                continue
-            res[k] = mx * dx + my * dy + mz * dz
+            res[k] = r
             jac[k, 0] = py * mz - pz * my
             jac[k, 1] = pz * mx - px * mz
             jac[k, 2] = px * my - py * mx
