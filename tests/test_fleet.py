@@ -128,6 +128,12 @@ def test_publisher_status_qos1_reports_requests_and_a_clean_goodbye(tmp_path):
 
 def test_reports_wait_in_the_spool_while_no_broker_runs_and_then_go_in_order(tmp_path):
     port = free_port()
+    # the test's subscriber is known to the broker before any report: a persistent session,
+    # so that what the publisher sends the moment the broker is back, before the subscriber
+    # has reconnected, waits for it (a fresh subscriber could miss the first reports)
+    broker = Broker(tmp_path / "broker", port=port).start()
+    seen = Collector(broker, session="test-r2")
+    broker.stop()
     spool = Spool(tmp_path / "s", 1 << 20)
     publisher = Publisher(BrokerSettings(f"mqtt://127.0.0.1:{port}"), "r2", spool,
                           backoff=(0.1, 0.5))
@@ -139,17 +145,16 @@ def test_reports_wait_in_the_spool_while_no_broker_runs_and_then_go_in_order(tmp
             time.sleep(0.02)
         assert len(spool) == 20
         assert "connection refused" in publisher.counts()["last_error"]
-        with Broker(tmp_path / "broker", port=port) as broker:
-            seen = Collector(broker)
+        with broker:  # started again, on the same persistence folder
             seen.wait(lambda c: len(c.of("/checks/")) >= 20, 15, "the 20 spooled reports")
             assert [m[3]["report_id"] for m in seen.of("/checks/")] == ids
             deadline = time.monotonic() + 5
             while len(spool) and time.monotonic() < deadline:
                 time.sleep(0.02)
             assert len(spool) == 0 and publisher.counts()["sent"] == 20
-            seen.close()
     finally:
         publisher.close(1.0)
+        seen.close()
 
 
 class _WatchedSpool(Spool):
