@@ -419,9 +419,10 @@ def test_a_surface_where_the_other_epochs_changed_surface_stood_is_claimed(all_m
         assert claim_counterparts(ep_cur, nothing, observed, ep_ref, t_ref, None,
                                   off) is nothing
     # a segment needs a majority of its pixels at the other's readings on changed points
+    # (and none hidden behind them, the hidden rule off)
     assert not claim_counterparts(ep_cur, nothing, np.ones(ep_cur.n_points, bool), ep_ref,
-                                  t_ref, None, params.replace(object_counterpart_share=1.0)
-                                  ).any()
+                                  t_ref, None, params.replace(object_counterpart_share=1.0,
+                                                              object_hidden_gap_m=0.0)).any()
 
 
 def test_counterparts_raise_recall_where_an_object_moved_by_less_than_its_size(all_moved):
@@ -439,9 +440,45 @@ def test_counterparts_raise_recall_where_an_object_moved_by_less_than_its_size(a
     assert found[True][1] <= found[False][1] + 0.1 * (found[True][0] - found[False][0]), found
 
 
+def _station_pair(seed, change):
+    sc = station_scene(seed, change, None)
+    ref = build_scene(list(sc.reference_frames), intrinsics=sc.intrinsics)
+    cur = build_scene([sc.current], intrinsics=sc.intrinsics)
+    return sc, ref, cur
+
+
+def _found_image(model, index):
+    """(H, W) bool: the pixels of ``model``'s points in ``index`` (a ChangeSet's indices)."""
+    ep = as_epoch(model, "x")
+    hit = np.zeros(ep.n_points + 1, bool)
+    hit[index] = True
+    return hit[ep.pixel_voxel] & (ep.pixel_voxel >= 0)
+
+
+def test_a_place_hidden_behind_the_other_is_claimed_not_what_a_new_object_hides():
+    """Station 10005, every object moved: a cylinder moved 2-6 cm towards the camera hides
+    its old place, which nothing sees through; it is reported gone with the hidden rule and
+    not without.  Station 8008, an object added before a cylinder: the cylinder, hidden
+    behind the new one but of another shape, is not reported gone."""
+    without = ChangeParams(object_hidden_gap_m=0.0)
+    sc, ref, cur = _station_pair(10005, "all_moved")
+    old_place = np.zeros(sc.truth_disappeared.shape, bool)
+    old_place[200:300, 560:] = True
+    old_place &= sc.truth_disappeared & sc.observed_reference
+    assert old_place.sum() > 1000
+    for params, least, most in ((ChangeParams(), 0.8, 1.0), (without, 0.0, 0.2)):
+        found = _found_image(ref, detect_changes(ref, cur, params).disappeared_index)
+        assert least <= (found & old_place).sum() / old_place.sum() <= most
+    sc, ref, cur = _station_pair(8008, "one_added")
+    gone = detect_changes(ref, cur, ChangeParams()).disappeared_index
+    assert len(gone) == len(detect_changes(ref, cur, without).disappeared_index) == 0
+    assert not sc.truth_disappeared.any()
+
+
 def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_range,
                        other_depth, other_pixel_voxel, other_changed, radius, own_normal,
-                       other_normal, f, margin_m, margin_per_m2, cos_fold, step):
+                       other_normal, f, margin_m, margin_per_m2, cos_fold, step, hidden_gap_m,
+                       other_segments, n_other):
     """NumPy twin of ``_counterparts_kernel``: the pixels warped as the free-space check's
     twin does, the other's changed pixels off their outline by a minimum filter (outside the
     image counts as changed: the kernel's window is clipped)."""
@@ -453,8 +490,10 @@ def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_r
     k = np.flatnonzero(take)
     q = target[k]
     reading = other_depth.ravel()[q] * 0.001
-    ok = (other_depth.ravel()[q] > 0) & \
-        (np.abs(reading - z[k]) <= margin_m + margin_per_m2 * z[k] ** 2)
+    gap = z[k] - reading
+    margin = margin_m + margin_per_m2 * z[k] ** 2
+    ok = (other_depth.ravel()[q] > 0) & (np.abs(gap) <= margin)
+    hid = (other_depth.ravel()[q] > 0) & (gap > margin) & (gap <= hidden_gap_m)
     r, c, v, u = rows.ravel()[k], cols.ravel()[k], q // w, q % w
     # a pixel past the other's last whole cell has no normal
     inside = (v // f < other_normal.shape[0]) & (u // f < other_normal.shape[1])
@@ -471,7 +510,12 @@ def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_r
     seg = segments.ravel()[k]
     same = np.bincount(seg[ok], minlength=n_segments)
     found = np.bincount(seg[ok & inner[q]], minlength=n_segments)
-    return same, found
+    hidden = np.bincount(seg[hid], minlength=n_segments)
+    by = other_segments.ravel()[q]
+    take = hid & inner[q] & (by >= 0)
+    hidden_by = np.zeros((n_segments, max(n_other, 1)), np.int64)
+    np.add.at(hidden_by, (seg[take], by[take]), 1)
+    return same, found, hidden, hidden_by
 
 
 @pytest.mark.parametrize("step, moved_by, cell", [(1, None, 4), (2, None, 4), (1, "turn", 4),
@@ -493,17 +537,20 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
     n = int(segments.max()) + 1
     window = free_space_views(other, params)[2]
     args = (segments, n, ep.depth)
+    other_segments = _segment_pixels(other, params)[-1]
     common = (other.depth, other.pixel_voxel.astype(np.int32), other_changed, 3,
               _cell_normals(ep, params), _cell_normals(other, params), cell, 0.03, 0.004,
-              math.cos(math.radians(20.0)), step)
+              math.cos(math.radians(20.0)), step, 0.3, other_segments,
+              int(other_segments.max()) + 1)
     intr = ep.intrinsics
     got = _counterparts_kernel(*args, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
                                intr.cx, intr.cy, window, 0.4, 8.0, *common)
     want = _counterparts_twin(*args, T, intr, window, (0.4, 8.0), *common)
     for g, x in zip(got, want):
         np.testing.assert_array_equal(g, x)
-    same, found = got
+    same, found, hidden, hidden_by = got
     assert (found <= same).all() and same.sum() > 10 * found.sum()
+    assert (hidden_by.sum(axis=1) <= hidden).all()
     assert found.sum() > 0 or moved_by == "roll"  # turned about the axis, the box lands aside
 
 
@@ -513,7 +560,10 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
                                           ("object_completion", "yes"),
                                           ("object_counterparts", 1),
                                           ("object_counterpart_share", -0.1),
-                                          ("object_counterpart_share", 1.5)])
+                                          ("object_counterpart_share", 1.5),
+                                          ("object_hidden_gap_m", -0.1),
+                                          ("object_hidden_share", 1.5),
+                                          ("object_hidden_shape", 0.5)])
 def test_bad_completion_parameters_are_refused(field, value):
     with pytest.raises(InputError, match=field):
         ChangeParams(**{field: value})

@@ -38,7 +38,12 @@ cells' normals agree within ``object_fold_deg``; a segment is claimed when more 
 ``object_counterpart_share`` of its pixels that land on the same surface land on changed
 pixels of the other epoch (its changed pixels less a band of ``free_space_pose_radius_px``
 along their outline: a changed object's foot is claimed with it, and is table), and those make
-up the share a segment needs above.
+up the share a segment needs above.  An object moved towards the camera hides its old place
+behind its new one (moved away: the new behind the old), and nothing of the hidden place is
+seen through: a segment is also claimed when nearly all its landing pixels
+(``object_hidden_share``) lie on or hidden behind the other's changed pixels, and it has the
+shape of the changed segment that hides it (``object_hidden_shape``: an object added before
+another hides that one too, and table pieces at an object's feet hide behind it).
 """
 
 from __future__ import annotations
@@ -378,9 +383,13 @@ def _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
 @numba.njit(cache=True, nogil=True)
 def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx, cy, window,
                          min_m, max_m, other_depth, other_pixel_voxel, other_changed, radius,
-                         own_normal, other_normal, f, margin_m, margin_per_m2, cos_fold, step):
+                         own_normal, other_normal, f, margin_m, margin_per_m2, cos_fold, step,
+                         hidden_gap_m, other_segments, n_other):
     """Per segment: how many of its pixels (of every ``step``-th row and column) land on the
-    same surface of the other image, and how many of those on its changed surface.
+    same surface of the other image, how many of those on its changed surface, how many land
+    hidden behind the other image's reading, and by which of the other's segments
+    (``other_segments`` (H, W) int32, -1: none; ``n_other`` of them) where that reading is a
+    changed surface.
 
     ``segments`` (H, W) int32, each pixel's segment (-1: none); ``own_depth``,
     ``other_depth`` (H, W) uint16 mm; each pixel lands in the other image by
@@ -388,11 +397,14 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
     there).  The same surface: a reading there within ``margin_m + margin_per_m2 z^2`` of the
     pixel's depth z in the other frame, and the two cells' normals (``own_normal``,
     ``other_normal`` (H / f, W / f, 3), 0: none; this one's turned by ``rot``) within
-    ``acos(cos_fold)``.  Its changed surface: every pixel within ``radius`` belongs to a point
+    ``acos(cos_fold)``.  Hidden: the reading nearer than z by more than that margin and by at
+    most ``hidden_gap_m``.  A changed surface: every pixel within ``radius`` belongs to a point
     (``other_pixel_voxel`` (H, W) int32) of ``other_changed`` (M',) bool.  Returns (same,
-    found), (n_segments,) int64 each."""
+    found, hidden) (n_segments,) int64 and hidden_by (n_segments, n_other) int64."""
     same = np.zeros(n_segments, dtype=np.int64)
     found = np.zeros(n_segments, dtype=np.int64)
+    hidden = np.zeros(n_segments, dtype=np.int64)
+    hidden_by = np.zeros((n_segments, max(n_other, 1)), dtype=np.int64)
     h, w = own_depth.shape
     cell = np.arange(max(h, w)) // f  # pixel -> cell, without a division per pixel
     for r in range(0, h, step):
@@ -405,7 +417,19 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
             if v < 0:
                 continue
             reading = other_depth[v, u]
-            if reading == 0 or abs(reading * 0.001 - z) > margin_m + margin_per_m2 * z * z:
+            if reading == 0:
+                continue
+            gap = z - reading * 0.001
+            margin = margin_m + margin_per_m2 * z * z
+            if -gap > margin:
+                continue
+            if gap > margin:
+                if gap <= hidden_gap_m:
+                    hidden[s] += 1
+                    if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
+                        b = other_segments[v, u]
+                        if b >= 0:
+                            hidden_by[s, b] += 1
                 continue
             ra, ca, rb, cb = cell[r], cell[c], cell[v], cell[u]
             if rb >= other_normal.shape[0] or cb >= other_normal.shape[1]:
@@ -423,7 +447,17 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
             same[s] += 1
             if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
                 found[s] += 1
-    return same, found
+    return same, found, hidden, hidden_by
+
+
+def _extents(points: np.ndarray) -> np.ndarray | None:
+    """(2,) the two largest spreads (4 standard deviations, m) of a segment's ``points``
+    (N, 3) along their principal axes (a face's length and width, whatever the frame); None
+    for fewer than 10 points."""
+    if len(points) < 10:
+        return None
+    lam = np.linalg.eigvalsh(np.cov(np.asarray(points, dtype=np.float64).T))
+    return 4.0 * np.sqrt(np.maximum(lam[1:], 1e-12))
 
 
 def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, other: Epoch,
@@ -435,9 +469,14 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     on the same surface of ``other``'s image (a reading within the free-space margin, the
     cells' normals within ``object_fold_deg``), more than ``params.object_counterpart_share``
     land on its ``other_changed`` (M',) bool points more than the pose window inside their
-    outline, and those make up the share :func:`complete_objects` asks of a segment.  Only
-    ``observed`` (M,) bool points are added.  Unchanged when ``params.object_counterparts`` or
-    ``params.object_completion`` is off or nothing of ``other`` changed."""
+    outline, and those make up the share :func:`complete_objects` asks of a segment.  Or,
+    for an object moved towards or away from the camera (one of its places hides the other):
+    more than ``params.object_hidden_share`` of its landing pixels lie on or hidden (up to
+    ``object_hidden_gap_m``) behind changed points, those make up the share, and the segment
+    has the shape of the changed segment that hides it most (:func:`_extents`, within
+    ``object_hidden_shape`` of each other).  Only ``observed`` (M,) bool points are added.
+    Unchanged when ``params.object_counterparts`` or ``params.object_completion`` is off or
+    nothing of ``other`` changed."""
     if not (params.object_counterparts and params.object_completion) or \
             not other_changed.any():
         return changed
@@ -445,7 +484,8 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     cp = other.cloud_params or CloudParams()
     T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
     intr = epoch.intrinsics
-    same, found = _counterparts_kernel(
+    o_segment, o_point, o_size, _, o_image = _segment_pixels(other, params)
+    same, found, hidden, hidden_by = _counterparts_kernel(
         image, len(size), readonly_view(np.ascontiguousarray(epoch.depth)),
         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), intr.fx, intr.fy,
         intr.cx, intr.cy, free_space_views(other, params)[2], float(cp.min_depth_m),
@@ -455,9 +495,23 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
         params.free_space_pose_radius_px, _cell_normals(epoch, params),
         _cell_normals(other, params), params.object_cell_px, params.free_space_margin_m,
         params.free_space_margin_per_m2, math.cos(math.radians(params.object_fold_deg)),
-        _COUNTERPART_STEP)
+        _COUNTERPART_STEP, float(params.object_hidden_gap_m), o_image, len(o_size))
     claimed = (found > params.object_counterpart_share * same) & \
         _claim(epoch, found * _COUNTERPART_STEP ** 2, size, params)
+    # hidden behind its other place: nothing of it still seen unchanged where it stood, and
+    # the shape of what hides it (an object added before another hides it too)
+    hidden_found = hidden_by.sum(axis=1)
+    both = found + hidden_found
+    candidates = (~claimed) & (hidden_found > 0) & \
+        (both > params.object_hidden_share * (same + hidden)) & \
+        _claim(epoch, both * _COUNTERPART_STEP ** 2, size, params)
+    for s in np.flatnonzero(candidates):
+        b = int(np.argmax(hidden_by[s]))
+        own = _extents(epoch.points[point[segment == s]])
+        hiding = _extents(other.points[o_point[o_segment == b]])
+        if own is not None and hiding is not None and \
+                (np.maximum(own / hiding, hiding / own) <= params.object_hidden_shape).all():
+            claimed[s] = True
     if not claimed.any():
         return changed
     return changed | (observed & _joined(claimed, segment, point, per_point, epoch.n_points))
