@@ -110,7 +110,6 @@ def at_revision(rev: str):
     exit)."""
     import atexit
     import importlib.util
-    import inspect
     import shutil
     import subprocess
     import tempfile

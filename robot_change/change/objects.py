@@ -387,9 +387,9 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
                          hidden_gap_m, other_segments, n_other):
     """Per segment: how many of its pixels (of every ``step``-th row and column) land on the
     same surface of the other image, how many of those on its changed surface, how many land
-    hidden behind the other image's reading, and by which of the other's segments
-    (``other_segments`` (H, W) int32, -1: none; ``n_other`` of them) where that reading is a
-    changed surface.
+    hidden behind the other image's reading, and, where that reading is a changed surface of
+    one of the other's segments (``other_segments`` (H, W) int32, -1: none; ``n_other`` of
+    them), the pair of segments.
 
     ``segments`` (H, W) int32, each pixel's segment (-1: none); ``own_depth``,
     ``other_depth`` (H, W) uint16 mm; each pixel lands in the other image by
@@ -400,12 +400,14 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
     ``acos(cos_fold)``.  Hidden: the reading nearer than z by more than that margin and by at
     most ``hidden_gap_m``.  A changed surface: every pixel within ``radius`` belongs to a point
     (``other_pixel_voxel`` (H, W) int32) of ``other_changed`` (M',) bool.  Returns (same,
-    found, hidden) (n_segments,) int64 and hidden_by (n_segments, n_other) int64."""
+    found, hidden) (n_segments,) int64 and the hidden pixels' pairs (K,) int64, each this
+    segment * n_other + the other's segment hiding it, in scan order."""
     same = np.zeros(n_segments, dtype=np.int64)
     found = np.zeros(n_segments, dtype=np.int64)
     hidden = np.zeros(n_segments, dtype=np.int64)
-    hidden_by = np.zeros((n_segments, max(n_other, 1)), dtype=np.int64)
     h, w = own_depth.shape
+    pairs = np.empty(((h + step - 1) // step) * ((w + step - 1) // step), dtype=np.int64)
+    n_pairs = 0
     cell = np.arange(max(h, w)) // f  # pixel -> cell, without a division per pixel
     for r in range(0, h, step):
         for c in range(0, w, step):
@@ -429,7 +431,8 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
                     if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
                         b = other_segments[v, u]
                         if b >= 0:
-                            hidden_by[s, b] += 1
+                            pairs[n_pairs] = s * n_other + b
+                            n_pairs += 1
                 continue
             ra, ca, rb, cb = cell[r], cell[c], cell[v], cell[u]
             if rb >= other_normal.shape[0] or cb >= other_normal.shape[1]:
@@ -447,7 +450,7 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
             same[s] += 1
             if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
                 found[s] += 1
-    return same, found, hidden, hidden_by
+    return same, found, hidden, pairs[:n_pairs]
 
 
 def _extents(points: np.ndarray) -> np.ndarray | None:
@@ -485,7 +488,7 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
     intr = epoch.intrinsics
     o_segment, o_point, o_size, _, o_image = _segment_pixels(other, params)
-    same, found, hidden, hidden_by = _counterparts_kernel(
+    same, found, hidden, hidden_pairs = _counterparts_kernel(
         image, len(size), readonly_view(np.ascontiguousarray(epoch.depth)),
         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), intr.fx, intr.fy,
         intr.cx, intr.cy, free_space_views(other, params)[2], float(cp.min_depth_m),
@@ -500,17 +503,18 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
         _claim(epoch, found * _COUNTERPART_STEP ** 2, size, params)
     # hidden behind its other place: nothing of it still seen unchanged where it stood, and
     # the shape of what hides it (an object added before another hides it too)
-    hidden_found = hidden_by.sum(axis=1)
+    hidden_own, hiding = np.divmod(hidden_pairs, max(len(o_size), 1))
+    hidden_found = np.bincount(hidden_own, minlength=len(size))
     both = found + hidden_found
     candidates = (~claimed) & (hidden_found > 0) & \
         (both > params.object_hidden_share * (same + hidden)) & \
         _claim(epoch, both * _COUNTERPART_STEP ** 2, size, params)
     for s in np.flatnonzero(candidates):
-        b = int(np.argmax(hidden_by[s]))
+        b = int(np.argmax(np.bincount(hiding[hidden_own == s])))  # what hides most of it
         own = _extents(epoch.points[point[segment == s]])
-        hiding = _extents(other.points[o_point[o_segment == b]])
-        if own is not None and hiding is not None and \
-                (np.maximum(own / hiding, hiding / own) <= params.object_hidden_shape).all():
+        front = _extents(other.points[o_point[o_segment == b]])
+        if own is not None and front is not None and \
+                (np.maximum(own / front, front / own) <= params.object_hidden_shape).all():
             claimed[s] = True
     if not claimed.any():
         return changed
