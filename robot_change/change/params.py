@@ -186,6 +186,16 @@ class ChangeParams:
     object_hidden_gap_m: float = 0.3
     object_hidden_share: float = 0.9
     object_hidden_shape: float = 1.5
+    # ... or when it was turned where it stands: more than object_turned_share of its pixels
+    # that land on a reading of the other image land on a surface within the free-space
+    # margin whose normal lies more than object_fold_deg and at most 60 degrees from theirs
+    # (a box turned by 20-45 degrees and moved a few centimetres, of which neither epoch
+    # found more than an edge; a piece of table at the foot of an object that stood there
+    # lands on its face, at 90: stations 8000 and 8001); a majority, chosen before any run,
+    # of every pixel landing on a reading (a sliver of floor at a table's edge lands partly
+    # on its front face: station 8001), on segments of at least 400 pixels (fragments of a
+    # far wall have scattered normals: robot_change.change.objects).  1: off.
+    object_turned_share: float = 0.5
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -239,6 +249,7 @@ class ChangeParams:
         _num("object_hidden_gap_m", self.object_hidden_gap_m, 0.0, 2.0, unit=" metres")
         _num("object_hidden_share", self.object_hidden_share, 0.0, 1.0)
         _num("object_hidden_shape", self.object_hidden_shape, 1.0, 10.0)
+        _num("object_turned_share", self.object_turned_share, 0.0, 1.0)
         _num("object_fold_deg", self.object_fold_deg, 0.0, 180.0, unit=" degrees")
         _int("object_cell_px", self.object_cell_px, 1, 64, unit=" pixels")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)
