@@ -540,7 +540,7 @@ def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_r
     margin = margin_m + margin_per_m2 * z[k] ** 2
     landed = other_depth.ravel()[q] > 0
     ok = landed & (np.abs(gap) <= margin)
-    hid = (other_depth.ravel()[q] > 0) & (gap > margin) & (gap <= hidden_gap_m)
+    hid = landed & (gap > margin) & (gap <= hidden_gap_m)
     r, c, v, u = rows.ravel()[k], cols.ravel()[k], q // w, q % w
     # a pixel past the other's last whole cell has no normal
     inside = (v // f < other_normal.shape[0]) & (u // f < other_normal.shape[1])
