@@ -21,7 +21,6 @@ from robot_change.change.objects import (
     _counterparts_kernel,
     _pixels_kernel,
     _segment_pixels,
-    _segments_kernel,
     claim_counterparts,
     complete_objects,
     surface_segments,
@@ -29,6 +28,7 @@ from robot_change.change.objects import (
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import rpy_deg_to_rotation
 from robot_change.change.registration.pyramid import surface_level
+from robot_change.change.registration.surfaces import cell_segments
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from sim_fixtures import load_scene
@@ -38,7 +38,7 @@ from test_change import _warp_twin
 
 
 def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
-    """NumPy twin of ``_segments_kernel``: fold cells by shifted arrays, joins as a sparse
+    """NumPy twin of ``cell_segments``: fold cells by shifted arrays, joins as a sparse
     graph, components by SciPy, labels renumbered in row-major order of first cells."""
     v = vertex.astype(np.float64)
     n = normal.astype(np.float64)
@@ -182,7 +182,7 @@ def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
     for model in (ref, cur):
         vertex, normal = _cells(model)
         args = (math.cos(math.radians(fold_deg)), 16.0 / fx, 4.0 / fx, 2)
-        got = _segments_kernel(vertex, normal, *args)
+        got = cell_segments(vertex, normal, *args)
         np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
         assert ((got >= 0) & ~np.any(normal != 0, axis=2)).sum() > 100  # rims joined
     # and on noise, where folds, steps and joins fall anywhere
@@ -195,7 +195,7 @@ def test_the_segment_kernel_matches_its_twin(moved, fold_deg):
     normal /= np.linalg.norm(normal, axis=2, keepdims=True)
     normal[rng.random((30, 40)) < 0.2] = 0  # cells without a normal: rims
     args = (math.cos(math.radians(fold_deg)), 0.02, 0.005, 2)
-    got = _segments_kernel(vertex, normal, *args)
+    got = cell_segments(vertex, normal, *args)
     np.testing.assert_array_equal(got, _segments_twin(vertex, normal, *args))
     assert got.max() > 3  # the noise does cut it
     assert ((got >= 0) & ~np.any(normal != 0, axis=2)).any()  # and rims join
@@ -209,7 +209,7 @@ def test_the_pixel_kernel_matches_its_twin(moved):
     args = (intr.fx, intr.fy, intr.cx, intr.cy, 4.0 * f / intr.fx, 1.0 * f / intr.fx, 2)
     for model in (ref, cur):
         vertex, normal = _cells(model)
-        cells = _segments_kernel(vertex, normal, math.cos(math.radians(20.0)),
+        cells = cell_segments(vertex, normal, math.cos(math.radians(20.0)),
                                  4.0 * f / intr.fx, 1.0 * f / intr.fx, 2)
         got = _pixels_kernel(model.depth, model.pixel_voxel, cells, vertex, normal, f, *args)
         np.testing.assert_array_equal(got, _pixels_twin(model.depth, model.pixel_voxel, cells,

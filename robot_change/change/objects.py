@@ -65,8 +65,13 @@ from robot_change.arrays import readonly_view
 from robot_change.change.epoch import Epoch
 from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
-from robot_change.change.regions import forest_labels, union_sets
 from robot_change.change.registration.pyramid import surface_level
+from robot_change.change.registration.surfaces import (
+    SEGMENT_OFF,
+    SEGMENT_SPAN,
+    SEGMENT_STEP,
+    level_segments,
+)
 from robot_change.cloud.chain import CloudParams
 
 #: Counterparts are counted on every second row and column: shares of a segment, a quarter of
@@ -89,120 +94,6 @@ __all__ = [
     "complete_objects",
     "surface_segments",
 ]
-
-
-@numba.njit(cache=True, nogil=True)
-def _pair(vertex, normal, i, j, a, b):
-    """Cells (i, j) and (a, b) with d = p_ij - p_ab: the normals' cosine, the bend
-    (n_ij - n_ab) . d (> 0: convex), |d|^2, and d along each cell's normal."""
-    cos = 0.0
-    bend = 0.0
-    dist2 = 0.0
-    off_ij = 0.0
-    off_ab = 0.0
-    for k in range(3):
-        d = vertex[i, j, k] - vertex[a, b, k]
-        cos += normal[i, j, k] * normal[a, b, k]
-        bend += (normal[i, j, k] - normal[a, b, k]) * d
-        dist2 += d * d
-        off_ij += normal[i, j, k] * d
-        off_ab += normal[a, b, k] * d
-    return cos, bend, dist2, off_ij, off_ab
-
-
-@numba.njit(cache=True, nogil=True)
-def _segments_kernel(vertex, normal, cos_fold, max_step, max_off, span):
-    """Surface segments of a cell grid: ``vertex`` (h, w, 3) float32 m (z = 0: empty) and
-    ``normal`` (h, w, 3) float32 unit normals facing the camera (0: none).  A cell is on an
-    inward fold when the cells ``span`` away on either side, along a row, a column or a
-    diagonal, are concave ((n_a - n_b) . (p_a - p_b) < 0) with a normals' cosine below
-    ``cos_fold`` (and no depth step between them); it joins nothing.  Right and lower
-    neighbours join when both have a normal and are on no fold, they are at most
-    ``max_step * z`` apart and each lies within ``max_off * z`` of the other's tangent plane,
-    and their normals' cosine is at least ``cos_fold`` or the pair is convex.  Returns (h, w)
-    int64 labels 0..C-1 in row-major order of each segment's first cell.  Then a cell with a
-    point but no normal (an object's rim, a thin face), on no fold, takes the label of its
-    first neighbour (left, up, right, down) that has one, is at most ``max_step * z`` away and
-    whose tangent plane it lies within ``max_off * z`` of; -1 for the cells left."""
-    h, w, _ = vertex.shape
-    parent = np.arange(h * w)
-    has = np.zeros((h, w), dtype=np.bool_)
-    for i in range(h):
-        for j in range(w):
-            has[i, j] = normal[i, j, 0] != 0.0 or normal[i, j, 1] != 0.0 or \
-                normal[i, j, 2] != 0.0
-    # a cell on an inward fold joins nothing: along a fold the normals turn from one surface
-    # to the other a few degrees a cell, and neighbour by neighbour would join them
-    fold = np.zeros((h, w), dtype=np.bool_)
-    for i in range(h):
-        for j in range(w):
-            if not has[i, j]:
-                continue
-            for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
-                a0 = i - span * di
-                b0 = j - span * dj
-                a1 = i + span * di
-                b1 = j + span * dj
-                if a0 < 0 or a1 >= h or b0 < 0 or b0 >= w or b1 < 0 or b1 >= w or \
-                        not has[a0, b0] or not has[a1, b1]:
-                    continue
-                cos, bend, dist2, _, _ = _pair(vertex, normal, a0, b0, a1, b1)
-                lim = 2 * span * max_step * vertex[i, j, 2]
-                if cos < cos_fold and bend < 0.0 and dist2 <= lim * lim:
-                    fold[i, j] = True
-                    break
-    for i in range(h):
-        for j in range(w):
-            if fold[i, j]:
-                has[i, j] = False
-    for i in range(h):
-        for j in range(w):
-            if not has[i, j]:
-                continue
-            lim = max_step * vertex[i, j, 2]
-            for di, dj in ((0, 1), (1, 0)):
-                a = i + di
-                b = j + dj
-                if a >= h or b >= w or not has[a, b]:
-                    continue
-                cos, bend, dist2, off_a, off_b = _pair(vertex, normal, i, j, a, b)
-                # one surface: no step along the way nor off either cell's tangent plane
-                # (a box's top edge and the table just behind it are parallel, a step apart)
-                if dist2 > lim * lim or abs(off_a) > max_off * vertex[i, j, 2] or \
-                        abs(off_b) > max_off * vertex[i, j, 2]:
-                    continue
-                if cos >= cos_fold or bend > 0.0:
-                    union_sets(parent, i * w + j, a * w + b)
-    flat = forest_labels(parent)
-    out = np.full((h, w), -1, dtype=np.int64)
-    count = 0
-    remap = np.full(h * w, -1, dtype=np.int64)
-    for i in range(h):
-        for j in range(w):
-            if has[i, j]:
-                lab = flat[i * w + j]
-                if remap[lab] < 0:
-                    remap[lab] = count
-                    count += 1
-                out[i, j] = remap[lab]
-    # a cell with a point but no normal (an object's rim, a thin face) joins the segment of a
-    # neighbour whose tangent plane it lies on (the first of left, up, right, down)
-    rim = out.copy()
-    for i in range(h):
-        for j in range(w):
-            if out[i, j] >= 0 or fold[i, j] or vertex[i, j, 2] <= 0.0:
-                continue
-            for di, dj in ((0, -1), (-1, 0), (0, 1), (1, 0)):
-                a = i + di
-                b = j + dj
-                if a < 0 or b < 0 or a >= h or b >= w or out[a, b] < 0:
-                    continue
-                _, _, dist2, _, off = _pair(vertex, normal, i, j, a, b)
-                lim = max_step * vertex[a, b, 2]
-                if dist2 <= lim * lim and abs(off) <= max_off * vertex[a, b, 2]:
-                    rim[i, j] = out[a, b]
-                    break
-    return rim
 
 
 @numba.njit(cache=True, nogil=True)
@@ -316,15 +207,10 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     f = params.object_cell_px
     level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration, epoch.derived)
     intr = epoch.intrinsics
-    # one cell step spans f z / fx metres: up to 4x that along the surface (~76 deg, as the
-    # normals allow), up to 1x that off it; a fold is judged across 2 cells, so a pixel of a
-    # fold finds a cell off it within 2 cells
-    max_step, max_off = 4.0 * f / intr.fx, 1.0 * f / intr.fx
-    cells = _segments_kernel(level.vertex, level.normal,
-                             math.cos(math.radians(params.object_fold_deg)), max_step, max_off,
-                             2)
+    cells = level_segments(level, params.object_fold_deg)
+    max_step, max_off = SEGMENT_STEP / level.fx, SEGMENT_OFF / level.fx
     return _pixels_kernel(epoch.depth, epoch.pixel_voxel, cells, level.vertex, level.normal, f,
-                          intr.fx, intr.fy, intr.cx, intr.cy, max_step, max_off, 2)
+                          intr.fx, intr.fy, intr.cx, intr.cy, max_step, max_off, SEGMENT_SPAN)
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams
