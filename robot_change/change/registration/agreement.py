@@ -126,6 +126,36 @@ def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy,
 
 
 @numba.njit(cache=True, nogil=True)
+def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, margin_m, margin_per_m2):
+    """For each pose (``rots`` (n, 3, 3), ``transs`` (n, 3) m: other-from-own), the cells of
+    ``own_v`` (h, w, 3) m (z = 0: none) that ``other_v`` (intrinsics fx, fy, cx, cy) sees
+    through: they land on a reading of it farther than their depth by more than
+    ``margin_m + margin_per_m2 * z^2`` (:func:`agreement_counts`' through, for many poses in
+    one call).  Returns (n,) int64."""
+    n = rots.shape[0]
+    out = np.zeros(n, dtype=np.int64)
+    h = other_v.shape[0]
+    w = other_v.shape[1]
+    for m in range(n):
+        rot = rots[m]
+        trans = transs[m]
+        count = 0
+        for i in range(own_v.shape[0]):
+            for j in range(own_v.shape[1]):
+                if own_v[i, j, 2] <= 0.0:
+                    continue
+                px, py, pz, u, v = land(own_v[i, j, 0], own_v[i, j, 1], own_v[i, j, 2], rot,
+                                        trans, fx, fy, cx, cy, h, w)
+                if u < 0:
+                    continue
+                rz = other_v[v, u, 2]
+                if rz > 0.0 and rz > pz + margin_m + margin_per_m2 * pz * pz:
+                    count += 1
+        out[m] = count
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
                  sigmas, margin_m, margin_per_m2, both_ways, hole_weight, prune):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)

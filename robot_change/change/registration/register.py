@@ -1,7 +1,8 @@
 """register_depth: the current view registered to the station's reference, coarse to fine
 (docs/algorithm.md, "Registration"): ICP per level (:mod:`.icp`), at the coarsest level also
 with a wide cut, the search along weak directions at the middle level and, for an estimate
-weak along a translation, once more at the end (:mod:`.agreement`), and on a table top the
+weak along a translation, once more at the end (:mod:`.agreement`), then at a table station
+on what does not stand on the table (:mod:`.table_station`), and on a table top the
 table-plane tracks, the trimming and the checks of :mod:`.table_top`.
 """
 
@@ -29,6 +30,7 @@ from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
 from .rigid import rpy_deg_to_rotation
+from .table_station import structure_search
 from .table_top import (
     TablePlane,
     in_plane_names,
@@ -142,15 +144,22 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             iterations += n_it
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
                           min_cos)
-    if params.final_search_reach_m > 0 and A is not None and any(a in weak for a in AXES[3:]):
-        found = _final_search(ref_levels, cur_levels, T, A, params, min_cos, pairs)
+    # for an estimate weak along a translation: the final search along it, then, at a table
+    # station, the structure's say (not on a table top, whose in-plane pose has its own)
+    searches = [] if params.final_search_reach_m <= 0 else [_final_search]
+    if planes is None:
+        searches.append(structure_search)
+    for search in searches:
+        if A is None or not any(a in weak for a in AXES[3:]):
+            break
+        found = search(ref_levels, cur_levels, T, A, params, min_cos)
         if found is not None:
             searched = tuple(a for a in weak if a in AXES[3:])
             T, n_it, converged, lam_n, vec, A = found
             iterations += n_it
             weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
                                   params, min_cos)
-            # where along that line the estimate stands the search's score chose, not the
+            # where along that line the estimate stands a search's score chose, not the
             # geometry: it stays said (a wrong end can look pinned once there)
             weak = tuple(dict.fromkeys(weak + searched))
     fit, rmse, n_pairs, n_cells, through, behind = judged
@@ -209,7 +218,7 @@ def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.
 
 
 def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
-                  A: np.ndarray, params: RegistrationParams, min_cos: float, pairs: Pairs):
+                  A: np.ndarray, params: RegistrationParams, min_cos: float):
     """The finest level's ICP (:func:`icp_level`'s tuple) from the best peak of ``T`` slid
     along its least constrained translation (:func:`slide_peaks`, at ``search_level``) when
     it ends scoring higher than ``T`` both ways by more than ``final_search_margin`` of the
@@ -217,6 +226,7 @@ def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarra
     mid = params.search_level
     starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos)
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
+    pairs = Pairs(cl)
     ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
     if not ends:
         return None

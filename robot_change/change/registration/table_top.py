@@ -59,32 +59,45 @@ def _kept_dominant_plane(level: Level) -> tuple[np.ndarray, float, float]:
 
 def _dominant_plane(level: Level, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
                     n_seeds: int = 64) -> tuple[np.ndarray, float, float]:
-    """The plane holding most cells of ``level``: each of ``n_seeds`` cells with a normal,
-    evenly spaced in image order, proposes the plane through it along its normal; a cell
-    supports a plane within ``max_dist_m`` metres of it with a normal within acos(min_cos).
-    The winner is refitted to its supporters (least squares).  Returns (n (3,) unit normal,
-    d m, fraction of the cells with a normal supporting it), n . p + d = 0 on the plane and
-    d >= 0 (the camera on the positive side); fraction 0 when there are too few cells."""
+    """The plane holding most cells of ``level``: :func:`planes_of`'s first; (n, d, 0) with
+    fraction 0 when there are too few cells."""
+    planes = planes_of(level, 1, max_dist_m, min_cos, n_seeds)
+    return planes[0] if planes else (np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
+
+
+def planes_of(level: Level, k: int, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
+              n_seeds: int = 64) -> list[tuple[np.ndarray, float, float]]:
+    """Up to ``k`` planes of ``level``, largest first: each of ``n_seeds`` cells with a
+    normal, evenly spaced in image order, proposes the plane through it along its normal; a
+    cell supports a plane within ``max_dist_m`` metres of it with a normal within
+    acos(min_cos).  The winner is refitted to its supporters (least squares), they are taken
+    out, and the next plane is looked for among the cells left, while they are at least
+    3 ``n_seeds``.  Each is (n (3,) unit normal, d m, fraction of the cells with a normal
+    supporting it), n . p + d = 0 on the plane and d >= 0 (the camera on the positive side)."""
     v = level.vertex.reshape(-1, 3)
     nm = level.normal.reshape(-1, 3)
     ok = (nm[:, 0] != 0) | (nm[:, 1] != 0) | (nm[:, 2] != 0)
     p, q = v[ok], nm[ok]
-    if len(p) < 3 * n_seeds:
-        return np.array([0.0, 0.0, 1.0]), 0.0, 0.0
-    seeds = np.linspace(0, len(p) - 1, n_seeds).astype(np.int64)
-    sn = q[seeds]                                          # (S, 3)
-    sd = -np.einsum("ij,ij->i", sn, p[seeds])              # (S,)
-    support = (np.abs(p @ sn.T + sd) < max_dist_m) & (np.abs(q @ sn.T) > min_cos)  # (N, S)
-    counts = support.sum(axis=0)
-    best = int(np.argmax(counts))
-    inl = p[support[:, best]]
-    c = inl.mean(axis=0)
-    _u, _s, vt = np.linalg.svd(inl - c, full_matrices=False)
-    n = vt[2]
-    d = -float(n @ c)
-    if d < 0:
-        n, d = -n, -d
-    return n, d, float(counts[best]) / len(p)
+    total = len(p)
+    out = []
+    while len(out) < k and len(p) >= 3 * n_seeds:
+        seeds = np.linspace(0, len(p) - 1, n_seeds).astype(np.int64)
+        sn = q[seeds]                                          # (S, 3)
+        sd = -np.einsum("ij,ij->i", sn, p[seeds])              # (S,)
+        support = (np.abs(p @ sn.T + sd) < max_dist_m) & (np.abs(q @ sn.T) > min_cos)  # (N, S)
+        counts = support.sum(axis=0)
+        best = int(np.argmax(counts))
+        taken = support[:, best]
+        inl = p[taken]
+        c = inl.mean(axis=0)
+        _u, _s, vt = np.linalg.svd(inl - c, full_matrices=False)
+        n = vt[2]
+        d = -float(n @ c)
+        if d < 0:
+            n, d = -n, -d
+        out.append((n, d, float(counts[best]) / total))
+        p, q = p[~taken], q[~taken]
+    return out
 
 
 def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
