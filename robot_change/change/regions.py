@@ -13,15 +13,12 @@ from robot_change.change.params import ChangeParams
 from robot_change.change.results import Region
 from robot_change.cloud.voxels import KEY_BITS
 from robot_change.errors import InputError
-from robot_change.unionfind import find_root, forest_labels, union_sets
+from robot_change.unionfind import forest_labels, union_sets
 
 __all__ = [
-    "find_root",
-    "forest_labels",
     "group_regions",
     "label_voxel_components",
     "pixel_mask",
-    "union_sets",
 ]
 
 

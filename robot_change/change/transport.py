@@ -216,7 +216,7 @@ def _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
     """
     nn = m + n
     parent, pred, thread, rev = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_REV]
-    succ, last, head, stack = tree[_SUCC], tree[_LAST], tree[_HEAD], tree[_STACK]
+    head, stack = tree[_HEAD], tree[_STACK]
     for z in range(nn):
         head[z] = -1
         parent[z] = -2
@@ -619,7 +619,7 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
     n_pivots : int
     """
     insub, lists = ws_i[1], ws_i[2]
-    parent, pred, thread, succ = tree[_PARENT], tree[_PRED], tree[_THREAD], tree[_SUCC]
+    pred, thread, succ = tree[_PRED], tree[_THREAD], tree[_SUCC]
     order = tree[_ORDER]
     nn = m + n
     ne = nn - 1

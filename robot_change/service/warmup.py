@@ -112,15 +112,16 @@ def _region_kernels() -> None:
     """The regions' kernels, with the argument type a cloud gives them (read-only int64 voxel
     keys), and the object completion's surface segments (float32 vertex and normal maps) and
     their pixels (a reference's read-only depth image, a current's writable one)."""
-    from robot_change.change.objects import _pixels_kernel, _segments_kernel
+    from robot_change.change.objects import _pixels_kernel
     from robot_change.change.regions import label_voxel_components
+    from robot_change.change.registration.surfaces import cell_segments
 
     keys = np.arange(500, dtype=np.int64) * 3
     keys.setflags(write=False)
     label_voxel_components(keys, 1)
     cells = np.zeros((6, 6, 3), np.float32)
     cells[..., 2] = 1.0
-    labels = _segments_kernel(cells, -cells, 0.9, 0.03, 0.01, 2)
+    labels = cell_segments(cells, -cells, 0.9, 0.03, 0.01, 2)
     depth = np.full((24, 24), 1000, np.uint16)
     pixel_voxel = np.zeros((24, 24), np.int32)
     for image, points in ((depth, pixel_voxel), (readonly_view(depth), readonly_view(pixel_voxel))):
@@ -236,13 +237,15 @@ def _whole_path(config: Config) -> None:
 
 
 def _table_top_kernels() -> None:
-    """The registration kernel only a table-top view reaches (the table-plane starts' grid;
-    the synthetic room never passes their gate), with the argument types a check gives it:
-    a float32 vertex map, float64 transforms."""
-    from robot_change.change.registration import table_top
+    """The registration kernels only a table reaches (the table-plane starts' grid; the
+    table station's counts over many poses; the synthetic room passes neither gate), with
+    the argument types a check gives them: float32 vertex maps, float64 transforms."""
+    from robot_change.change.registration import agreement, table_top
 
     v = np.zeros((2, 2, 3), np.float32)
     table_top._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
+    agreement.through_counts(v, v, np.eye(3)[None], np.zeros((1, 3)), 1.0, 1.0, 0.5, 0.5,
+                             0.03, 0.004)
 
 
 def _exit_with_parent(parent: int) -> None:
