@@ -37,7 +37,7 @@ from .table_top import _ON_PLANE_M, _plane_frame, planes_of
 #: The reference's table plane per level object (a station's reference keeps its pyramid).
 _SUPPORT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: How many of a view's largest planes are looked at, and the least share of its cells with
-#: a normal each must hold (a floor beside a table: 0.1 and more).
+#: a normal each must hold (the floor before a station's table held 0.06-0.12 of them).
 _PLANES = 4
 _MIN_PLANE_FRACTION = 0.05
 #: How far a table top stands above the floor beneath it, metres.
