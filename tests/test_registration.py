@@ -818,6 +818,16 @@ def test_where_every_object_moved_the_table_and_its_legs_decide_the_slide():
     metres, _degrees, got = _station_error(_STATION_EVERY_MOVED,
                                            RegistrationParams(station_through_ratio=0.0))
     assert metres > 0.05 and "x" in got.weak
+    # a station's reference keeps its pyramid, its table and what stands on it between checks:
+    # the same estimate, check after check
+    from sim_fixtures.stations import station_pair
+
+    ref, cur, _truth, intrinsics = station_pair(*_STATION_EVERY_MOVED)
+    keep: dict = {}
+    first, again = (register_depth(ref, cur, intrinsics, keep=keep) for _ in range(2))
+    np.testing.assert_array_equal(first.T_ref_from_cur, again.T_ref_from_cur)
+    unkept = _station_error(_STATION_EVERY_MOVED)[2]
+    np.testing.assert_allclose(first.T_ref_from_cur, unkept.T_ref_from_cur, atol=1e-9)
 
 
 def test_the_structure_keeps_a_right_estimate():

@@ -34,8 +34,10 @@ from .rigid import invert
 from .surfaces import level_segments
 from .table_top import _ON_PLANE_M, _plane_frame, planes_of
 
-#: The reference's table plane per level object (a station's reference keeps its pyramid).
+#: The reference's table plane per level object, and what stands on its table per finest
+#: level object (a station's reference keeps its pyramid: made once, not every check).
 _SUPPORT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_ON_TABLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: How many of a view's largest planes are looked at, and the least share of its cells with
 #: a normal each must hold (the floor before a station's table held 0.06-0.12 of them).
 _PLANES = 4
@@ -191,7 +193,12 @@ def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
     R, t = T[:3, :3], T[:3, 3]
     plane_cur = (R.T @ n_ref, d_ref + float(n_ref @ t))
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
-    obj_r = objects_on_table(rl, plane, params)
+    kept = _ON_TABLE.get(rl)
+    if kept is None or kept[0] != params.table_object_m:
+        mask = objects_on_table(rl, plane, params)
+        mask.setflags(write=False)
+        kept = _ON_TABLE[rl] = (params.table_object_m, mask)
+    obj_r = kept[1]
     obj_c = objects_on_table(cl, plane_cur, params)
     if not obj_r.any() and not obj_c.any():
         return None
