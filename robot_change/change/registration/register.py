@@ -3,7 +3,8 @@
 with a wide cut, the search along weak directions at the middle level and, for an estimate
 weak along a translation, once more at the end (:mod:`.agreement`), then at a table station
 on what does not stand on the table (:mod:`.table_station`), and on a table top the
-table-plane tracks, the trimming and the checks of :mod:`.table_top`.
+table-plane tracks, the trimming and the checks of :mod:`.table_top`; an end the views
+contradict starts again from restarts round the initial pose.
 """
 
 from __future__ import annotations
@@ -86,6 +87,53 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     ref_levels = kept_levels(ref, intrinsics, params, keep)
     cur_levels = kept_levels(cur, intrinsics, params, keep_current)
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
+    end = _finished(ref_levels, cur_levels, _coarse_to_fine(ref_levels, cur_levels, T, params,
+                                                            min_cos), params, min_cos)
+    if 0 < params.restart_end_through < end[-1][4]:
+        end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos)
+    T, iterations, converged, lam_n, _vec, _A, _planes, weak, judged = end
+    fit, rmse, n_pairs, n_cells, through, behind = judged
+    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
+                        (time.perf_counter() - t0) * 1e3, through, behind)
+
+
+def _finished(ref_levels: list[Level], cur_levels: list[Level], end: tuple,
+              params: RegistrationParams, min_cos: float) -> tuple:
+    """:func:`_coarse_to_fine`'s ``end`` judged (:func:`_judge`) and, weak along a
+    translation, searched at the end (steps 7b, 7c): its tuple with the weak direction names
+    and the judgement (fitness, rmse_m, inlier pairs, current cells with a normal,
+    seen-through share, behind share) appended."""
+    T, iterations, converged, lam_n, vec, A, planes = end
+    weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
+                          min_cos)
+    # for an estimate weak along a translation: the final search along it, then, at a table
+    # station, the structure's say (not on a table top, whose in-plane pose has its own)
+    searches = [] if params.final_search_reach_m <= 0 else [_final_search]
+    if planes is None:
+        searches.append(structure_search)
+    for search in searches:
+        if A is None or not any(a in weak for a in AXES[3:]):
+            break
+        found = search(ref_levels, cur_levels, T, A, params, min_cos)
+        if found is not None:
+            searched = tuple(a for a in weak if a in AXES[3:])
+            T, n_it, converged, lam_n, vec, A = found
+            iterations += n_it
+            weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
+                                  params, min_cos)
+            # where along that line the estimate stands a search's score chose, not the
+            # geometry: it stays said (a wrong end can look pinned once there)
+            weak = tuple(dict.fromkeys(weak + searched))
+    return T, iterations, converged, lam_n, vec, A, planes, weak, judged
+
+
+def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
+                    params: RegistrationParams, min_cos: float) -> tuple:
+    """Steps 1-7 from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
+    coarsest level's wide cut and restarts, the table-plane tracks, the middle level's
+    searches and a table top's trimming.  Returns (T, iterations, converged, lam_n, vec, A,
+    planes): :func:`icp_level`'s end with every iteration counted, and a table top's two
+    planes (None when it is not one)."""
     iterations = 0
     converged = False
     lam_n = np.zeros(6)
@@ -142,29 +190,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
             T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, T, params, li, min_cos,
                                                           Pairs(cl))
             iterations += n_it
-    weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
-                          min_cos)
-    # for an estimate weak along a translation: the final search along it, then, at a table
-    # station, the structure's say (not on a table top, whose in-plane pose has its own)
-    searches = [] if params.final_search_reach_m <= 0 else [_final_search]
-    if planes is None:
-        searches.append(structure_search)
-    for search in searches:
-        if A is None or not any(a in weak for a in AXES[3:]):
-            break
-        found = search(ref_levels, cur_levels, T, A, params, min_cos)
-        if found is not None:
-            searched = tuple(a for a in weak if a in AXES[3:])
-            T, n_it, converged, lam_n, vec, A = found
-            iterations += n_it
-            weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
-                                  params, min_cos)
-            # where along that line the estimate stands a search's score chose, not the
-            # geometry: it stays said (a wrong end can look pinned once there)
-            weak = tuple(dict.fromkeys(weak + searched))
-    fit, rmse, n_pairs, n_cells, through, behind = judged
-    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
-                        (time.perf_counter() - t0) * 1e3, through, behind)
+    return T, iterations, converged, lam_n, vec, A, planes
 
 
 def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
@@ -177,6 +203,19 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
     that fits); None otherwise.  Every restart's iterations are counted."""
     if score_poses(rl, cl, [T], params, min_cos)[0] > 0:
         return None
+    ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs)
+            for st in _restart_starts(start, params)]
+    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos)
+    best = int(np.argmax(scores))
+    if scores[best] <= params.restart_min_score * (rl.n_normals + cl.n_normals):
+        return None
+    end = ends[best]
+    return (end[0], sum(e[1] for e in ends), *end[2:])
+
+
+def _restart_starts(start: np.ndarray, params: RegistrationParams) -> list[np.ndarray]:
+    """(4, 4) poses: ``start`` moved by ``restart_step_m`` along and turned by
+    ``restart_step_deg`` about each axis of the current camera, both ways (up to 12)."""
     starts = []
     for axis in range(3):
         for sign in (-1.0, 1.0):
@@ -190,13 +229,33 @@ def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
                 M = np.eye(4)
                 M[:3, :3] = rpy_deg_to_rotation(*angles)
                 starts.append(start @ M)
-    ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs) for st in starts]
-    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos)
-    best = int(np.argmax(scores))
-    if scores[best] <= params.restart_min_score * (rl.n_normals + cl.n_normals):
-        return None
-    end = ends[best]
-    return (end[0], sum(e[1] for e in ends), *end[2:])
+    return starts
+
+
+def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.ndarray,
+                   end: tuple, params: RegistrationParams, min_cos: float) -> tuple:
+    """Step 7d, for an ``end`` (:func:`_finished`'s tuple, from ``start`` (4, 4)) that more
+    than ``restart_end_through`` of one view is seen through at: the coarse-to-fine passes
+    again from :func:`_restart_starts` of ``start``; the best of their ends, scored both ways
+    at the finest level (with ``table_hole_weight``), replaces ``end`` (finished in turn) when
+    it scores higher by more than ``final_search_margin`` of the two views' cells with a
+    normal and is seen through in less than ``restart_end_ratio`` of ``end``'s share.  Every
+    pass's iterations are counted."""
+    rl, cl = ref_levels[-1], cur_levels[-1]
+    ends = [_coarse_to_fine(ref_levels, cur_levels, st, params, min_cos)
+            for st in _restart_starts(start, params)]
+    if not ends:
+        return end
+    iterations = end[1] + sum(e[1] for e in ends)
+    scores = score_poses(rl, cl, [end[0]] + [e[0] for e in ends], params, min_cos, True,
+                         params.table_hole_weight)
+    best = int(np.argmax(scores[1:]))
+    margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
+    if scores[1 + best] <= scores[0] + margin or final_agreement(
+            rl, cl, ends[best][0], params, min_cos)[4] >= params.restart_end_ratio * end[-1][4]:
+        return (end[0], iterations, *end[2:])
+    return _finished(ref_levels, cur_levels, (ends[best][0], iterations, *ends[best][2:]),
+                     params, min_cos)
 
 
 def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
