@@ -89,7 +89,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     end = _finished(ref_levels, cur_levels, _coarse_to_fine(ref_levels, cur_levels, T, params,
                                                             min_cos), params, min_cos)
-    if 0 < params.restart_end_through < end[-1][4]:
+    if 0 < params.restart_end_through < end[-1][4]:  # its judgement's seen-through share
         end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos)
     T, iterations, converged, lam_n, _vec, _A, _planes, weak, judged = end
     fit, rmse, n_pairs, n_cells, through, behind = judged
@@ -129,7 +129,7 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: tuple,
 
 def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
                     params: RegistrationParams, min_cos: float) -> tuple:
-    """Steps 1-7 from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
+    """Steps 1-6c from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
     coarsest level's wide cut and restarts, the table-plane tracks, the middle level's
     searches and a table top's trimming.  Returns (T, iterations, converged, lam_n, vec, A,
     planes): :func:`icp_level`'s end with every iteration counted, and a table top's two
