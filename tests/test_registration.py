@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.change.registration import agreement, icp, pyramid, table_station, table_top
+from robot_change.change.registration import (agreement, icp, pyramid, register,
+                                               table_station, table_top)
 from robot_change.change.registration.rigid import exp_so3
 from robot_change.change.detect import detect_changes
 from robot_change.change.params import ChangeParams
@@ -602,6 +603,29 @@ def test_an_end_that_contradicts_the_views_starts_again():
     assert got.seen_through < RegistrationParams().restart_end_through
     np.testing.assert_array_equal(got.T_ref_from_cur, without.T_ref_from_cur)
     assert got.iterations == without.iterations
+
+
+def test_a_pass_whose_coarsest_end_was_seen_is_given_up():
+    """Step 7d's passes share their coarsest ends: a pass that ends the coarsest level where
+    an earlier one did (within 2 mm / 0.1 deg) stops there, T None, its iterations counted;
+    one that ends elsewhere goes on and adds its end."""
+    from sim_fixtures.stations import station_pair
+
+    params = RegistrationParams()
+    min_cos = math.cos(math.radians(params.max_normal_angle_deg))
+    ref, cur, _truth, intrinsics = station_pair(*_STATION_TURNED_OFF)
+    rls, cls = (pyramid.levels(d, intrinsics, params) for d in (ref, cur))
+    seen: list[np.ndarray] = []
+    first = register._coarse_to_fine(rls, cls, np.eye(4), params, min_cos, seen)
+    assert first[0] is not None and len(seen) == 1
+    again = register._coarse_to_fine(rls, cls, np.eye(4), params, min_cos, seen)
+    assert again[0] is None and again[1] > 0 and len(seen) == 1
+    start = register._restart_starts(np.eye(4), params)[2]  # 10 cm along x: another basin
+    other = register._coarse_to_fine(rls, cls, start, params, min_cos, seen)
+    assert other[0] is not None and len(seen) == 2
+    assert not register._same_pose(seen[0], seen[1])
+    np.testing.assert_array_equal(
+        register._coarse_to_fine(rls, cls, np.eye(4), params, min_cos)[0], first[0])
 
 def test_slide_peaks_lie_on_the_weak_line_best_first():
     """From that wrong estimate, the starts slide_peaks gives lie on the line of its least

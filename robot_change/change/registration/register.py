@@ -30,7 +30,7 @@ from .icp import Pairs, icp_level, weak_names
 from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
-from .rigid import rpy_deg_to_rotation
+from .rigid import invert, rotation_angle_deg, rpy_deg_to_rotation
 from .table_station import structure_search
 from .table_top import (
     TablePlane,
@@ -41,6 +41,11 @@ from .table_top import (
     without_changed_objects,
 )
 
+
+#: Two coarsest-level ends this near (metres, degrees) are one: the levels after them end
+#: alike, and step 7d's passes give up the later.
+_SAME_M = 0.002
+_SAME_DEG = 0.1
 
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
@@ -87,10 +92,11 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     ref_levels = kept_levels(ref, intrinsics, params, keep)
     cur_levels = kept_levels(cur, intrinsics, params, keep_current)
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
-    end = _finished(ref_levels, cur_levels, _coarse_to_fine(ref_levels, cur_levels, T, params,
-                                                            min_cos), params, min_cos)
+    coarse_ends: list[np.ndarray] = []
+    end = _finished(ref_levels, cur_levels, _coarse_to_fine(
+        ref_levels, cur_levels, T, params, min_cos, coarse_ends), params, min_cos)
     if 0 < params.restart_end_through < end[-1][4]:  # its judgement's seen-through share
-        end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos)
+        end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos, coarse_ends)
     T, iterations, converged, lam_n, _vec, _A, _planes, weak, judged = end
     fit, rmse, n_pairs, n_cells, through, behind = judged
     return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
@@ -128,12 +134,16 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: tuple,
 
 
 def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
-                    params: RegistrationParams, min_cos: float) -> tuple:
+                    params: RegistrationParams, min_cos: float,
+                    seen: list[np.ndarray] | None = None) -> tuple:
     """Steps 1-6c from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
     coarsest level's wide cut and restarts, the table-plane tracks, the middle level's
     searches and a table top's trimming.  Returns (T, iterations, converged, lam_n, vec, A,
     planes): :func:`icp_level`'s end with every iteration counted, and a table top's two
-    planes (None when it is not one)."""
+    planes (None when it is not one).  With ``seen`` (the coarsest level's ends of earlier
+    passes, (4, 4) each): the pass is given up, T None, where its coarsest end is one of
+    them (:func:`_same_pose`: the levels after it would end where that pass did), and its
+    end is added to them otherwise."""
     iterations = 0
     converged = False
     lam_n = np.zeros(6)
@@ -155,6 +165,10 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
             if restarted is not None:
                 T, n_it, converged, lam_n, vec, A = restarted
                 iterations += n_it
+        if li == 0 and seen is not None:
+            if any(_same_pose(T, other) for other in seen):
+                return None, iterations, converged, lam_n, vec, A, planes
+            seen.append(T)
         if li == 0 and (params.table_starts > 0 or params.trim_rounds > 0):
             planes = table_planes(ref_levels, cur_levels, params)
             if planes is not None and params.table_starts > 0:
@@ -233,20 +247,23 @@ def _restart_starts(start: np.ndarray, params: RegistrationParams) -> list[np.nd
 
 
 def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.ndarray,
-                   end: tuple, params: RegistrationParams, min_cos: float) -> tuple:
+                   end: tuple, params: RegistrationParams, min_cos: float,
+                   coarse_ends: list[np.ndarray]) -> tuple:
     """Step 7d, for an ``end`` (:func:`_finished`'s tuple, from ``start`` (4, 4)) that more
     than ``restart_end_through`` of one view is seen through at: the coarse-to-fine passes
-    again from :func:`_restart_starts` of ``start``; the best of their ends, scored both ways
-    at the finest level (with ``table_hole_weight``), replaces ``end`` (finished in turn) when
-    it scores higher by more than ``final_search_margin`` of the two views' cells with a
-    normal and is seen through in less than ``restart_end_ratio`` of ``end``'s share.  Every
-    pass's iterations are counted."""
+    again from :func:`_restart_starts` of ``start``, each given up where its coarsest end is
+    one of ``coarse_ends`` (its own pass's, and theirs as they come); the best of their
+    ends, scored both ways at the finest level (with ``table_hole_weight``), replaces ``end``
+    (finished in turn) when it scores higher by more than ``final_search_margin`` of the two
+    views' cells with a normal and is seen through in less than ``restart_end_ratio`` of
+    ``end``'s share.  Every pass's iterations are counted."""
     rl, cl = ref_levels[-1], cur_levels[-1]
-    ends = [_coarse_to_fine(ref_levels, cur_levels, st, params, min_cos)
-            for st in _restart_starts(start, params)]
+    passes = [_coarse_to_fine(ref_levels, cur_levels, st, params, min_cos, coarse_ends)
+              for st in _restart_starts(start, params)]
+    iterations = end[1] + sum(e[1] for e in passes)
+    ends = [e for e in passes if e[0] is not None]
     if not ends:
-        return end
-    iterations = end[1] + sum(e[1] for e in ends)
+        return (end[0], iterations, *end[2:])
     scores = score_poses(rl, cl, [end[0]] + [e[0] for e in ends], params, min_cos, True,
                          params.table_hole_weight)
     best = int(np.argmax(scores[1:]))
@@ -256,6 +273,12 @@ def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.n
         return (end[0], iterations, *end[2:])
     return _finished(ref_levels, cur_levels, (ends[best][0], iterations, *ends[best][2:]),
                      params, min_cos)
+
+
+def _same_pose(T: np.ndarray, other: np.ndarray) -> bool:
+    """Whether two (4, 4) poses lie within ``_SAME_M`` and ``_SAME_DEG`` of each other."""
+    D = invert(other) @ T
+    return bool(np.linalg.norm(D[:3, 3]) < _SAME_M and rotation_angle_deg(D[:3, :3]) < _SAME_DEG)
 
 
 def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
