@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -46,6 +47,21 @@ from .table_top import (
 #: alike, and step 7d's passes give up the later.
 _SAME_M = 0.002
 _SAME_DEG = 0.1
+
+
+class _Pass(NamedTuple):
+    """Where a coarse-to-fine pass ends: ``T`` (4, 4) (None: given up), its ICP iterations
+    (every run counted), whether the last level converged, the last normal matrix's
+    eigenvalues per unit weight ``lam_n`` (6,) and eigenvectors ``vec`` (6, 6), the matrix
+    ``A`` (6, 6) or None, and a table top's (reference, current) planes or None."""
+
+    T: np.ndarray | None
+    iterations: int
+    converged: bool
+    lam_n: np.ndarray
+    vec: np.ndarray
+    A: np.ndarray | None
+    planes: tuple[TablePlane, TablePlane] | None
 
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
@@ -95,20 +111,20 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     coarse_ends: list[np.ndarray] = []
     end = _finished(ref_levels, cur_levels, _coarse_to_fine(
         ref_levels, cur_levels, T, params, min_cos, coarse_ends), params, min_cos)
-    if 0 < params.restart_end_through < end[-1][4]:  # its judgement's seen-through share
+    if 0 < params.restart_end_through < end[2][4]:  # its judgement's seen-through share
         end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos, coarse_ends)
-    T, iterations, converged, lam_n, _vec, _A, _planes, weak, judged = end
-    fit, rmse, n_pairs, n_cells, through, behind = judged
-    return Registration(T, fit, rmse, weak, lam_n, n_pairs, n_cells, iterations, converged,
-                        (time.perf_counter() - t0) * 1e3, through, behind)
+    est, weak, (fit, rmse, n_pairs, n_cells, through, behind) = end
+    return Registration(est.T, fit, rmse, weak, est.lam_n, n_pairs, n_cells, est.iterations,
+                        est.converged, (time.perf_counter() - t0) * 1e3, through, behind)
 
 
-def _finished(ref_levels: list[Level], cur_levels: list[Level], end: tuple,
-              params: RegistrationParams, min_cos: float) -> tuple:
-    """:func:`_coarse_to_fine`'s ``end`` judged (:func:`_judge`) and, weak along a
-    translation, searched at the end (steps 7b, 7c): its tuple with the weak direction names
-    and the judgement (fitness, rmse_m, inlier pairs, current cells with a normal,
-    seen-through share, behind share) appended."""
+def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
+              params: RegistrationParams, min_cos: float
+              ) -> tuple[_Pass, tuple[str, ...], tuple]:
+    """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation, searched at
+    the end (steps 7b, 7c): (the end, moved where a search moved it; the weak direction
+    names; the judgement: fitness, rmse_m, inlier pairs, current cells with a normal,
+    seen-through share, behind share)."""
     T, iterations, converged, lam_n, vec, A, planes = end
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
                           min_cos)
@@ -130,17 +146,15 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: tuple,
             # where along that line the estimate stands a search's score chose, not the
             # geometry: it stays said (a wrong end can look pinned once there)
             weak = tuple(dict.fromkeys(weak + searched))
-    return T, iterations, converged, lam_n, vec, A, planes, weak, judged
+    return _Pass(T, iterations, converged, lam_n, vec, A, planes), weak, judged
 
 
 def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
                     params: RegistrationParams, min_cos: float,
-                    seen: list[np.ndarray] | None = None) -> tuple:
+                    seen: list[np.ndarray] | None = None) -> _Pass:
     """Steps 1-6c from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
     coarsest level's wide cut and restarts, the table-plane tracks, the middle level's
-    searches and a table top's trimming.  Returns (T, iterations, converged, lam_n, vec, A,
-    planes): :func:`icp_level`'s end with every iteration counted, and a table top's two
-    planes (None when it is not one).  With ``seen`` (the coarsest level's ends of earlier
+    searches and a table top's trimming.  With ``seen`` (the coarsest level's ends of earlier
     passes, (4, 4) each): the pass is given up, T None, where its coarsest end is one of
     them (:func:`_same_pose`: the levels after it would end where that pass did), and its
     end is added to them otherwise."""
@@ -167,7 +181,7 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
                 iterations += n_it
         if li == 0 and seen is not None:
             if any(_same_pose(T, other) for other in seen):
-                return None, iterations, converged, lam_n, vec, A, planes
+                return _Pass(None, iterations, converged, lam_n, vec, A, planes)
             seen.append(T)
         if li == 0 and (params.table_starts > 0 or params.trim_rounds > 0):
             planes = table_planes(ref_levels, cur_levels, params)
@@ -204,7 +218,7 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
             T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, T, params, li, min_cos,
                                                           Pairs(cl))
             iterations += n_it
-    return T, iterations, converged, lam_n, vec, A, planes
+    return _Pass(T, iterations, converged, lam_n, vec, A, planes)
 
 
 def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
@@ -249,7 +263,7 @@ def _restart_starts(start: np.ndarray, params: RegistrationParams) -> list[np.nd
 def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.ndarray,
                    end: tuple, params: RegistrationParams, min_cos: float,
                    coarse_ends: list[np.ndarray]) -> tuple:
-    """Step 7d, for an ``end`` (:func:`_finished`'s tuple, from ``start`` (4, 4)) that more
+    """Step 7d, for an ``end`` (:func:`_finished`'s triple, from ``start`` (4, 4)) that more
     than ``restart_end_through`` of one view is seen through at: the coarse-to-fine passes
     again from :func:`_restart_starts` of ``start``, each given up where its coarsest end is
     one of ``coarse_ends`` (its own pass's, and theirs as they come); the best of their
@@ -258,20 +272,22 @@ def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.n
     views' cells with a normal and is seen through in less than ``restart_end_ratio`` of
     ``end``'s share.  Every pass's iterations are counted."""
     rl, cl = ref_levels[-1], cur_levels[-1]
+    est, weak, judged = end
     passes = [_coarse_to_fine(ref_levels, cur_levels, st, params, min_cos, coarse_ends)
               for st in _restart_starts(start, params)]
-    iterations = end[1] + sum(e[1] for e in passes)
-    ends = [e for e in passes if e[0] is not None]
+    iterations = est.iterations + sum(p.iterations for p in passes)
+    kept = (est._replace(iterations=iterations), weak, judged)
+    ends = [p for p in passes if p.T is not None]
     if not ends:
-        return (end[0], iterations, *end[2:])
-    scores = score_poses(rl, cl, [end[0]] + [e[0] for e in ends], params, min_cos, True,
+        return kept
+    scores = score_poses(rl, cl, [est.T] + [p.T for p in ends], params, min_cos, True,
                          params.table_hole_weight)
     best = int(np.argmax(scores[1:]))
     margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
     if scores[1 + best] <= scores[0] + margin or final_agreement(
-            rl, cl, ends[best][0], params, min_cos)[4] >= params.restart_end_ratio * end[-1][4]:
-        return (end[0], iterations, *end[2:])
-    return _finished(ref_levels, cur_levels, (ends[best][0], iterations, *ends[best][2:]),
+            rl, cl, ends[best].T, params, min_cos)[4] >= params.restart_end_ratio * judged[4]:
+        return kept
+    return _finished(ref_levels, cur_levels, ends[best]._replace(iterations=iterations),
                      params, min_cos)
 
 
