@@ -965,7 +965,7 @@ def test_plane_grid_matches_numpy(office_pair):
     ref, _, _ = office_pair
     lv = pyramid.levels(ref, INTR, RegistrationParams())[2]
     n, d, frac = table_top._dominant_plane(pyramid.levels(ref, INTR, RegistrationParams())[0])
-    to_plane = invert(table_top._plane_frame(n, d))
+    to_plane = invert(table_top.plane_frame(n, d))
     args = (0.05, -3.0, -1.0, 96, 120, 0.015, 0.03)
     got = table_top._plane_grid(lv.vertex, to_plane[:3, :3].copy(), to_plane[:3, 3].copy(), *args)
     want = _plane_grid_twin(lv.vertex, to_plane[:3, :3], to_plane[:3, 3], *args)
@@ -1137,7 +1137,7 @@ def test_the_plane_frame_is_a_rotation_for_any_plane_normal():
 
     for n in ([0.0, -0.8, -0.6], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]):
         n = np.array(n) / np.linalg.norm(n)
-        F = table_top._plane_frame(n, 1.2)
+        F = table_top.plane_frame(n, 1.2)
         R = F[:3, :3]
         assert np.all(np.isfinite(F))
         assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)

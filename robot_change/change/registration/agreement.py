@@ -223,8 +223,8 @@ def best_pose(rl: Level, cl: Level, poses: list[np.ndarray], params: Registratio
     return int(np.argmax(score_poses(rl, cl, poses, params, min_cos, prune=True)))
 
 
-def _slides(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int
-            ) -> list[np.ndarray]:
+def slides_along(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int
+                 ) -> list[np.ndarray]:
     """``T`` (4, 4) moved along the ``n_dirs`` least constrained directions of the translation
     block of the normal matrix ``A`` (6, 6), ``step_m`` apart out to ``reach_m`` each way (m)."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
@@ -246,7 +246,7 @@ def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     directions of its translation block, and screw motions along the two weakest directions
     of the whole, rotations scaled by the radius (root median squared depth) of the current
     level; None when ``T`` itself scores best."""
-    poses = [T] + _slides(T, A, params.search_step_m, params.search_reach_m, 2)
+    poses = [T] + slides_along(T, A, params.search_step_m, params.search_reach_m, 2)
     if params.search_screw_steps:
         z = cl.vertex[:, :, 2]
         radius = math.sqrt(float(np.median(np.square(z[z > 0], dtype=np.float64))))
@@ -275,7 +275,7 @@ def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     lam = np.linalg.eigvalsh(A[3:, 3:])
     if params.fine_search_reach_m <= 0 or not lam[0] < params.fine_search_ratio * lam[1]:
         return None
-    poses = [T] + _slides(T, A, params.fine_search_step_m, params.fine_search_reach_m, 1)
+    poses = [T] + slides_along(T, A, params.fine_search_step_m, params.fine_search_reach_m, 1)
     best = best_pose(rl, cl, poses, params, min_cos)
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
@@ -286,7 +286,7 @@ def slide_peaks(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
     translation of ``A`` (6, 6), ``final_search_step_m`` apart out to ``final_search_reach_m``
     each way: the local peaks of the score taken both ways (:func:`score_poses`, with
     ``table_hole_weight``) at this level, best first, none of them ``T`` itself."""
-    slid = _slides(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
+    slid = slides_along(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
     half = len(slid) // 2
     line_poses = slid[:half] + [T] + slid[half:]  # in order along the line, T in the middle
     line = score_poses(rl, cl, line_poses, params, min_cos, True,

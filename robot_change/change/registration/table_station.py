@@ -26,13 +26,13 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
-from .agreement import _slides, through_counts
+from .agreement import slides_along, through_counts
 from .icp import Pairs, icp_level
 from .params import RegistrationParams
 from .pyramid import Level
 from .rigid import invert
 from .surfaces import level_segments
-from .table_top import _ON_PLANE_M, _plane_frame, planes_of
+from .table_top import ON_PLANE_M, plane_frame, planes_of
 
 #: The reference's table plane per level object, and what stands on its table per finest
 #: level object (a station's reference keeps its pyramid: made once, not every check).
@@ -93,12 +93,12 @@ def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
     n, d = plane
     z = level.vertex[:, :, 2]
     height = level.vertex @ n + d
-    labels, count = ndimage.label((z > 0) & (np.abs(height) < _ON_PLANE_M))
+    labels, count = ndimage.label((z > 0) & (np.abs(height) < ON_PLANE_M))
     out = np.zeros(z.shape, dtype=bool)
     if count == 0:
         return out
     table = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
-    F = _plane_frame(n, d)
+    F = plane_frame(n, d)
     flat = ((level.vertex - F[:3, 3]) @ F[:3, :3])[:, :, :2]  # (h, w, 2) plane coordinates
     try:
         hull = ConvexHull(flat[table].astype(np.float64))
@@ -141,7 +141,7 @@ def _in_reach(T: np.ndarray, A: np.ndarray, params: RegistrationParams) -> list[
     with little of the wall behind it), over a grid on both, 2 steps apart."""
     lam, vecs = np.linalg.eigh(A[3:, 3:])
     if not lam[1] < params.fine_search_ratio * lam[2]:
-        return _slides(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
+        return slides_along(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
     step = 2 * params.final_search_step_m
     k = int(math.floor(params.final_search_reach_m / step + 1e-9))
     poses = []

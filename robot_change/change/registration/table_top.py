@@ -39,7 +39,7 @@ from .result import AXES
 from .rigid import invert
 
 #: A cell within this distance of a view's table plane is on it (metres).
-_ON_PLANE_M = 0.01
+ON_PLANE_M = 0.01
 #: :func:`~.agreement.cell_states` judges every cell with this direction and 0 (any normal).
 _EVERY_CELL = np.zeros(3)
 
@@ -57,7 +57,7 @@ def _kept_dominant_plane(level: Level) -> tuple[np.ndarray, float, float]:
     return out
 
 
-def _dominant_plane(level: Level, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
+def _dominant_plane(level: Level, max_dist_m: float = ON_PLANE_M, min_cos: float = 0.95,
                     n_seeds: int = 64) -> tuple[np.ndarray, float, float]:
     """The plane holding most cells of ``level``: :func:`planes_of`'s first; (n, d, 0) with
     fraction 0 when there are too few cells."""
@@ -65,7 +65,7 @@ def _dominant_plane(level: Level, max_dist_m: float = _ON_PLANE_M, min_cos: floa
     return planes[0] if planes else (np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
 
 
-def planes_of(level: Level, k: int, max_dist_m: float = _ON_PLANE_M, min_cos: float = 0.95,
+def planes_of(level: Level, k: int, max_dist_m: float = ON_PLANE_M, min_cos: float = 0.95,
               n_seeds: int = 64) -> list[tuple[np.ndarray, float, float]]:
     """Up to ``k`` planes of ``level``, largest first: each of ``n_seeds`` cells with a
     normal, evenly spaced in image order, proposes the plane through it along its normal; a
@@ -100,7 +100,7 @@ def planes_of(level: Level, k: int, max_dist_m: float = _ON_PLANE_M, min_cos: fl
     return out
 
 
-def _plane_frame(n: np.ndarray, d: float) -> np.ndarray:
+def plane_frame(n: np.ndarray, d: float) -> np.ndarray:
     """(4, 4) camera-from-plane transform of the plane n . p + d = 0 (``n`` (3,) unit, ``d``
     m >= 0): origin the camera's foot on the plane, z along ``n`` (towards the camera), x the
     camera's x projected onto the plane (its y when ``n`` is along x)."""
@@ -157,7 +157,7 @@ def _parabola_peak(before: float, after: float, at: float) -> float:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TablePlane:
-    """A view's table plane: ``frame`` (4, 4) camera-from-plane (:func:`_plane_frame`), ``lo``,
+    """A view's table plane: ``frame`` (4, 4) camera-from-plane (:func:`plane_frame`), ``lo``,
     ``hi`` (2,) the 2-98 % extent of the cells on it in the plane's x and y, metres."""
 
     frame: np.ndarray
@@ -188,10 +188,10 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
         if planes and float(n @ planes[0].frame[:3, 2]) < math.cos(
                 math.radians(params.max_rotation_deg)):
             return None  # not the reference's table
-        F = _plane_frame(n, d)
+        F = plane_frame(n, d)
         v = level.vertex.reshape(-1, 3)
         q = (v[v[:, 2] > 0] - F[:3, 3]) @ F[:3, :3]
-        on = q[np.abs(q[:, 2]) < _ON_PLANE_M, :2]
+        on = q[np.abs(q[:, 2]) < ON_PLANE_M, :2]
         lo, hi = np.percentile(on, 2, axis=0), np.percentile(on, 98, axis=0)
         if float((hi - lo).max()) > params.table_max_extent_m:
             return None  # a floor, not a table top
@@ -328,10 +328,10 @@ def without_changed_objects(rl: Level, cl: Level, planes: tuple[TablePlane, Tabl
 
 def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
                  params: RegistrationParams) -> float:
-    """Of the cells of ``own`` on its table ``plane`` (within ``_ON_PLANE_M``) that land in the
+    """Of the cells of ``own`` on its table ``plane`` (within ``ON_PLANE_M``) that land in the
     image of ``other`` when moved by ``M`` (4, 4) other-from-own, the share that land on no
     reading there (:func:`~.agreement.agreement_counts`' holes)."""
-    on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < _ON_PLANE_M)
+    on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < ON_PLANE_M)
     table = np.where(on[:, :, None], own.vertex, 0.0)
     _, _, _, compared, holes, _ = agreement_counts(
         table, own.normal, other.vertex, other.normal, M[:3, :3].copy(), M[:3, 3].copy(),
