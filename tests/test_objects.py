@@ -28,7 +28,13 @@ from robot_change.change.objects import (
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import rpy_deg_to_rotation
 from robot_change.change.registration.pyramid import surface_level
-from robot_change.change.registration.surfaces import cell_segments
+from robot_change.change.registration.surfaces import (
+    SEGMENT_OFF,
+    SEGMENT_SPAN,
+    SEGMENT_STEP,
+    cell_segments,
+    level_segments,
+)
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from sim_fixtures import load_scene
@@ -263,6 +269,14 @@ def test_segments_start_from_the_level_the_registration_kept(moved):
     np.testing.assert_array_equal(
         surface_segments(aligned.cur, params),
         surface_segments(dataclasses.replace(aligned.cur, derived={}), params))
+    # and a level is cut once per fold (the registration's table checks cut it first),
+    # read-only; another fold cuts it afresh, as the kernel does
+    cells = level_segments(level, params.object_fold_deg)
+    assert level_segments(level, params.object_fold_deg) is cells and not cells.flags.writeable
+    other = level_segments(level, 45.0)
+    np.testing.assert_array_equal(other, cell_segments(
+        level.vertex, level.normal, math.cos(math.radians(45.0)), SEGMENT_STEP / level.fx,
+        SEGMENT_OFF / level.fx, SEGMENT_SPAN))
 
 
 def test_an_object_is_cut_from_the_table_it_stands_on(moved):

@@ -7,6 +7,7 @@ objects, :mod:`.table_station`).  The kernel has a NumPy twin in tests/test_obje
 from __future__ import annotations
 
 import math
+import weakref
 
 import numba
 import numpy as np
@@ -14,6 +15,9 @@ import numpy as np
 from robot_change.unionfind import forest_labels, union_sets
 
 from .pyramid import Level
+
+#: :func:`level_segments` per level object: (fold_deg, segments).
+_SEGMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 #: One cell step spans z / fx metres (fx of the level): neighbours join up to SEGMENT_STEP
 #: times that apart along the surface (~76 degrees, as the normals allow) and SEGMENT_OFF
@@ -140,6 +144,13 @@ def cell_segments(vertex, normal, cos_fold, max_step, max_off, span):
 
 def level_segments(level: Level, fold_deg: float) -> np.ndarray:
     """(h, w) int64 :func:`cell_segments` of a pyramid ``level``, folding at ``fold_deg``
-    degrees (-1: a cell in none)."""
-    return cell_segments(level.vertex, level.normal, math.cos(math.radians(fold_deg)),
-                         SEGMENT_STEP / level.fx, SEGMENT_OFF / level.fx, SEGMENT_SPAN)
+    degrees (-1: a cell in none); read-only, kept per level object (a current's finest level
+    is cut by the registration's table checks and again by the object completion)."""
+    kept = _SEGMENTS.get(level)
+    if kept is not None and kept[0] == fold_deg:
+        return kept[1]
+    out = cell_segments(level.vertex, level.normal, math.cos(math.radians(fold_deg)),
+                        SEGMENT_STEP / level.fx, SEGMENT_OFF / level.fx, SEGMENT_SPAN)
+    out.setflags(write=False)
+    _SEGMENTS[level] = (fold_deg, out)
+    return out
