@@ -169,7 +169,8 @@ class RegistrationParams:
     # judges contradict it (1: not checked): a majority of what would pin the slide argues
     # against the estimate.  Where every object on a table station moved, the legs pin the
     # truth and the moved objects, lined up elsewhere, a wrong pose; either way the contested
-    # share is high.
+    # share is high.  At a table station both checks run again on what does not stand on
+    # the table alone, when neither named a translation (step 7e: said, not searched).
     slide_contested_share: float = 0.7
     # Normals of a pair must agree within this angle.
     max_normal_angle_deg: float = 30.0

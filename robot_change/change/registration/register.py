@@ -2,9 +2,10 @@
 (docs/algorithm.md, "Registration"): ICP per level (:mod:`.icp`), at the coarsest level also
 with a wide cut, the search along weak directions at the middle level and, for an estimate
 weak along a translation, once more at the end (:mod:`.agreement`), then at a table station
-on what does not stand on the table (:mod:`.table_station`), and on a table top the
-table-plane tracks, the trimming and the checks of :mod:`.table_top`; an end the views
-contradict starts again from restarts round the initial pose.
+on what does not stand on the table (:mod:`.table_station`; its slide judged on that alone
+too), and on a table top the table-plane tracks, the trimming and the checks of
+:mod:`.table_top`; an end the views contradict starts again from restarts round the initial
+pose.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
 from .rigid import invert, rotation_angle_deg, rpy_deg_to_rotation
-from .table_station import structure_search
+from .table_station import structure_levels, structure_search
 from .table_top import (
     TablePlane,
     in_plane_names,
@@ -122,9 +123,9 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
               params: RegistrationParams, min_cos: float
               ) -> tuple[_Pass, tuple[str, ...], tuple]:
     """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation, searched at
-    the end (steps 7b, 7c): (the end, moved where a search moved it; the weak direction
-    names; the judgement: fitness, rmse_m, inlier pairs, current cells with a normal,
-    seen-through share, behind share)."""
+    the end (steps 7b, 7c), then at a table station judged on its structure (step 7e): (the
+    end, moved where a search moved it; the weak direction names; the judgement: fitness,
+    rmse_m, inlier pairs, current cells with a normal, seen-through share, behind share)."""
     T, iterations, converged, lam_n, vec, A, planes = end
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
                           min_cos)
@@ -146,6 +147,8 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
             # where along that line the estimate stands a search's score chose, not the
             # geometry: it stays said (a wrong end can look pinned once there)
             weak = tuple(dict.fromkeys(weak + searched))
+    if planes is None and not any(a in weak for a in AXES[3:]):
+        weak = weak + _structure_slide(ref_levels, cur_levels, T, A, params, min_cos, judged[3])
     return _Pass(T, iterations, converged, lam_n, vec, A, planes), weak, judged
 
 
@@ -350,6 +353,20 @@ def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
         return None
     end = icp_level(rl, cl, moved, params, li, min_cos, pairs)
     return end if best_pose(rl, cl, [T, end[0]], params, min_cos) == 1 else None
+
+
+def _structure_slide(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
+                     A: np.ndarray | None, params: RegistrationParams, min_cos: float,
+                     n_cells: int) -> tuple[str, ...]:
+    """Step 7e, at a table station (:func:`~.table_station.structure_levels`): the
+    :data:`AXES` name of ``T``'s least constrained translation when what does not stand on
+    the table leaves it unsupported or contested (:func:`_unsupported_slide` on the structure
+    alone), else (): every object on the table may have moved and lined up there.  Said,
+    not searched: a search on it moved right estimates (docs/algorithm.md)."""
+    structure = structure_levels(ref_levels, cur_levels, T, params)
+    if structure is None:
+        return ()
+    return _unsupported_slide(*structure, T, A, params, min_cos, n_cells, contested=True)
 
 
 def _unsupported_slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,

@@ -9,7 +9,10 @@ floor and the walls do not.  So here
 * **the table** (:func:`support_plane`): of the reference's planes, one with another parallel
   to it 0.3-1.3 m farther from the camera (a table top over the floor);
 * **what stands on it** (:func:`objects_on_table`): the cells of a view that stand above the
-  table plane over the table's outline (the convex hull of the table's cells in its plane);
+  table plane over the table's outline (the convex hull of the table's cells in its plane),
+  the objects' feet included;
+* **the structure** (:func:`structure_levels`): both views with what stands on the table
+  left without normals, on which step 7e judges the estimate's slide;
 * **the structure's say** (:func:`structure_search`): the cells of either view, objects left
   out, that the other view sees through; ICP on the structure alone from the estimate and
   from where that count is least along the structure's slide, and the end replaces the
@@ -47,6 +50,9 @@ _TABLE_HEIGHT_M = (0.3, 1.3)
 #: How far inside the table's outline an object's foot must stand, metres (a wall behind the
 #: table stands on its edge).
 _OUTLINE_MARGIN_M = 0.02
+#: A cell within table_object_m of the table plane whose normal lies farther than 45 degrees
+#: from the plane's is an object's foot (the table top's cells face along its normal).
+_FOOT_COS = math.cos(math.radians(45.0))
 #: A surface segment above the table stands on it when this share of its cells do.
 _SEGMENT_INSIDE = 0.25
 #: Surface segments part where the surface folds inwards by more than this (degrees), as
@@ -83,8 +89,9 @@ def support_plane(level: Level) -> tuple[np.ndarray, float] | None:
 def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
                      params: RegistrationParams) -> np.ndarray:
     """(h, w) bool: the cells of ``level`` that stand on the table ``plane`` (n, d in this
-    view's frame).  A cell standing more than ``table_object_m`` above the plane is on the
-    table when its foot lies inside the table's outline (the convex hull, in the plane, of
+    view's frame).  A cell standing more than ``table_object_m`` above the plane, or an
+    object's foot (lower, its normal more than 45 degrees from the plane's), is on the
+    table when it lies inside the table's outline (the convex hull, in the plane, of
     the largest 4-connected group of cells on it, shrunk by ``_OUTLINE_MARGIN_M``), and so is
     every such cell of a surface segment (:func:`~.surfaces.level_segments`) of which at
     least ``_SEGMENT_INSIDE`` stands so: an object at the view's edge hides the table beyond
@@ -104,7 +111,10 @@ def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
         hull = ConvexHull(flat[table].astype(np.float64))
     except (QhullError, ValueError):  # too few cells, or all on a line
         return out
-    above = (z > 0) & (height > params.table_object_m)
+    # an object's foot, lower than table_object_m, is told by its normal: it faces sideways
+    sideways = np.abs(level.normal @ n) < _FOOT_COS
+    above = (z > 0) & ((height > params.table_object_m)
+                       | (sideways & (height > -ON_PLANE_M) & level.normal.any(axis=2)))
     out[above] = np.all(flat[above].astype(np.float64) @ hull.equations[:, :2].T
                         + hull.equations[:, 2] <= -_OUTLINE_MARGIN_M, axis=1)
     segment = level_segments(level, _FOLD_DEG)
@@ -115,6 +125,42 @@ def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
     n_inside = np.bincount(segment[on & out], minlength=len(n_above))
     standing = (n_inside > 0) & (n_inside >= _SEGMENT_INSIDE * n_above)
     return out | (on & standing[np.maximum(segment, 0)])
+
+
+def station_objects(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
+                    params: RegistrationParams) -> tuple[np.ndarray, np.ndarray] | None:
+    """What stands on the table (:func:`objects_on_table`) in the finest levels of the
+    reference (kept with it) and of the current (its table plane the reference's moved by
+    ``T`` (4, 4), T_ref_from_cur): ((h, w) bool, (h, w) bool), or None where the reference
+    shows no table (:func:`support_plane`) or nothing stands on it in either view."""
+    plane = support_plane(ref_levels[params.search_level])
+    if plane is None:
+        return None
+    n_ref, d_ref = plane
+    # the plane in the current frame: n . (R p + t) + d = 0
+    R, t = T[:3, :3], T[:3, 3]
+    rl = ref_levels[-1]
+    kept = _ON_TABLE.get(rl)
+    if kept is None or kept[0] != params.table_object_m:
+        mask = objects_on_table(rl, plane, params)
+        mask.setflags(write=False)
+        kept = _ON_TABLE[rl] = (params.table_object_m, mask)
+    obj_c = objects_on_table(cur_levels[-1], (R.T @ n_ref, d_ref + float(n_ref @ t)), params)
+    if not kept[1].any() and not obj_c.any():
+        return None
+    return kept[1], obj_c
+
+
+def structure_levels(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
+                     params: RegistrationParams) -> tuple[Level, Level] | None:
+    """The finest levels of both views with what stands on the table (:func:`station_objects`)
+    left without normals (nothing pairs with it, nothing judges it): the structure, which
+    does not move; None where that is not a table station."""
+    objects = station_objects(ref_levels, cur_levels, T, params)
+    if objects is None:
+        return None
+    return (_without(ref_levels[-1], objects[0], points=False),
+            _without(cur_levels[-1], objects[1], points=False))
 
 
 def _without(level: Level, drop: np.ndarray, *, points: bool) -> Level:
@@ -185,23 +231,11 @@ def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
     an end that has none."""
     if params.station_through_ratio <= 0:
         return None
-    plane = support_plane(ref_levels[params.search_level])
-    if plane is None:
+    objects = station_objects(ref_levels, cur_levels, T, params)
+    if objects is None:
         return None
-    n_ref, d_ref = plane
-    # the plane in the current frame: n . (R p + t) + d = 0
-    R, t = T[:3, :3], T[:3, 3]
-    plane_cur = (R.T @ n_ref, d_ref + float(n_ref @ t))
+    obj_r, obj_c = objects
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
-    kept = _ON_TABLE.get(rl)
-    if kept is None or kept[0] != params.table_object_m:
-        mask = objects_on_table(rl, plane, params)
-        mask.setflags(write=False)
-        kept = _ON_TABLE[rl] = (params.table_object_m, mask)
-    obj_r = kept[1]
-    obj_c = objects_on_table(cl, plane_cur, params)
-    if not obj_r.any() and not obj_c.any():
-        return None
     rs, cs = _without(rl, obj_r, points=True), _without(cl, obj_c, points=True)
     cells = rl.n_normals + cl.n_normals
     at_T = int(_structure_through(rs, cs, rl, cl, [T], params)[0])
