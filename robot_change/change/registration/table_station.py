@@ -107,8 +107,11 @@ def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
     table = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
     F = plane_frame(n, d)
     flat = ((level.vertex - F[:3, 3]) @ F[:3, :3])[:, :, :2]  # (h, w, 2) plane coordinates
+    # the hull of the region's rim cells is the region's (its inner cells lie between them),
+    # at a tenth of the points
+    rim = table & ~ndimage.binary_erosion(table)
     try:
-        hull = ConvexHull(flat[table].astype(np.float64))
+        hull = ConvexHull(flat[rim].astype(np.float64))
     except (QhullError, ValueError):  # too few cells, or all on a line
         return out
     # an object's foot, lower than table_object_m, is told by its normal: it faces sideways
