@@ -904,7 +904,7 @@ def test_where_every_object_moved_the_table_and_its_legs_decide_the_slide():
 _STATION_UNPINNED = (12006, "all_moved", (0.15, 6.0, 65550))
 
 
-def test_a_slide_only_what_stands_on_the_table_pins_is_said_weak():
+def test_a_slide_only_what_stands_on_the_table_pins_is_said_weak(monkeypatch):
     """Where every object moved and lined up 24 cm along the wall, the objects' sides pin the
     slide and the whole view has nothing against it: without step 7e nothing is said. The
     structure alone (what stands on the table without normals) pins it in none of its cells,
@@ -915,6 +915,11 @@ def test_a_slide_only_what_stands_on_the_table_pins_is_said_weak():
     params = RegistrationParams()
     metres, _degrees, got = _station_error(_STATION_UNPINNED)
     assert "x" in got.weak and metres > 0.2
+    with monkeypatch.context() as m:
+        m.setattr(register, "_structure_slide", lambda *args: ())
+        _metres, _degrees, unsaid = _station_error(_STATION_UNPINNED)
+    assert unsaid.weak == ()
+    np.testing.assert_array_equal(unsaid.T_ref_from_cur, got.T_ref_from_cur)
     from sim_fixtures.stations import station_pair
 
     ref, cur, _truth, intrinsics = station_pair(*_STATION_UNPINNED)
