@@ -64,6 +64,7 @@ class _Pass(NamedTuple):
     A: np.ndarray | None
     planes: tuple[TablePlane, TablePlane] | None
 
+
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
                    initial: np.ndarray | None = None, keep: dict | None = None,
