@@ -197,28 +197,13 @@ def sweep_pairs(seeds: int, levels=(2, 5, 10, 15), seed_base: int = 7000, tag: s
                     spec.intrinsics
 
 
-def reproject(depth, intrinsics, T_new_from_old):
-    """(H, W) uint16 mm: ``depth`` seen from a camera moved by ``T_new_from_old`` (4, 4): each
-    reading back-projected, moved and splatted into a z-buffer; holes stay 0."""
-    pts, _ = depth_to_points(depth, intrinsics, min_depth_m=0.1, max_depth_m=20.0)
-    p = pts.astype(np.float64) @ T_new_from_old[:3, :3].T + T_new_from_old[:3, 3]
-    p = p[p[:, 2] > 0.1]
-    u = np.floor(intrinsics.fx * p[:, 0] / p[:, 2] + intrinsics.cx + 0.5).astype(np.int64)
-    v = np.floor(intrinsics.fy * p[:, 1] / p[:, 2] + intrinsics.cy + 0.5).astype(np.int64)
-    inside = (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
-    out = np.full(depth.shape, np.iinfo(np.int64).max)
-    np.minimum.at(out, (v[inside], u[inside]), np.round(p[inside, 2] * 1000).astype(np.int64))
-    out[out == np.iinfo(np.int64).max] = 0
-    return out.astype(np.uint16)
-
-
 def tabletop_pairs(seeds: int, seed_base: int = 5000, tag: str = "", static: bool = False):
     """The real table-top pairs, the current displaced (module docstring); skipped with a
     message when ../shared/data is absent.  Each pair's offset is drawn from ``seed_base`` and
     ``tag`` (the defaults: the set of docs/benchmarks.md); ``static``: the displaced view is
     of the reference itself (no change in view)."""
     from sim_fixtures.scenes import Pose, pose_offset
-    from sim_fixtures.tabletop import TabletopDataMissing, load_tabletop_pair
+    from sim_fixtures.tabletop import TabletopDataMissing, load_tabletop_pair, seen_from
     from sim_fixtures.tabletop import tabletop_pairs as names
 
     try:
@@ -233,7 +218,7 @@ def tabletop_pairs(seeds: int, seed_base: int = 5000, tag: str = "", static: boo
                 seed = seed_base + s + zlib.crc32(f"{tag}{pr.name}{tm}".encode()) % 1000
                 old = Pose((0.0, 0.0, 0.0))
                 truth = invert(old.matrix()) @ pose_offset(old, tm, rd, seed).matrix()
-                cur = reproject(pr.reference if static else pr.current, pr.intrinsics,
+                cur = seen_from(pr.reference if static else pr.current, pr.intrinsics,
                                 invert(truth))  # truth: T_ref_from_cur
                 yield f"tabletop_{pr.name}_{level}cm_{s}", pr.reference, cur, truth, \
                     pr.intrinsics

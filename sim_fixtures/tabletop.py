@@ -5,6 +5,7 @@
     pair.reference, pair.current           # (480, 640) uint16 mm, 0 = no reading / cropped
     pair.truth_appeared                    # (480, 640) bool over the current image
     pair.truth_disappeared                 # (480, 640) bool over the reference image
+    seen_from(pair.current, pair.intrinsics, T)  # the current from a displaced camera
 
 The data is not in the repository: it is read by path from ``../shared/data/osd-tabletop``
 (beside the checkout; see its README.md), ``derived/<frame>_depth_mm.png`` (uint16 mm) and
@@ -266,6 +267,29 @@ def changed_objects(labels: np.ndarray, truth: np.ndarray, edge_px: int = OBJECT
         if int((core & truth).sum()) >= min_px:
             out |= mask
     return out
+
+
+def seen_from(depth: np.ndarray, intrinsics: Intrinsics, T_new_from_old: np.ndarray
+              ) -> np.ndarray:
+    """(H, W) uint16 mm: ``depth`` (H, W) uint16 mm, 0 = no reading, as a camera moved by
+    ``T_new_from_old`` (4, 4, metres, maps the old camera's points into the new one's frame)
+    would read it: every reading back-projected, moved and drawn into a z-buffer (the
+    nearest wins).  What the old camera did not see stays a hole, so a table top seen
+    from a displaced robot (bench/bench_registration.py ``--tabletop``, the registration
+    tests) has the holes a real revisit would fill."""
+    v, u = np.nonzero(depth)
+    z = depth[v, u] / 1000.0
+    K = intrinsics
+    p = np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=1)
+    p = p @ T_new_from_old[:3, :3].T + T_new_from_old[:3, 3]
+    p = p[p[:, 2] > 0.1]
+    u = np.floor(K.fx * p[:, 0] / p[:, 2] + K.cx + 0.5).astype(np.int64)
+    v = np.floor(K.fy * p[:, 1] / p[:, 2] + K.cy + 0.5).astype(np.int64)
+    inside = (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
+    out = np.full(depth.shape, np.iinfo(np.int64).max)
+    np.minimum.at(out, (v[inside], u[inside]), np.round(p[inside, 2] * 1000).astype(np.int64))
+    out[out == np.iinfo(np.int64).max] = 0
+    return out.astype(np.uint16)
 
 
 def _read(path: Path, reader) -> np.ndarray:

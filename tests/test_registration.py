@@ -1240,3 +1240,34 @@ def test_a_moved_object_does_not_drag_the_estimate(tabletop, name):
     got = register_depth(pair.reference, pair.current, pair.intrinsics)
     assert np.linalg.norm(got.translation_m) < 0.001 and got.rotation_deg < 0.1
     assert got.weak == ()
+
+
+def test_seen_from_keeps_what_the_camera_saw():
+    """sim_fixtures.tabletop.seen_from: at the identity the image itself; moved, a reading lands
+    where the pinhole model puts it, and of two readings on one ray of the new camera the
+    nearer is kept."""
+    from sim_fixtures.tabletop import seen_from
+
+    K = Intrinsics.openni_default()
+    depth = np.zeros((480, 640), dtype=np.uint16)
+    depth[100:140, 200:260] = 1500
+    np.testing.assert_array_equal(seen_from(depth, K, np.eye(4)), depth)
+
+    def pixel(p):  # (u, v) of a point in a camera's frame
+        return (int(np.floor(K.fx * p[0] / p[2] + K.cx + 0.5)),
+                int(np.floor(K.fy * p[1] / p[2] + K.cy + 0.5)))
+
+    # the new camera 0.5 m to the right of the old one: two points straight ahead of it, at 1
+    # and 2 m, are two pixels of the old image
+    T = np.eye(4)
+    T[0, 3] = -0.5
+    depth = np.zeros((480, 640), dtype=np.uint16)
+    for z in (1.0, 2.0):
+        u, v = pixel((0.5, 0.0, z))
+        depth[v, u] = round(z * 1000)
+    moved = seen_from(depth, K, T)
+    landed = {pixel(((u - K.cx) * d / 1000 / K.fx - 0.5, (v - K.cy) * d / 1000 / K.fy, d / 1000))
+              for v, u in zip(*np.nonzero(depth)) for d in [int(depth[v, u])]}
+    assert len(landed) == 1  # both on one pixel of the new image
+    (u, v), = landed
+    assert moved[v, u] == 1000 and np.count_nonzero(moved) == 1
