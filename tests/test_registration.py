@@ -1242,6 +1242,27 @@ def test_a_moved_object_does_not_drag_the_estimate(tabletop, name):
     assert got.weak == ()
 
 
+@pytest.mark.parametrize("offset_m, turn_deg, seed", [(0.05, 2.0, 99231), (0.10, 4.0, 99326),
+                                                      (0.15, 6.0, 99174)])
+def test_moved_objects_do_not_slide_a_displaced_table_top(tabletop, offset_m, turn_deg,
+                                                          seed):
+    """test36-test37 (all three objects moved) seen from a camera 5-15 cm away (the held3
+    sample of bench_registration.py ``--tabletop``): the final search (step 7b), scoring the
+    views whole, found the moved objects lined up 11-32 mm along the table and took a right
+    estimate there.  A table top's in-plane pose has starts of its own (step 6b); the final
+    search is not run on it."""
+    from sim_fixtures.scenes import Pose, pose_offset
+    from sim_fixtures.tabletop import seen_from
+
+    pair = tabletop("test36-test37")
+    station = Pose((0.0, 0.0, 0.0))
+    truth = invert(station.matrix()) @ pose_offset(station, offset_m, turn_deg, seed).matrix()
+    current = seen_from(pair.current, pair.intrinsics, invert(truth))
+    got = register_depth(pair.reference, current, pair.intrinsics)
+    D = invert(truth) @ got.T_ref_from_cur
+    assert np.linalg.norm(D[:3, 3]) < 0.005 and rotation_angle_deg(D[:3, :3]) < 0.2
+
+
 def test_seen_from_keeps_what_the_camera_saw():
     """sim_fixtures.tabletop.seen_from: at the identity the image itself; moved, a reading lands
     where the pinhole model puts it, and of two readings on one ray of the new camera the

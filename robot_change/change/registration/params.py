@@ -53,13 +53,14 @@ class RegistrationParams:
     fine_search_reach_m: float = 0.04
     fine_search_ratio: float = 0.05
     # At the end, when the estimate is weak along a translation (the normal equations, or a
-    # slide nothing pins: weak_eigenvalue, slide_support_share), poses along its least
-    # constrained translation, final_search_step_m apart out to final_search_reach_m each way,
-    # are scored both ways at search_level (each view's inliers, less the cells either sees
-    # through, less table_hole_weight times those landing on no reading); ICP runs at the
-    # finest level from the final_search_starts best peaks, and the best end replaces the
-    # estimate when its score, taken the same way at the finest level, is higher by more
-    # than final_search_margin of the two views' cells with a normal (reach 0: none).
+    # slide nothing pins: weak_eigenvalue, slide_support_share) and not a table top, poses
+    # along its least constrained translation, final_search_step_m apart out to
+    # final_search_reach_m each way, are scored both ways at search_level (each view's
+    # inliers, less the cells either sees through, less table_hole_weight times those
+    # landing on no reading); ICP runs at the finest level from the final_search_starts
+    # best peaks, and the best end replaces the estimate when its score, taken the same way
+    # at the finest level, is higher by more than final_search_margin of the two views'
+    # cells with a normal (reach 0: none).
     # Where every object on a table moved, the objects outnumber the legs and edges that pin
     # the slide along the wall, and ICP stays where they line up; taken both ways at the
     # finest level, the score often prefers the pose where the structure lines up

@@ -1,11 +1,11 @@
 """register_depth: the current view registered to the station's reference, coarse to fine
 (docs/algorithm.md, "Registration"): ICP per level (:mod:`.icp`), at the coarsest level also
 with a wide cut, the search along weak directions at the middle level and, for an estimate
-weak along a translation, once more at the end (:mod:`.agreement`), then at a table station
-on what does not stand on the table (:mod:`.table_station`; its slide judged on that alone
-too), and on a table top the table-plane tracks, the trimming and the checks of
-:mod:`.table_top`; an end the views contradict starts again from restarts round the initial
-pose.
+weak along a translation and not a table top, once more at the end (:mod:`.agreement`), then
+at a table station on what does not stand on the table (:mod:`.table_station`; its slide
+judged on that alone too), and on a table top the table-plane tracks, the trimming and the
+checks of :mod:`.table_top`; an end the views contradict starts again from restarts round
+the initial pose.
 """
 
 from __future__ import annotations
@@ -123,17 +123,20 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
 def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
               params: RegistrationParams, min_cos: float
               ) -> tuple[_Pass, tuple[str, ...], tuple]:
-    """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation, searched at
-    the end (steps 7b, 7c), then at a table station judged on its structure (step 7e): (the
-    end, moved where a search moved it; the weak direction names; the judgement: fitness,
-    rmse_m, inlier pairs, current cells with a normal, seen-through share, behind share)."""
+    """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation and not a
+    table top, searched at the end (steps 7b, 7c), then at a table station judged on its
+    structure (step 7e): (the end, moved where a search moved it; the weak direction names;
+    the judgement: fitness, rmse_m, inlier pairs, current cells with a normal, seen-through
+    share, behind share)."""
     T, iterations, converged, lam_n, vec, A, planes = end
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
                           min_cos)
     # for an estimate weak along a translation: the final search along it, then, at a table
-    # station, the structure's say (not on a table top, whose in-plane pose has its own)
-    searches = [] if params.final_search_reach_m <= 0 else [_final_search]
+    # station, the structure's say; not on a table top, whose in-plane pose has its own
+    # starts (step 6b): scored whole, objects moved on it line up a slide away
+    searches = []
     if planes is None:
+        searches = [_final_search] if params.final_search_reach_m > 0 else []
         searches.append(structure_search)
     for search in searches:
         if A is None or not any(a in weak for a in AXES[3:]):
