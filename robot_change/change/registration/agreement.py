@@ -228,14 +228,22 @@ def slides_along(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_
     """``T`` (4, 4) moved along the ``n_dirs`` least constrained directions of the translation
     block of the normal matrix ``A`` (6, 6), ``step_m`` apart out to ``reach_m`` each way (m)."""
     _lam, vecs = np.linalg.eigh(A[3:, 3:])
-    steps = np.arange(step_m, reach_m + 1e-9, step_m)
-    steps = np.concatenate([-steps[::-1], steps])
+    k = int(math.floor(reach_m / step_m + 1e-9))
     poses = []
     for d in vecs[:, :n_dirs].T:
-        for st in steps:
-            c = T.copy()
-            c[:3, 3] += st * d
-            poses.append(c)
+        poses += line_poses(T, d, step_m, -k, -1) + line_poses(T, d, step_m, 1, k)
+    return poses
+
+
+def line_poses(T: np.ndarray, direction: np.ndarray, step_m: float, lo: int, hi: int
+               ) -> list[np.ndarray]:
+    """``T`` (4, 4) moved by ``i * step_m`` along ``direction`` (3,), a unit translation in
+    the reference frame, for i = lo ... hi, in that order."""
+    poses = []
+    for i in range(lo, hi + 1):
+        pose = T.copy()
+        pose[:3, 3] += i * step_m * direction
+        poses.append(pose)
     return poses
 
 
@@ -281,21 +289,29 @@ def fine_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
 
 
 def slide_peaks(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
-                params: RegistrationParams, min_cos: float) -> list[np.ndarray]:
+                params: RegistrationParams, min_cos: float,
+                start: np.ndarray | None = None) -> list[np.ndarray]:
     """Up to ``final_search_starts`` poses of ``T`` (4, 4) slid along the least constrained
     translation of ``A`` (6, 6), ``final_search_step_m`` apart out to ``final_search_reach_m``
-    each way: the local peaks of the score taken both ways (:func:`score_poses`, with
-    ``table_hole_weight``) at this level, best first, none of them ``T`` itself."""
-    slid = slides_along(T, A, params.final_search_step_m, params.final_search_reach_m, 1)
-    half = len(slid) // 2
-    line_poses = slid[:half] + [T] + slid[half:]  # in order along the line, T in the middle
-    line = score_poses(rl, cl, line_poses, params, min_cos, True,
-                       params.table_hole_weight)
-    peaks = [i for i in range(len(line)) if i != half
+    each way, and as far round where ``start`` (4, 4, the initial pose) stands along that
+    line: the local peaks of the score taken both ways (:func:`score_poses`, with
+    ``table_hole_weight``) at this level, best first, none of them ``T`` itself.  ICP does
+    not move an estimate along a slide, and the searches before may have carried it farther
+    from the initial pose than the robot can stand from it."""
+    step, reach = params.final_search_step_m, params.final_search_reach_m
+    d = np.linalg.eigh(A[3:, 3:])[1][:, 0]
+    k = int(math.floor(reach / step + 1e-9))
+    lo, hi = -k, k
+    if start is not None:
+        s0 = int(round(float(d @ (start[:3, 3] - T[:3, 3])) / step))
+        lo, hi = min(lo, s0 - k), max(hi, s0 + k)
+    poses = line_poses(T, d, step, lo, hi)  # in order along the line, T at -lo
+    line = score_poses(rl, cl, poses, params, min_cos, True, params.table_hole_weight)
+    peaks = [i for i in range(len(line)) if i != -lo
              and (i == 0 or line[i] >= line[i - 1])
              and (i == len(line) - 1 or line[i] >= line[i + 1])]
     peaks.sort(key=lambda i: -line[i])
-    return [line_poses[i] for i in peaks[:params.final_search_starts]]
+    return [poses[i] for i in peaks[:params.final_search_starts]]
 
 
 def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,

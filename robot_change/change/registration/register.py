@@ -10,6 +10,7 @@ the initial pose.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import NamedTuple
@@ -112,7 +113,7 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     min_cos = math.cos(math.radians(params.max_normal_angle_deg))
     coarse_ends: list[np.ndarray] = []
     end = _finished(ref_levels, cur_levels, _coarse_to_fine(
-        ref_levels, cur_levels, T, params, min_cos, coarse_ends), params, min_cos)
+        ref_levels, cur_levels, T, params, min_cos, coarse_ends), params, min_cos, T)
     if 0 < params.restart_end_through < end[2][4]:  # its judgement's seen-through share
         end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos, coarse_ends)
     est, weak, (fit, rmse, n_pairs, n_cells, through, behind) = end
@@ -121,13 +122,14 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
 
 
 def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
-              params: RegistrationParams, min_cos: float
+              params: RegistrationParams, min_cos: float, start: np.ndarray
               ) -> tuple[_Pass, tuple[str, ...], tuple]:
     """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation and not a
-    table top, searched at the end (steps 7b, 7c), then at a table station judged on its
-    structure (step 7e): (the end, moved where a search moved it; the weak direction names;
-    the judgement: fitness, rmse_m, inlier pairs, current cells with a normal, seen-through
-    share, behind share)."""
+    table top, searched at the end (steps 7b, 7c; the final search also round ``start``
+    (4, 4), the initial pose), then at a table station judged on its structure (step 7e):
+    (the end, moved where a search moved it; the weak direction names; the judgement:
+    fitness, rmse_m, inlier pairs, current cells with a normal, seen-through share, behind
+    share)."""
     T, iterations, converged, lam_n, vec, A, planes = end
     weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes, params,
                           min_cos)
@@ -136,7 +138,8 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
     # starts (step 6b): scored whole, objects moved on it line up a slide away
     searches = []
     if planes is None:
-        searches = [_final_search] if params.final_search_reach_m > 0 else []
+        if params.final_search_reach_m > 0:
+            searches.append(functools.partial(_final_search, start=start))
         searches.append(structure_search)
     for search in searches:
         if A is None or not any(a in weak for a in AXES[3:]):
@@ -295,7 +298,7 @@ def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.n
             rl, cl, ends[best].T, params, min_cos)[4] >= params.restart_end_ratio * judged[4]:
         return kept
     return _finished(ref_levels, cur_levels, ends[best]._replace(iterations=iterations),
-                     params, min_cos)
+                     params, min_cos, start)
 
 
 def _same_pose(T: np.ndarray, other: np.ndarray) -> bool:
@@ -323,13 +326,15 @@ def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.
 
 
 def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
-                  A: np.ndarray, params: RegistrationParams, min_cos: float):
+                  A: np.ndarray, params: RegistrationParams, min_cos: float,
+                  start: np.ndarray | None = None):
     """The finest level's ICP (:func:`icp_level`'s tuple) from the best peak of ``T`` slid
-    along its least constrained translation (:func:`slide_peaks`, at ``search_level``) when
-    it ends scoring higher than ``T`` both ways by more than ``final_search_margin`` of the
-    two views' cells with a normal; None otherwise."""
+    along its least constrained translation, round ``T`` and round the initial pose
+    ``start`` (:func:`slide_peaks`, at ``search_level``) when it ends scoring higher than
+    ``T`` both ways by more than ``final_search_margin`` of the two views' cells with a
+    normal; None otherwise."""
     mid = params.search_level
-    starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos)
+    starts = slide_peaks(ref_levels[mid], cur_levels[mid], T, A, params, min_cos, start)
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
     pairs = Pairs(cl)
     ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
