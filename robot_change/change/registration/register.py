@@ -326,8 +326,8 @@ def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.
 
 
 def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
-                  A: np.ndarray, params: RegistrationParams, min_cos: float,
-                  start: np.ndarray | None = None):
+                  A: np.ndarray, params: RegistrationParams, min_cos: float, *,
+                  start: np.ndarray):
     """The finest level's ICP (:func:`icp_level`'s tuple) from the best peak of ``T`` slid
     along its least constrained translation, round ``T`` and round the initial pose
     ``start`` (:func:`slide_peaks`, at ``search_level``) when it ends scoring higher than
