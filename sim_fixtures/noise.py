@@ -34,6 +34,11 @@ Kinect model (:class:`KinectNoise`), where the constants come from:
 Paper protocol (:class:`GaussianNoise`): Table 1 of the paper, z + N(0, sigma^2) with sigma =
 0.001, 0.01 or 0.1 m; no quantisation (beyond the millimetre of the uint16 format), no range
 limit, no dropouts, no shadows.
+
+The harsher models, :class:`~sim_fixtures.harsh_noise.RealisticKinectNoise` (the Kinect
+model fitted to real Xtion depth) and :class:`~sim_fixtures.harsh_noise.StereoNoise` (RealSense
+D4xx-like), live in :mod:`sim_fixtures.harsh_noise`, which uses this module's helpers;
+:func:`noise_from_json` reads all four.
 """
 
 from __future__ import annotations
@@ -182,14 +187,27 @@ class GaussianNoise:
                 "source": "paper Table 1: normal distribution, mu = 0"}
 
 
-def noise_from_json(data: dict) -> KinectNoise | GaussianNoise:
-    """Inverse of ``to_json`` (unknown keys such as descriptions are ignored)."""
+def noise_from_json(data: dict):
+    """Inverse of ``to_json`` (unknown keys such as descriptions are ignored): a
+    KinectNoise, GaussianNoise, or one of sim_fixtures.harsh_noise's RealisticKinectNoise and
+    StereoNoise."""
     if data["model"] == "gaussian":
         return GaussianNoise(float(data["sigma_m"]))
     if data["model"] == "kinect":
         names = {f.name for f in dataclasses.fields(KinectNoise)}
         return KinectNoise(**{k: v for k, v in data.items() if k in names})
-    raise ValueError(f"unknown noise model {data['model']!r}; known: 'kinect', 'gaussian'")
+    # imported here: harsh_noise builds on this module's helpers
+    from sim_fixtures.harsh_noise import RealisticKinectNoise, StereoNoise
+
+    for cls in (RealisticKinectNoise, StereoNoise):
+        if data["model"] == cls.kind:
+            names = {f.name for f in dataclasses.fields(cls)}
+            kw = {k: v for k, v in data.items() if k in names}
+            if "border_px" in kw:
+                kw["border_px"] = tuple(int(v) for v in kw["border_px"])
+            return cls(**kw)
+    raise ValueError(f"unknown noise model {data['model']!r}; known: 'kinect', 'gaussian', "
+                     f"'{RealisticKinectNoise.kind}', '{StereoNoise.kind}'")
 
 
 def _edge_band(z: np.ndarray, rel: float, band: int) -> np.ndarray:
