@@ -4,7 +4,7 @@ table-top pairs, for our method and the baselines.  docs/evaluation.md reports i
     .venv/bin/python bench/eval_change.py [--split dev|holdout|all] [--real] [--methods ...]
         [--single-frame] [--as-daemon] [--json OUT] [--plots DIR] [--speed] [--set field=value ...]
         [--scene-seed N] [--stations SEEDS [--station-seed-base N] [--station-tag T]
-        [--station-levels 0,5,10,15]]
+        [--station-levels 0,5,10,15]] [--harsh]
 
 Truth and scoring (point level):
 
@@ -41,6 +41,16 @@ check, 6000 (the default) once after it, 8000 while choosing its near-range and 
 9000 once after those, 8000 again while choosing the object completion's share, 11000 once
 after it (issue 12, docs/evaluation.md, "Table stations").
 
+``--harsh``: the harsh Kinect model (sim_fixtures.harsh_noise.RealisticKinectNoise, fitted to
+real Xtion depth), not stored.  "harsh no-change": ``real_noise.harsh_pair`` of every room layout,
+seeds 0 and 1, the current camera 0 / 3 / 8 cm away; the reference fused from 3 frames, the
+current from 3 (``_3f``) and, as a row of its own, from its first frame only (``_1f``); every one
+must end no_change or not_at_station (the count of changed is printed).  "harsh changes":
+``harsh_noise.harsh_scene`` of every changed Kinect scene of dev and holdout, at the station and
+at its pose_2cm / 5cm / 10cm revisits, scored as the stored scenes; "harsh changes 1-3 m" the
+same rows for the scenes whose every changed side (the visible centroid's depth z, reference
+and current camera) lies within 1-3 m.
+
 Every method sees the same two SceneModels: the reference and the current, each fused from the
 scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with
 the same CloudParams.  ``--as-daemon``: each method gets the current as its (fused) depth
@@ -64,6 +74,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.eval_sets import (  # noqa: E402
+    HARSH_RANGE_M,
+    LEVELS,
+    change_depths_m,
+    forget_harsh,
+    harsh_changed_names,
+    harsh_levels_summary,
+    harsh_none_checks,
+    harsh_none_summary,
+    level_of,
+    load_harsh_pair,
+    load_harsh_scene,
+    load_static,
+    prf,
+    static_summary,
+    summarise,
+)
 from robot_change.change.baselines import (  # noqa: E402
     detect_geometric,
     detect_nn_threshold,
@@ -77,18 +104,6 @@ from sim_fixtures.tabletop import changed_objects  # noqa: E402
 from sim_fixtures.truth import point_truth  # noqa: E402
 
 PAPER = ("paper_sigma_1mm", "paper_sigma_10mm", "paper_sigma_100mm")
-#: Offset groups of the simulated scenes: "" (the robot at its station) and the pose levels.
-LEVELS = ("", "pose_2cm", "pose_5cm", "pose_10cm")
-
-
-def level_of(name: str) -> str:
-    """The pose level of a scene name ('' for a scene at its station)."""
-    for level in LEVELS[1:]:
-        if name.endswith("_" + level):
-            return level
-    return ""
-
-
 #: The real hand-held frames (../shared/data/pcl-grabber-seq): no object change, a little camera
 #: motion between frames ~0.25 s apart; every ordered pair of the three is a no-change pair.
 HANDHELD = ("0-1", "0-2", "1-2", "1-0", "2-0", "2-1")
@@ -97,9 +112,12 @@ HANDHELD_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl-gr
 
 def is_no_change(name: str) -> bool:
     from sim_fixtures import SCENES_DIR, load_scene
+    from sim_fixtures.real_static import static_pairs
 
-    if name in HANDHELD:
+    if name in HANDHELD or name in static_pairs():
         return True
+    if name.startswith("harsh_"):  # --harsh: harsh_none_* pairs, harsh_<scene> changes
+        return name.startswith("harsh_none_")
     if name.startswith("station_"):  # sim_fixtures.stations.station_checks' names
         return name.startswith("station_none_")
     if not (SCENES_DIR / name / "scene.json").is_file():
@@ -212,24 +230,6 @@ def score(cs, ref_model, cur_model, truth_app, truth_dis, scene=None) -> dict:
         out["reg_err_mm"] = float(np.linalg.norm(err[:3, 3]) * 1e3)
         out["reg_err_deg"] = rotation_angle_deg(err[:3, :3])
     return out
-
-
-def prf(tp, pred, true):
-    p = tp / pred if pred else (1.0 if true == 0 else 0.0)
-    r = tp / true if true else 1.0
-    f = 2 * p * r / (p + r) if p + r > 0 else 0.0
-    return p, r, f
-
-
-def summarise(rows: list[dict]) -> dict:
-    tot = {k: sum(r[k] for r in rows) for k in ("app_tp", "app_pred", "app_true", "dis_tp",
-                                                   "dis_pred", "dis_true")}
-    a = prf(tot["app_tp"], tot["app_pred"], tot["app_true"])
-    d = prf(tot["dis_tp"], tot["dis_pred"], tot["dis_true"])
-    c = prf(tot["app_tp"] + tot["dis_tp"], tot["app_pred"] + tot["dis_pred"],
-            tot["app_true"] + tot["dis_true"])
-    return {"app_p": a[0], "app_r": a[1], "app_f1": a[2], "dis_p": d[0], "dis_r": d[1],
-            "dis_f1": d[2], "p": c[0], "r": c[1], "f1": c[2], **tot}
 
 
 def load_sim(name: str, single_frame: bool, scene_params: SceneParams):
@@ -360,6 +360,8 @@ def main(argv=None):
     ap.add_argument("--scenes", nargs="*")
     ap.add_argument("--real", action="store_true", help="also the 9 real table-top pairs and "
                     "the 6 real hand-held no-change pairs")
+    ap.add_argument("--static", action="store_true", help="also the real static rooms "
+                    "(sim_fixtures.real_static: no change; --real runs them too)")
     ap.add_argument("--methods", nargs="*", default=["ours", "plain", "nn", "geometric"])
     ap.add_argument("--single-frame", action="store_true")
     ap.add_argument("--as-daemon", action="store_true",
@@ -375,6 +377,10 @@ def main(argv=None):
     ap.add_argument("--station-seed-base", type=int, default=6000)
     ap.add_argument("--station-tag", default="", help="mixed into each revisit's offset")
     ap.add_argument("--station-levels", default="0,5,10,15", help="offset levels in cm")
+    ap.add_argument("--harsh", action="store_true",
+                    help="also the harsh Kinect model's no-change pairs (every layout, seeds 0 "
+                         "and 1, 0 / 3 / 8 cm, the current from 3 and from 1 frame) and the "
+                         "stored changed Kinect scenes re-rendered with it (not stored)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plots", type=Path)
     ap.add_argument("--speed", action="store_true")
@@ -432,6 +438,14 @@ def main(argv=None):
             report["results"]["real hand-held"] = {m: {"total": summarise(rows),
                                                        "scenes": rows}
                                                    for m, rows in per.items()}
+    from sim_fixtures.real_static import DATA_DIR, static_pairs
+
+    if (args.real or args.static) and DATA_DIR.is_dir():
+        print("== real static rooms (no change)", flush=True)
+        per, _ = run(static_pairs(), lambda n: load_static(n, sp), fns, not args.quiet)
+        report["results"]["real static"] = {m: {"total": summarise(rows), "scenes": rows,
+                                                "verdict": static_summary(rows)}
+                                            for m, rows in per.items()}
     if args.stations:
         from sim_fixtures.stations import station_checks
 
@@ -445,6 +459,38 @@ def main(argv=None):
             caches[group] = cache
             report["results"][group] = {m: {"total": summarise(rows), "scenes": rows}
                                         for m, rows in per.items()}
+    if args.harsh:
+        checks = harsh_none_checks()
+        print(f"== harsh no-change ({len(checks)} checks)", flush=True)
+        per, _ = run(list(checks), lambda n: load_harsh_pair(checks[n], sp), fns,
+                     not args.quiet)
+        forget_harsh()
+        report["results"]["harsh no-change"] = {m: {"total": summarise(rows), "scenes": rows,
+                                                    "verdict": harsh_none_summary(rows)}
+                                                for m, rows in per.items()}
+        names = ["harsh_" + n for n in harsh_changed_names()]
+        print(f"== harsh changes ({len(names)} scenes)", flush=True)
+        depths = {}
+
+        def harsh_loader(name):
+            out = load_harsh_scene(name, args.single_frame, sp)
+            depths[name] = change_depths_m(out[-1].changes)
+            return out
+
+        per, cache = run(names, harsh_loader, fns, not args.quiet)
+        caches["harsh changes"] = cache
+        lo, hi = HARSH_RANGE_M
+        near = [n for n in names if all(lo <= z <= hi for z in depths[n])]
+        outside = {n: [round(z, 2) for z in depths[n]] for n in names if n not in near}
+        report["results"]["harsh changes"] = {
+            m: {"total": summarise(rows), "scenes": rows,
+                "verdict": f"per level: {harsh_levels_summary(rows)}\n{'':10s} outside "
+                           f"{lo:g}-{hi:g} m (changed sides' depths, m): {outside}"}
+            for m, rows in per.items()}
+        report["results"][f"harsh changes {lo:g}-{hi:g} m"] = {
+            m: {"total": summarise(sub), "scenes": sub,
+                "verdict": f"per level: {harsh_levels_summary(sub)}"}
+            for m, rows in per.items() for sub in [[r for r in rows if r["scene"] in near]]}
     for group, res in report["results"].items():
         print(f"\n== {group}: totals (paper_sigma_* scenes excluded from the sim totals)")
         print(f"{'method':10s} {'F1':>6s} {'P':>6s} {'R':>6s} | {'appF1':>6s} {'appP':>6s} "
@@ -470,6 +516,8 @@ def main(argv=None):
             print(f"{m:10s} {t['f1']:6.3f} {t['p']:6.3f} {t['r']:6.3f} | {t['app_f1']:6.3f} "
                   f"{t['app_p']:6.3f} {t['app_r']:6.3f} | {t['dis_f1']:6.3f} {t['dis_p']:6.3f} "
                   f"{t['dis_r']:6.3f} | {len(fa)}/{len(nc)} {fa} | {missed}")
+            if "verdict" in r:
+                print(f"{'':10s} {r['verdict']}")
             if r["scenes"] and "app_obj_tp" in r["scenes"][0]:
                 o = prf(*(sum(sc[f"app_{k}"] + sc[f"dis_{k}"] for sc in r["scenes"])
                           for k in ("obj_tp", "pred", "obj_true")))
@@ -515,7 +563,8 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
 
     folder.mkdir(parents=True, exist_ok=True)
     # the groups with changes to find (not_at_station and the hand-held no-change pairs have none)
-    groups = [g for g in report["results"] if "not_at_station" not in g and "hand-held" not in g]
+    groups = [g for g in report["results"] if "not_at_station" not in g and "hand-held" not in g
+              and "static" not in g and "no-change" not in g]
     methods = [m for m in ("ours", "geometric", "free_space_only", "nn", "plain")
                if m in report["results"][groups[0]]]
     fig, ax = plt.subplots(figsize=(2 + 1.1 * len(groups), 3.8))

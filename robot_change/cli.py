@@ -26,6 +26,7 @@ from hw.pointfile import POINT_FORMATS, write_points
 from robot_change import validate
 from robot_change.change.mount import CameraMount
 from robot_change.errors import ConfigError, InputError, RobotChangeError
+from robot_change.noise.profile import BUILTIN, DEFAULT_PROFILE
 
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
 #: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
@@ -337,15 +338,26 @@ def _scene_params(args: argparse.Namespace):
     return SceneParams(cloud=_cloud_params(args))
 
 
+def _profile(args: argparse.Namespace):
+    """``--profile``: a built-in profile's name or a profile file (robot_change.noise)."""
+    from robot_change.noise.profile import resolve_profile
+
+    name = args.profile
+    if name.lower().endswith(".json") or "/" in name:
+        return resolve_profile(path=name)
+    return resolve_profile(name)
+
+
 def _reference_scene(args: argparse.Namespace):
-    """The reference as a SceneModel: loaded from a file, or built from frames of a URI."""
+    """The reference as a SceneModel: loaded from a file (with the profile it was captured
+    with), or built from frames of a URI."""
     from robot_change.change.scene import SceneModel, build_scene
 
     if _is_scene_file(args.reference):
         return SceneModel.load(args.reference)
     frames = _read_frames(args.reference, args.frames)
     return build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
-                       source=args.reference)
+                       source=args.reference, noise=_profile(args))
 
 
 def _current_input(args: argparse.Namespace, reference):
@@ -371,15 +383,52 @@ def cmd_capture(args: argparse.Namespace) -> int:
     mount = CameraMount.parse(args.mount) if args.mount else None
     frames = _read_frames(args.source, args.frames)
     scene = build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
-                        source=args.source, mount=mount)
+                        source=args.source, mount=mount, noise=_profile(args))
     scene.save(args.out)
+    limit = _limit_of(scene)
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
-          f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s"
-          + ("" if mount is None else f", mount {_mount_text(mount)}"))
+          f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s, noise "
+          f"{scene.noise.name}, smallest change seen {_cm(limit.median_m)} at the view's "
+          "median depth" + ("" if mount is None else f", mount {_mount_text(mount)}"))
     if args.format:
         cloud_path = Path(args.out).with_suffix(f".{args.format}")
         _, frame = _write_point_files({cloud_path: (scene.points, None)}, args.format, mount)
         print(f"wrote {cloud_path}: the clean cloud, {frame.replace('_', ' ')} frame")
+    return 0
+
+
+def _limit_of(scene):
+    """The smallest change a check of ``scene`` reports (robot_change.change.limits)."""
+    from robot_change.change.limits import detection_limit
+    from robot_change.change.params import ChangeParams
+
+    return detection_limit(scene.depth, scene.noise, ChangeParams(), scene.params.cloud.leaf_m,
+                           scene.intrinsics.fx)
+
+
+def _cm(metres: float) -> str:
+    return f"{metres * 100:.0f} cm" if np.isfinite(metres) else "nothing (no depth in range)"
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Measure a still camera's noise and write its profile (robot_change.tools.calibrate)."""
+    from robot_change.tools.calibrate import calibrate, calibration_summary
+
+    base = _profile(args)
+    out = Path(args.out)
+    with open_depth(args.source) as source:
+        profile, noise, seconds = calibrate(source, base, out, args.frames)
+    summary = calibration_summary(profile, base, noise, seconds, out)
+    if args.json:
+        _print_json(summary)
+        return 0
+    print(f"wrote {out}: {profile.name} from {noise.n_frames} frames in {seconds:.1f} s; step "
+          f"{noise.step_per_m * 1e3:.2f} mm/m^2, flicker {noise.flicker_valid:.2%} (valid) "
+          f"{noise.flicker_step:.2%} (steps), flying pixels {noise.edge_px} px from an edge")
+    print("depth m   sigma mm   built-in mm   pixels")
+    for row in summary["bins"]:
+        print(f"{row['depth_m']:7.2f} {row['sigma_mm']:10.2f} {row['builtin_sigma_mm']:13.2f} "
+              f"{row['pixels']:8d}")
     return 0
 
 
@@ -435,8 +484,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
         if not args.no_picture:
             from robot_change.tools.report import draw_change
 
+            seen = "" if changes.limit is None else (
+                f"; smallest change seen {_cm(changes.limit.median_m)} at the median depth")
             draw_change(reference.depth, current_depth, camera, changes, out / "report.png",
-                        title=f"{args.reference} -> {args.current}")
+                        title=f"{args.reference} -> {args.current}\nnoise "
+                        f"{reference.noise.name}{seen}")
             summary["files"].append(str(out / "report.png"))
         from hw.atomic import write_atomically
 
@@ -624,6 +676,8 @@ def _count(text: str) -> int:
 FORMAT_HELP = ("npy (default: (M,3) float32, camera optical frame), pcd (binary) or ply; "
                ".pcd / .ply are in base_link when the camera's --mount is known, else in the "
                "camera optical frame, and say which (PCD VIEWPOINT, PLY comment)")
+PROFILE_HELP = (f"the camera's noise: a built-in profile ({', '.join(BUILTIN)}; default "
+                f"{DEFAULT_PROFILE}) or a file written by `robot-change calibrate`")
 MOUNT_HELP = ("the camera on the base: x,y,z,roll,pitch,yaw of its body frame (x forward, y "
               "left, z up) in base_link, metres and degrees; .pcd / .ply points are then "
               "written in base_link")
@@ -704,7 +758,22 @@ def build_parser() -> argparse.ArgumentParser:
     capture.add_argument("--format", choices=POINT_FORMATS,
                          help="also write the clean cloud beside --out (REF.scene.pcd, .ply or "
                          ".npy); " + FORMAT_HELP.split("; ", 1)[1])
+    capture.add_argument("--profile", default=DEFAULT_PROFILE, help=PROFILE_HELP)
     capture.set_defaults(func=cmd_capture)
+
+    calibrate = commands.add_parser("calibrate", help="measure a still camera's noise and "
+                                    "write its profile ([camera] profile_file)")
+    calibrate.add_argument("--source", required=True, help="depth URI of the camera (or a "
+                           "recording of a still view)")
+    calibrate.add_argument("--out", required=True, help="the profile file to write (JSON)")
+    calibrate.add_argument("--frames", type=_count, default=30,
+                           help="frames to read (default 30: 1 s at 30 fps)")
+    calibrate.add_argument("--profile", default=DEFAULT_PROFILE,
+                           help="the built-in profile of this kind of camera (its principle, "
+                           "range and the shape of its noise beyond the measured depths; "
+                           f"default {DEFAULT_PROFILE})")
+    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate.set_defaults(func=cmd_calibrate)
 
     detect = commands.add_parser("detect", help="compare a reference with now: what appeared, "
                                  "what disappeared, where")
@@ -718,6 +787,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "else OpenNI's VGA default)")
     detect.add_argument("--leaf", type=float,
                         help="voxel size in metres for a reference built from a URI")
+    detect.add_argument("--profile", default=DEFAULT_PROFILE,
+                        help=PROFILE_HELP + " (a reference from a file keeps its own)")
     detect.add_argument("--method", choices=("novelty", "plain", "geometric", "nn"),
                         default="novelty", help="ours (default), the paper's plain method, or a "
                         "baseline without a mixture")

@@ -14,6 +14,8 @@ from robot_change.change import free_space, greedy
 from robot_change.change.baselines import detect_geometric, detect_nn_threshold, detect_plain
 from robot_change.change.detect import detect_changes
 from robot_change.change.free_space import free_space_votes
+from robot_change.noise.kernels import table_sigma
+from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import label_voxel_components
 from robot_change.change.results import ChangeSet
@@ -253,11 +255,9 @@ def test_baselines(models):
 def test_params_are_validated():
     for bad in (dict(novelty_quantile=0.0), dict(ground_distance="l1"), dict(greedy=1),
                 dict(posterior_threshold=1.5), dict(region_connectivity=0),
-                dict(free_space_margin_m=-0.01), dict(novelty_seed="x"),
+                dict(free_space_sigmas=-1.0), dict(novelty_seed="x"),
                 dict(gone_component_share=1.5), dict(gone_component_share="half"),
-                dict(free_space_shadow_baseline_m=-0.075),
-                dict(free_space_shadow_baseline_m="7.5 cm"),
-                dict(free_space_sensor_min_m=-0.5), dict(free_space_sensor_min_m="near"),
+                dict(free_space_pose_m=-0.01), dict(free_space_pose_m="1 cm"),
                 dict(free_space_hole_needs_far_edge="yes")):
         with pytest.raises(InputError, match="ChangeParams"):
             ChangeParams(**bad)
@@ -358,7 +358,17 @@ def _row_neighbours_twin(depth):
     return out
 
 
-def _unexplained_holes_twin(depth, dropout_px, shadow_bf, margin_m, per_m2):
+#: The default profile's sigma table (robot_change.noise.kernels.sigma_at reads it).
+NOISE = builtin_profile(DEFAULT_PROFILE).kernel_table()
+
+
+def _margin(z, sigmas, pose_m):
+    """robot_change.noise.kernels.margin_at in NumPy."""
+    s = table_sigma(NOISE, z)
+    return sigmas * np.sqrt(2.0 * s * s + pose_m * pose_m)
+
+
+def _unexplained_holes_twin(depth, dropout_px, shadow_bf, sigmas, pose_m):
     """(H, W) bool: pixels with no reading whose run along the row is wider than
     ``dropout_px``, meets the border, or is no projector shadow of the nearer reading beside
     it on the farther one."""
@@ -368,13 +378,13 @@ def _unexplained_holes_twin(depth, dropout_px, shadow_bf, margin_m, per_m2):
     z_near = np.minimum(left_mm, right_mm) * 1e-3
     z_far = np.maximum(left_mm, right_mm) * 1e-3
     with np.errstate(divide="ignore"):
-        shadow = (shadow_bf > 0) & (z_near < z_far - margin_m - per_m2 * z_far ** 2) & \
+        shadow = (shadow_bf > 0) & (z_near < z_far - _margin(z_far, sigmas, pose_m)) & \
             (width <= shadow_bf * (1 / np.where(both, z_near, 1.0) - 1 / np.where(both, z_far, 1.0))
              + 1)
     return (depth == 0) & ~(both & ((width <= dropout_px) | shadow))
 
 
-def _near_ray_clear_twin(q, own, back, intr, sensor_min_m, margin_m, per_m2, holes):
+def _near_ray_clear_twin(q, own, back, intr, sensor_min_m, sigmas, pose_m, holes):
     """(len(q),) bool: this camera (image ``own``) reads beyond every sample of the other
     camera's ray through its pixels ``q`` (flat) at 0.4, 0.6, 0.8 and 1.0 x ``sensor_min_m``
     that lands in its image in front of it (``back``: other frame -> this frame), none lands
@@ -393,12 +403,12 @@ def _near_ray_clear_twin(q, own, back, intr, sensor_min_m, margin_m, per_m2, hol
         inside = front & (c >= 0) & (c < w) & (r >= 0) & (r < h)
         rr, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
         d = own[rr, cc] * 1e-3
-        clear &= ~inside | np.where(d > 0, d > z + margin_m + per_m2 * z * z, ~holes[rr, cc])
+        clear &= ~inside | np.where(d > 0, d > z + _margin(z, sigmas, pose_m), ~holes[rr, cc])
         seen |= inside
     return clear & seen
 
 
-def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_zero,
+def _free_space_twin(pv, own, other, n, sigmas, pose_m, pose_r, hole_r, free_zero,
                      target=None, z_other=None, shadow_bf=0.0, sensor_min_m=0.0,
                      far_edge=False, back=None, intr=None):
     near = (_window_twin(other, pose_r, True) if pose_r else other).ravel()
@@ -411,7 +421,7 @@ def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_z
     q = np.where(valid, target, 0)
     d1 = np.where(near[q] > 0, near[q], far[q]).astype(np.float64) * 1e-3
     z = z_other
-    margin = margin_m + per_m2 * z * z
+    margin = _margin(z, sigmas, pose_m)
     shadowed = np.zeros(q.shape, bool)
     opens = np.zeros(q.shape, bool)  # a first reading beside the hole lies beyond the point
     for mm, px in np.reshape(_row_neighbours_twin(other), (2, 2) + other.shape):
@@ -425,18 +435,20 @@ def _free_space_twin(pv, own, other, n, margin_m, per_m2, pose_r, hole_r, free_z
     if sensor_min_m > 0:  # the near stretch of the other camera's ray, as this one saw it
         intr = intr or Intrinsics(own.shape[1], own.shape[0], 525.0, 525.0,
                                   (own.shape[1] - 1) / 2, (own.shape[0] - 1) / 2)
-        holes = _unexplained_holes_twin(own, 2 * hole_r, shadow_bf, margin_m, per_m2)
+        holes = _unexplained_holes_twin(own, 2 * hole_r, shadow_bf, sigmas, pose_m)
         clear = _near_ray_clear_twin(q, own, np.eye(4) if back is None else back, intr,
-                                     sensor_min_m, margin_m, per_m2, holes)
+                                     sensor_min_m, sigmas, pose_m, holes)
     else:
         clear = np.ones(q.shape, bool)
-    seen = valid & ~too_near & np.where(
-        d1 == 0, free_zero & ~shadowed & (opens | ~far_edge) & clear, d1 > z + margin)
+    read = valid & ~too_near & (d1 > 0) & (d1 > z + margin)
+    seen = read | (valid & ~too_near & (d1 == 0) & free_zero & ~shadowed & (opens | ~far_edge)
+                   & clear)
     ok = pv >= 0
     votes = np.bincount(pv[ok], weights=seen[ok], minlength=n).astype(np.int32)
     total = np.bincount(pv[ok], minlength=n).astype(np.int32)
     unseen = np.bincount(pv[ok], weights=(~valid | too_near)[ok], minlength=n).astype(np.int32)
-    return votes, total, unseen
+    core = np.bincount(pv[ok], weights=read[ok], minlength=n).astype(np.int32)
+    return votes, total, unseen, core
 
 
 @pytest.mark.parametrize("pose_r,hole_r,free_zero,baseline,sensor_min,far_edge",
@@ -451,10 +463,10 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_mi
     other[rng.random((h, w)) < 0.3] = 0
     other[10:22, 5:30] = 0
     pv = rng.integers(-1, n, size=(h, w)).astype(np.int32)
-    got = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero,
+    got = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, pose_r, hole_r, free_zero,
                            shadow_baseline_m=baseline, sensor_min_m=sensor_min,
                            hole_needs_far_edge=far_edge)
-    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero,
+    want = _free_space_twin(pv, own, other, n, 3.0, 0.01, pose_r, hole_r, free_zero,
                             shadow_bf=baseline * 525, sensor_min_m=sensor_min,
                             far_edge=far_edge)
     for a, b in zip(got, want):
@@ -462,7 +474,7 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_mi
     if sensor_min:  # points too near for the other camera on its holes: not observed
         assert got[2].any()
         if far_edge:  # and some holes lie in rows with no reading beyond the point
-            plain = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r,
+            plain = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, pose_r, hole_r,
                                      free_zero, shadow_baseline_m=baseline,
                                      sensor_min_m=sensor_min)
             assert plain[0].sum() > got[0].sum()
@@ -476,7 +488,7 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_mi
             free_space._fill_row(flat, w, r, *rows)
         for got_a, want_a in zip(rows, _row_neighbours_twin(other)):
             np.testing.assert_array_equal(got_a, want_a.ravel())
-        plain = free_space_votes(pv, own, other, n, 0.03, 0.004, pose_r, hole_r, free_zero)
+        plain = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, pose_r, hole_r, free_zero)
         assert plain[0].sum() > got[0].sum()
 
 
@@ -494,10 +506,10 @@ def test_a_projector_shadow_is_not_seen_through():
     other = own.copy()
     other[:, 30:45] = 0
     other[:, 70:85] = 0
-    votes, total, _unseen = free_space_votes(pv, own, other, 2, 0.03, 0.004, 0, 0, True,
-                                             shadow_baseline_m=0.075)
+    votes, total, *_ = free_space_votes(pv, own, other, 2, NOISE, 3.0, 0.01, 0, 0, True,
+                                        shadow_baseline_m=0.075)
     assert votes[0] == 0 and votes[1] == total[1]
-    no_shadows = free_space_votes(pv, own, other, 2, 0.03, 0.004, 0, 0, True)[0]
+    no_shadows = free_space_votes(pv, own, other, 2, NOISE, 3.0, 0.01, 0, 0, True)[0]
     assert no_shadows[0] == total[0]
 
 
@@ -519,12 +531,13 @@ def test_a_hole_is_seen_through_only_where_it_opens_beyond_the_point():
     other[:, 35:55] = 0
     other[:, 75:92] = 0
     other[:, 92:] = 4000
-    votes, total, unseen = free_space_votes(pv, own, other, 3, 0.03, 0.004, 0, 0, True,
-                                            sensor_min_m=0.5, hole_needs_far_edge=True)
+    votes, total, unseen, *_ = free_space_votes(pv, own, other, 3, NOISE, 3.0, 0.01, 0, 0,
+                                                True, sensor_min_m=0.5,
+                                                hole_needs_far_edge=True)
     assert unseen[0] == total[0] and votes[0] == 0
     assert unseen[1] == 0 and votes[1] == 0
     assert unseen[2] == 0 and votes[2] == total[2]
-    before = free_space_votes(pv, own, other, 3, 0.03, 0.004, 0, 0, True)
+    before = free_space_votes(pv, own, other, 3, NOISE, 3.0, 0.01, 0, 0, True)
     np.testing.assert_array_equal(before[0], total)
 
 
@@ -540,8 +553,8 @@ def test_holes_explained_match_numpy(dropout_px, baseline):
     got = np.zeros(depth.shape, bool)
     for i in np.flatnonzero(flat == 0):
         got.flat[i] = not free_space._hole_explained(flat, depth.shape[1], i, dropout_px,
-                                                     baseline * 525.0, 0.03, 0.004)
-    want = _unexplained_holes_twin(depth, dropout_px, baseline * 525.0, 0.03, 0.004)
+                                                     baseline * 525.0, NOISE, 3.0, 0.01)
+    want = _unexplained_holes_twin(depth, dropout_px, baseline * 525.0, 3.0, 0.01)
     np.testing.assert_array_equal(got, want)
     assert got[5].all()  # no reading in the row: nothing explains it
     if dropout_px or baseline:  # some holes are dropouts or shadows
@@ -584,13 +597,13 @@ def test_a_hole_left_by_a_surface_too_near_to_read_is_not_seen_through(plate_in_
     T = np.eye(4)
     T[2, 3] = -0.15  # other_from_own: the other camera 15 cm ahead
     kwargs = dict(intrinsics=intr, other_from_own=T, hole_needs_far_edge=True)
-    votes, total, unseen = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
-                                            sensor_min_m=0.5, **kwargs)
+    votes, total, unseen, *_ = free_space_votes(pv, own, other, 1, NOISE, 3.0, 0.01, 0, 0,
+                                                True, sensor_min_m=0.5, **kwargs)
     assert total[0] > 0 and unseen[0] == 0
     assert votes[0] == (0 if plate_in_view else total[0])
-    without = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True, **kwargs)
+    without = free_space_votes(pv, own, other, 1, NOISE, 3.0, 0.01, 0, 0, True, **kwargs)
     assert without[0][0] == total[0]  # the rules before this one see it through
-    want = _free_space_twin(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
+    want = _free_space_twin(pv, own, other, 1, 3.0, 0.01, 0, 0, True,
                             *free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
                                                      intr.fx, intr.fy, intr.cx, intr.cy,
                                                      intr.width, np.array(
@@ -612,15 +625,15 @@ def test_a_hole_whose_near_stretch_this_camera_never_saw_is_not_seen_through():
     T = np.eye(4)
     T[0, 3] = -0.3  # other_from_own: the other camera 30 cm along +x
     kwargs = dict(intrinsics=intr, other_from_own=T)
-    votes, total, _ = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True,
-                                       sensor_min_m=0.5, **kwargs)
-    without = free_space_votes(pv, own, other, 1, 0.03, 0.004, 0, 0, True, **kwargs)
+    votes, total, *_ = free_space_votes(pv, own, other, 1, NOISE, 3.0, 0.01, 0, 0, True,
+                                        sensor_min_m=0.5, **kwargs)
+    without = free_space_votes(pv, own, other, 1, NOISE, 3.0, 0.01, 0, 0, True, **kwargs)
     assert without[0][0] > 0 and votes[0] == 0
     target, z_other = free_space._warp_kernel(own, pv, T[:3, :3].copy(), T[:3, 3].copy(),
                                               intr.fx, intr.fy, intr.cx, intr.cy, intr.width,
                                               np.array(free_space.sensing_window(other)),
                                               0.0, 65.535)
-    want = _free_space_twin(pv, own, other, 1, 0.03, 0.004, 0, 0, True, target, z_other,
+    want = _free_space_twin(pv, own, other, 1, 3.0, 0.01, 0, 0, True, target, z_other,
                             sensor_min_m=0.5, back=np.linalg.inv(T), intr=intr)
     np.testing.assert_array_equal(votes, want[0])
 
@@ -650,10 +663,10 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     assert (got_t[pv.ravel() < 0] == -1).all()  # pixels without a point are not warped
     np.testing.assert_array_equal(got_t, want_t)
     np.testing.assert_allclose(got_z, want_z, rtol=1e-12)
-    got = free_space_votes(pv, own, other, n, 0.03, 0.004, 2, 3, True, intrinsics=intr,
+    got = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, 2, 3, True, intrinsics=intr,
                            other_from_own=T, depth_range_m=(0.4, 2.9), shadow_baseline_m=0.075,
                            sensor_min_m=1.2, hole_needs_far_edge=True)
-    want = _free_space_twin(pv, own, other, n, 0.03, 0.004, 2, 3, True, want_t, want_z,
+    want = _free_space_twin(pv, own, other, n, 3.0, 0.01, 2, 3, True, want_t, want_z,
                             shadow_bf=0.075 * intr.fx, sensor_min_m=1.2, far_edge=True,
                             back=np.linalg.inv(T), intr=intr)
     for a, b in zip(got, want):

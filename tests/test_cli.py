@@ -301,6 +301,48 @@ def test_capture_then_detect_against_the_saved_reference_on_an_unchanged_scene(t
     assert result.stdout.startswith("no change")
 
 
+def test_calibrate_measures_a_still_view_and_capture_keeps_the_profile(tmp_path):
+    """The office's reference recording (a still camera, independent noise per frame) is
+    measured as noisy as the Kinect profile it was rendered with; the profile file it writes
+    is what capture uses, told in its summary and kept with the reference; detect's
+    report.json tells the profile and what the station can see."""
+    from robot_change.change.scene import SceneModel
+    from robot_change.noise.profile import NoiseProfile, builtin_profile
+
+    scene = SCENES / "office_no_change"
+    camera = tmp_path / "camera.json"
+    result = run("calibrate", "--source", str(scene / "reference.oni"), "--out", str(camera),
+                 "--json")
+    assert result.returncode == 0, result.stderr
+    told = json.loads(result.stdout)
+    assert told["frames"] == 3 and told["bins"] and told["file"] == str(camera)
+    profile = NoiseProfile.load(camera)
+    kinect = builtin_profile("kinect_v1")
+    assert profile.name == "measured:kinect_v1" and profile.measured_use == "replace"
+    for z in (2.0, 3.0):
+        assert 0.6 < profile.sigma(z) / kinect.sigma(z) < 1.6
+    saved = tmp_path / "office.scene.npz"
+    result = run("capture", "--source", str(scene / "reference.oni"), "--out", str(saved),
+                 "--profile", str(camera))
+    assert result.returncode == 0, result.stderr
+    assert "noise measured:kinect_v1" in result.stdout and "smallest change seen" in result.stdout
+    assert SceneModel.load(saved).noise.measured_use == "replace"
+    out = tmp_path / "check"
+    result = run("detect", "--reference", str(saved), "--current", str(scene / "current.oni"),
+                 "--out", str(out), "--no-picture")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["noise"]["name"] == "measured:kinect_v1"
+    assert report["noise"]["margin_mm"]["2m"] > 30
+    assert 50 < report["detection_limit"]["median_mm"] < 200
+    bad = run("capture", "--source", str(scene / "reference.oni"), "--out", str(saved),
+              "--profile", "kinect_v3")
+    assert bad.returncode == 2 and "kinect_v1" in bad.stderr
+    missing = run("calibrate", "--source", str(scene / "reference.oni"), "--out",
+                  str(tmp_path / "none" / "camera.json"))
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+
+
 def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):
     scene = SCENES / "office_box_added"
     result = run("detect", "--reference", str(scene / "reference.oni"),

@@ -227,10 +227,31 @@ def test_unknown_change_keys_are_refused_with_a_hint(tmp_path):
     from robot_change.service.params import check_config
 
     path = tmp_path / "c.toml"
-    path.write_text("[change]\nfree_space_margn_m = 0.5\n")
+    path.write_text("[change]\nfree_space_sigma = 3.5\n")
     config = load_config(path)
-    with pytest.raises(ConfigError, match="did you mean change.free_space_margin_m"):
+    with pytest.raises(ConfigError, match="did you mean change.free_space_sigmas"):
         check_config(config)
+
+
+def test_the_camera_profile_is_a_built_in_or_a_readable_file(tmp_path):
+    from robot_change.noise.profile import builtin_profile
+
+    assert Config.default().camera.noise_profile() == builtin_profile("kinect_v1")
+    path = tmp_path / "robot-change.toml"
+    path.write_text('[camera]\nprofile = "realsense_d435"\n')
+    assert load_config(path).camera.noise_profile().name == "realsense_d435"
+    path.write_text('[camera]\nprofile = "kinect_v3"\n')
+    with pytest.raises(ConfigError, match="camera.profile.*kinect_v1"):
+        load_config(path)
+    measured = builtin_profile("xtion").raised_by(((2.0, 0.05, 900),), "test", tolerance=1.0)
+    measured.save(tmp_path / "camera.json")
+    path.write_text('[camera]\nprofile_file = "camera.json"\n')  # beside the file
+    assert load_config(path).camera.noise_profile() == measured
+    (tmp_path / "broken.json").write_text("{")
+    for name in ("broken.json", "missing.json"):
+        path.write_text(f'[camera]\nprofile_file = "{name}"\n')
+        with pytest.raises(ConfigError, match=f"camera.profile_file.*{name}"):
+            load_config(path)
 
 
 def test_viz_defaults_are_off_live_bound_to_localhost_and_keep_twenty(tmp_path):

@@ -167,7 +167,7 @@ def run(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     ("[watch]\nwatch_m = 11\n", "watch.watch_m = 11: must be a whole number in 1..10"),
     ("[watch]\nwatch_m = 4\nwatch_n = 3\n", "watch.watch_m = 4: must be <= watch.watch_n = 3"),
     ("[camera]\nsource = 'ftp://x'\n", "camera.source"),
-    ("[change]\nfree_space_margin_m = -1.0\n", "free_space_margin_m=-1.0"),
+    ("[change]\nfree_space_sigmas = -1.0\n", "free_space_sigmas=-1.0"),
     ('[fleet]\nbroker = "mqtt://broker"\nspool_mb = -1\n', "fleet.spool_mb = -1: must be"),
     (None, "no such configuration file"),
 ])

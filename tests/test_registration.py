@@ -17,7 +17,6 @@ from robot_change.change.detect import detect_changes
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import (
     RegistrationParams,
-    depth_sigma,
     invert,
     register_depth,
     rotation_angle_deg,
@@ -26,9 +25,18 @@ from robot_change.change.registration import (
 )
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
+from robot_change.noise.kernels import table_sigma
 from sim_fixtures import load_scene, scene_names
 
 INTR = Intrinsics.openni_default()
+#: The default profile's sigma table, as the registration's kernels read it.
+NOISE = RegistrationParams().noise_args()[0]
+
+
+def _margin_twin(z, sigmas, floor_m, floor_per_m2, noise=NOISE):
+    """robot_change.noise.kernels.floored_margin_at in NumPy."""
+    return np.maximum(floor_m + floor_per_m2 * z * z, sigmas * np.sqrt(2.0) *
+                      table_sigma(noise, z))
 
 
 def _fused(frames):
@@ -186,17 +194,19 @@ def test_normal_map_and_association_match_numpy(office_pair):
     np.testing.assert_allclose(zs[:n], w_zs, atol=1e-6)
     inliers, sq_sum, *_ = agreement.agreement_counts(
         cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(), rl.fx,
-        rl.fy, rl.cx, rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, True)
-    sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
-    quant = 2.85e-3 * w_zs ** 2 / math.sqrt(12.0)
-    inl = np.abs(w_res) <= 3.0 * np.hypot(sig, quant)
+        rl.fy, rl.cx, rl.cy, 0.1, 0.8, NOISE, 3.0, 3.0, 0.03, 0.004, True)
+    inl = np.abs(w_res) <= 3.0 * table_sigma(NOISE, w_zs)
     assert inliers == int(inl.sum())
     assert sq_sum == pytest.approx(float(np.square(w_res[inl]).sum()), rel=1e-9)
-    np.testing.assert_allclose(depth_sigma(w_zs), np.hypot(sig, quant), rtol=1e-12)
+    # the default profile's table is the Kinect's noise (Nguyen et al. 2012 with the
+    # disparity step, Khoshelham & Oude Elberink 2012)
+    sig = 0.0012 + 0.0019 * (w_zs - 0.4) ** 2
+    quant = 2.85e-3 * w_zs ** 2 / math.sqrt(12.0)
+    np.testing.assert_allclose(table_sigma(NOISE, w_zs), np.hypot(sig, quant), rtol=1e-3)
 
 
 def _weighted_system_twin(res, jac, zs, c, min_cut_m):
-    sig = np.hypot(0.0012 + 0.0019 * (zs - 0.4) ** 2, 2.85e-3 * zs ** 2 / math.sqrt(12.0))
+    sig = table_sigma(NOISE, zs)
     e = res / sig
     scale = max(1.4826 * float(np.median(np.abs(e))), 0.5)
     u = res / np.maximum(c * scale * sig, min_cut_m)
@@ -216,7 +226,7 @@ def test_weighted_normal_equations_match_numpy(office_pair, tukey_c, min_cut_m):
                        rl.fx, rl.fy, rl.cx, rl.cy, 0.1, 0.8, pairs.res, pairs.jac,
                        pairs.zs)  # identity: many large residuals
     A, b, wsum, radius = icp._weighted_system(pairs.res, pairs.jac, pairs.zs, n, tukey_c,
-                                                  min_cut_m)
+                                              min_cut_m, NOISE)
     wA, wb, wwsum, wradius = _weighted_system_twin(pairs.res[:n], pairs.jac[:n], pairs.zs[:n],
                                                    tukey_c, min_cut_m)
     assert n > 1000
@@ -290,7 +300,8 @@ def test_icp_iterations_match_numpy(office_pair, level, min_cut_m):
             min_cut_m, params.weak_eigenvalue, params.iterations[level], params.tol_m)
     pairs = icp.Pairs(cl)
     T, n_it, converged, lam_n, _vec, A, has_system = icp._icp_iterations(
-        cl.vertex, cl.normal, rl.vertex, rl.normal, start, *args, pairs.res, pairs.jac, pairs.zs)
+        cl.vertex, cl.normal, rl.vertex, rl.normal, start, *args, pairs.res, pairs.jac, pairs.zs,
+        NOISE)
     wT, w_it, w_converged, w_lam_n, _w_vec, wA = _icp_twin(cl.vertex, cl.normal, rl.vertex,
                                                           rl.normal, start, *args)
     assert (n_it, converged, has_system) == (w_it, w_converged, wA is not None) and n_it > 0
@@ -302,7 +313,7 @@ def test_icp_iterations_match_numpy(office_pair, level, min_cut_m):
     assert err < np.linalg.norm((start @ np.linalg.inv(sc.T_ref_from_cur))[:3, 3])
 
 
-def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
+def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, sigmas, floor_m, floor_per_m2):
     v = cur_v.reshape(-1, 3).astype(np.float64)
     v = v[v[:, 2] > 0]
     p = v @ R.T + t
@@ -313,7 +324,7 @@ def _seen_through_twin(cur_v, ref_v, R, t, fx, fy, cx, cy, margin, per_m2):
     rz = ref_v[w[inside], u[inside], 2].astype(np.float64)
     pz = p[inside, 2]
     ok = rz > 0
-    m = margin + per_m2 * pz[ok] ** 2
+    m = _margin_twin(pz[ok], sigmas, floor_m, floor_per_m2)
     return (int((rz[ok] > pz[ok] + m).sum()), int(ok.sum()), int((~ok).sum()),
             int((rz[ok] < pz[ok] - m).sum()))
 
@@ -329,13 +340,13 @@ def test_agreement_counts_match_numpy(office_pair):
     for count_pairs in (False, True):
         inliers, sq_sum, *got = agreement.agreement_counts(
             cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(),
-            rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, 3.0, 0.03, 0.004, count_pairs)
+            rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, NOISE, 3.0, 3.0, 0.03, 0.004, count_pairs)
         through, compared, holes, behind = _seen_through_twin(
-            cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.03, 0.004)
+            cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 3.0, 0.03, 0.004)
         assert tuple(got) == (through, compared, holes, behind)
         res, _jac, zs = _associate_twin(cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3],
                                         T[:3, 3], rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8)
-        inl = np.abs(res) <= 3.0 * depth_sigma(zs)
+        inl = np.abs(res) <= 3.0 * table_sigma(NOISE, zs)
         assert inliers == (int(inl.sum()) if count_pairs else 0)
         assert sq_sum == pytest.approx(float(np.square(res[inl]).sum()) if count_pairs else 0.0,
                                        rel=1e-9)
@@ -361,13 +372,13 @@ def test_through_counts_match_numpy(office_pair):
     rots = np.array([T[:3, :3] for T in poses])
     transs = np.array([T[:3, 3] for T in poses])
     got = agreement.through_counts(cl.vertex, rl.vertex, rots, transs, rl.fx, rl.fy, rl.cx,
-                                   rl.cy, 0.03, 0.004)
+                                   rl.cy, NOISE, 3.0, 0.03, 0.004)
     want = [_seen_through_twin(cl.vertex, rl.vertex, T[:3, :3], T[:3, 3], rl.fx, rl.fy, rl.cx,
-                               rl.cy, 0.03, 0.004)[0] for T in poses]
+                               rl.cy, 3.0, 0.03, 0.004)[0] for T in poses]
     assert got.tolist() == want
     assert want[0] < want[-1]
     empty = agreement.through_counts(cl.vertex, rl.vertex, rots[:0], transs[:0], rl.fx, rl.fy,
-                                     rl.cx, rl.cy, 0.03, 0.004)
+                                     rl.cx, rl.cy, NOISE, 3.0, 0.03, 0.004)
     assert empty.shape == (0,)
 
 
@@ -386,7 +397,7 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     rots = np.array([T[:3, :3], T[:3, :3], tilt @ T[:3, :3], T[:3, :3]])
     transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
     args = (cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy, rl.cx,
-            rl.cy, 0.1, 0.8, 3.0, 0.03, 0.004, both_ways, hole_weight)
+            rl.cy, 0.1, 0.8, NOISE, 3.0, 3.0, 0.03, 0.004, both_ways, hole_weight)
     got = agreement._pose_scores(*args, False)
     # pruned (for the best alone): the same first best; a pose is either scored as it was
     # or -inf, and then below the best
@@ -401,19 +412,19 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
             res, _jac, zs = _associate_twin(own.vertex, own.normal, other.vertex, other.normal,
                                             R, tt, other.fx, other.fy, other.cx, other.cy, 0.1,
                                             0.8)
-            inliers += int((np.abs(res) <= 3.0 * depth_sigma(zs)).sum())
+            inliers += int((np.abs(res) <= 3.0 * table_sigma(NOISE, zs)).sum())
         through_cur, _, holes_cur, _ = _seen_through_twin(cl.vertex, rl.vertex, rot, t, rl.fx,
-                                                          rl.fy, rl.cx, rl.cy, 0.03, 0.004)
+                                                          rl.fy, rl.cx, rl.cy, 3.0, 0.03, 0.004)
         through_ref, _, holes_ref, _ = _seen_through_twin(rl.vertex, cl.vertex, rot.T,
                                                           -rot.T @ t, cl.fx, cl.fy, cl.cx,
-                                                          cl.cy, 0.03, 0.004)
+                                                          cl.cy, 3.0, 0.03, 0.004)
         assert score == pytest.approx(inliers - through_cur - through_ref
                                       - hole_weight * (holes_cur + holes_ref), abs=1e-9)
     assert got[0] == got.max()  # the true pose scores best
 
 
 def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist, min_cos,
-                      sigmas, margin, per_m2, facing, min_facing):
+                      noise, sigmas, through_sigmas, floor_m, floor_per_m2, facing, min_facing):
     out = np.zeros(cur_v.shape[:2], np.int8)
     for i in range(cur_v.shape[0]):
         for j in range(cur_v.shape[1]):
@@ -424,7 +435,7 @@ def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist
                 continue
             p, u, v = hit
             gap = float(ref_v[v, u, 2]) - p[2]
-            margin_z = margin + per_m2 * p[2] ** 2
+            margin_z = _margin_twin(p[2], through_sigmas, floor_m, floor_per_m2, noise)
             if gap > margin_z:
                 out[i, j] = 2  # seen through
                 continue
@@ -434,7 +445,7 @@ def _cell_states_twin(cur_v, cur_n, ref_v, ref_n, R, t, fx, fy, cx, cy, max_dist
             if gap < -margin_z or not n0.any() or not m.any() or d @ d > max_dist ** 2 \
                     or (R @ n0) @ m < min_cos:
                 continue
-            out[i, j] = 1 if abs(m @ d) <= sigmas * depth_sigma(p[2]) else 2
+            out[i, j] = 1 if abs(m @ d) <= sigmas * table_sigma(noise, p[2]) else 2
     return out
 
 
@@ -448,7 +459,7 @@ def test_cell_states_match_numpy(office_pair, level):
     cl = pyramid.levels(cur, INTR, params)[level]
     for T in (sc.T_ref_from_cur, np.eye(4)):
         args = (cl.vertex, cl.normal, rl.vertex, rl.normal, T[:3, :3].copy(), T[:3, 3].copy(),
-                rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, 3.0, 0.03, 0.004)
+                rl.fx, rl.fy, rl.cx, rl.cy, 0.06, 0.8, NOISE, 3.0, 3.0, 0.03, 0.004)
         every = agreement.cell_states(*args, np.zeros(3), 0.0)
         np.testing.assert_array_equal(every, _cell_states_twin(*args, np.zeros(3), 0.0))
         assert (every == 1).sum() > 100 and (every == 2).sum() > 10

@@ -138,8 +138,10 @@ def test_depth_gate_sees_the_box_and_not_the_noise(scene_frames) -> None:
 
     fused = fuse_depth(np.stack(ref), 2)  # the gate compares with the reference's fused depth
     from robot_change.change.params import ChangeParams
+    from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
 
-    margins = ChangeParams().free_space_margin_m, ChangeParams().free_space_margin_per_m2
+    params = ChangeParams()
+    margins = (builtin_profile(DEFAULT_PROFILE), params.free_space_sigmas, params.free_space_pose_m)
     quiet = max(depth_gate(fused, f, *margins) for f in ref)
     moved = min(depth_gate(fused, f, *margins) for f in cur)
     options = ServiceOptions()

@@ -23,7 +23,8 @@ from robot_change.change.epoch import (
     clean_current,
     current_epoch,
 )
-from robot_change.change.free_space import free_and_observed, free_space_views
+from robot_change.change.free_space import FreeSpace, free_and_observed, free_space_views
+from robot_change.change.limits import DetectionLimit, detection_limit
 from robot_change.change.parallel import both
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import group_regions, pixel_mask
@@ -49,6 +50,7 @@ __all__ = [
     "geometric_filters",
     "nn_far",
     "not_at_station_result",
+    "reference_limit",
     "timed_free",
 ]
 
@@ -138,7 +140,7 @@ def align(reference: Reference, current: Current, params: ChangeParams, intrinsi
         try:
             return register_depth(ref.depth, current_depth, ref.intrinsics, params.registration,
                                   initial=initial_pose, keep=ref.derived,
-                                  keep_current=cur_levels)
+                                  keep_current=cur_levels, noise=ref.noise)
         except Exception as exc:  # raised after the pair's own checks, which come first
             return exc
 
@@ -159,17 +161,17 @@ def align(reference: Reference, current: Current, params: ChangeParams, intrinsi
     aligned = Aligned(ref, cur, reg, reason)
     if not free_space:
         return aligned
-    free_cur, obs_cur = direction_free(aligned, "appeared", params, timings)
+    free_cur, obs_cur, _ = direction_free(aligned, "appeared", params, timings)
     if not params.disappeared:
         return dataclasses.replace(aligned, free_cur=free_cur, observed_cur=obs_cur)
-    free_ref, obs_ref = direction_free(aligned, "disappeared", params, timings)
+    free_ref, obs_ref, _ = direction_free(aligned, "disappeared", params, timings)
     return dataclasses.replace(aligned, free_cur=free_cur, observed_cur=obs_cur,
                                free_ref=free_ref, observed_ref=obs_ref)
 
 
 def direction_free(aligned: Aligned, kind: str, params: ChangeParams, timings: dict
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(free, observed) of one direction's points, timed as ``<kind>_free_space_ms``:
+                   ) -> FreeSpace:
+    """:class:`FreeSpace` of one direction's points, timed as ``<kind>_free_space_ms``:
     ``"appeared"``, the current's points against the reference's depth image;
     ``"disappeared"``, the reference's against the current's."""
     reg = aligned.registration
@@ -182,7 +184,7 @@ def direction_free(aligned: Aligned, kind: str, params: ChangeParams, timings: d
 
 
 def timed_free(other: Epoch, base: Epoch, params: ChangeParams, timings: dict, prefix: str,
-                base_from_other: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+                base_from_other: np.ndarray | None) -> FreeSpace:
     """:func:`free_and_observed`, timed."""
     t0 = time.perf_counter()
     out = free_and_observed(other, base, params, base_from_other)
@@ -250,7 +252,20 @@ def finish(method: str, params: ChangeParams, aligned: Aligned, app: Direction |
         method=method, params=params, timings_ms=timings,
         outcome="changed" if changed else "no_change",
         registration=aligned.registration,
-        unobserved_fraction=unseen / seen_of if seen_of else 0.0, current_points=cur.points)
+        unobserved_fraction=unseen / seen_of if seen_of else 0.0, current_points=cur.points,
+        noise=ref.noise, limit=reference_limit(ref, params))
+
+
+def reference_limit(ref: Epoch, params: ChangeParams) -> DetectionLimit:
+    """The reference's :func:`robot_change.change.limits.detection_limit` for these params,
+    kept in its ``derived`` (one per station, not one per check)."""
+    key = ("detection_limit", params.free_space_sigmas, params.free_space_pose_m,
+           params.free_space_pose_deg, params.evidence_min_points, params.min_region_points,
+           ref.noise)
+    if key not in ref.derived:
+        ref.derived[key] = detection_limit(ref.depth, ref.noise, params, ref.leaf_m,
+                                           ref.intrinsics.fx)
+    return ref.derived[key]
 
 
 def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, timings: dict,
@@ -272,4 +287,5 @@ def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, t
         greedy_appeared=None, greedy_disappeared=None, method=method, params=params,
         timings_ms=timings, outcome="not_at_station", registration=aligned.registration,
         unobserved_fraction=1.0 - aligned.registration.fitness,
-        not_at_station_reason=aligned.reason, current_points=cur.points)
+        not_at_station_reason=aligned.reason, current_points=cur.points, noise=ref.noise,
+        limit=reference_limit(ref, params))

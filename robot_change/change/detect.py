@@ -65,9 +65,9 @@ from robot_change.change.compare import (
 from robot_change.change.epoch import Epoch
 from robot_change.change.greedy import greedy_trace, posteriors
 from robot_change.change.objects import claim_counterparts, complete_objects
-from robot_change.change.params import ChangeParams
 from robot_change.change.parallel import both
-from robot_change.change.regions import label_voxel_components
+from robot_change.change.params import ChangeParams
+from robot_change.change.regions import in_groups_of, label_voxel_components
 from robot_change.change.results import ChangeSet
 from robot_change.errors import InputError
 from robot_change.mixture.model import (
@@ -314,11 +314,13 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         timings["reference_fit_ms"] = (time.perf_counter() - t0) * 1e3
 
     def appeared() -> Direction:
-        free, observed = direction_free(aligned, "appeared", params, timings)
+        free, observed, core = direction_free(aligned, "appeared", params, timings)
         cand, mix, post, trace = _novelty_direction("appeared", ref, cur, ref_mix, params,
                                                     timings, "appeared_", free, observed)
         cand = geometric_filters(cur, ref, cand, params, timings, "appeared_", free, observed)
         t0 = time.perf_counter()
+        cand = in_groups_of(cur, cand, core if params.free_space else cand,
+                            params.evidence_min_points, params.region_connectivity)
         cand = complete_objects(cur, cand, observed, params)
         timings["appeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
         return Direction(cand, post, mix, trace, observed)
@@ -326,7 +328,7 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
     def disappeared() -> tuple[Direction | None, int]:
         if not params.disappeared:
             return None, 0
-        free, observed = direction_free(aligned, "disappeared", params, timings)
+        free, observed, core = direction_free(aligned, "disappeared", params, timings)
         cur_mix = cur.mixture
         if cur_mix is None:
             t0 = time.perf_counter()
@@ -337,6 +339,8 @@ def detect_changes(reference: Reference, current: Current, params: ChangeParams 
         cand = geometric_filters(ref, cur, cand, params, timings, "disappeared_", free,
                                  observed)
         t0 = time.perf_counter()
+        cand = in_groups_of(ref, cand, core if params.free_space else cand,
+                            params.evidence_min_points, params.region_connectivity)
         cand = complete_objects(ref, cand, observed, params)
         timings["disappeared_objects_ms"] = (time.perf_counter() - t0) * 1e3
         return Direction(cand, post, mix, trace, observed), cur_mix.n_components

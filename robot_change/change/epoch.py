@@ -20,6 +20,7 @@ from robot_change.change.scene import (
 from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change.mixture.model import Mixture
+from robot_change.noise.profile import DEFAULT_PROFILE, NoiseProfile, builtin_profile
 
 __all__ = [
     "Epoch",
@@ -30,6 +31,7 @@ __all__ = [
     "clean_current",
     "current_epoch",
     "epoch_from_depth",
+    "noise_table",
 ]
 
 
@@ -39,7 +41,8 @@ class Epoch:
 
     ``depth`` (H, W) uint16 mm (fused for a reference), ``intrinsics``, the clean cloud
     ``points`` (M, 3) float32 with its voxel ``keys`` (M,) int64 and ``pixel_voxel`` (H, W)
-    int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``.
+    int32, ``leaf_m`` of its voxel grid, ``mixture`` (None until fitted), ``cloud_params``,
+    ``noise``: the camera's profile (robot_change.noise; a current image has its reference's).
 
     ``derived``: results computed from this epoch that a rigid move of it does not change
     (functions of its depth image, or of its mixture on its own points), kept so that a
@@ -57,19 +60,37 @@ class Epoch:
     mixture: Mixture | None
     cloud_params: CloudParams | None = None
     derived: dict = dataclasses.field(default_factory=dict, repr=False)
+    noise: NoiseProfile = dataclasses.field(
+        default_factory=lambda: builtin_profile(DEFAULT_PROFILE), repr=False)
 
     @property
     def n_points(self) -> int:
         return int(self.points.shape[0])
 
 
+def noise_table(a: Epoch, b: Epoch) -> np.ndarray:
+    """(n,) float64 sigma table (robot_change.noise.kernels.sigma_at) of one reading when a
+    reading of ``a`` is compared with one of ``b``: sqrt((sigma_a^2 + sigma_b^2) / 2), so that
+    the margin of the two, k sqrt(2 sigma^2 + pose^2), holds both.  Kept in ``a.derived``."""
+    key = ("noise_table", a.noise, b.noise)
+    table = a.derived.get(key)
+    if table is None:
+        ta, tb = a.noise.kernel_table(), b.noise.kernel_table()
+        table = a.derived[key] = np.sqrt(0.5 * (ta * ta + tb * tb))
+        table.setflags(write=False)
+    return table
+
+
 def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
                      cloud_params: CloudParams = CloudParams(),
-                     mixture: Mixture | None = None) -> Epoch:
-    """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an :class:`Epoch`."""
+                     mixture: Mixture | None = None, noise: NoiseProfile | None = None
+                     ) -> Epoch:
+    """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an
+    :class:`Epoch` (``noise``: the camera's profile, the default built-in when not given)."""
     cloud = clean_cloud(depth, intrinsics, cloud_params)
     return Epoch(np.ascontiguousarray(depth), intrinsics, cloud.points, cloud.keys,
-                 cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params)
+                 cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params,
+                 noise=noise or builtin_profile(DEFAULT_PROFILE))
 
 
 def as_epoch(obj: Any, name: str) -> Epoch:
@@ -90,13 +111,15 @@ def as_epoch(obj: Any, name: str) -> Epoch:
         leaf = float(cloud_params.leaf_m) if isinstance(cloud_params, CloudParams) else 0.02
         mixture = getattr(obj, "mixture", None)
         derived = obj.derived if isinstance(obj, SceneModel) else {}
+        noise = getattr(obj, "noise", None)
     except AttributeError as exc:
         raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
                          f"{type(obj).__name__} ({exc})") from None
     return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
                  np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
                  leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None,
-                 derived)
+                 derived, noise if isinstance(noise, NoiseProfile)
+                 else builtin_profile(DEFAULT_PROFILE))
 
 
 def check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
@@ -154,11 +177,11 @@ def check_current_depth(reference: Epoch, current: np.ndarray, intrinsics: Intri
 def clean_current(reference: Epoch, current: np.ndarray, intrinsics: Intrinsics,
                   timings: dict) -> Epoch:
     """The current's :class:`Epoch` from a depth array already checked
-    (:func:`check_current_depth`), cleaned with the reference's CloudParams (timed as
-    ``current_cloud_ms``)."""
+    (:func:`check_current_depth`), cleaned with the reference's CloudParams, with the
+    reference's camera profile (timed as ``current_cloud_ms``)."""
     t0 = time.perf_counter()
     cloud_params = reference.cloud_params or CloudParams(leaf_m=reference.leaf_m)
-    ep = epoch_from_depth(current, intrinsics, cloud_params)
+    ep = epoch_from_depth(current, intrinsics, cloud_params, noise=reference.noise)
     timings["current_cloud_ms"] = (time.perf_counter() - t0) * 1e3
     return ep
 

@@ -8,25 +8,54 @@ Kernels are ``@njit(cache=True, nogil=True)`` with NumPy twins in ``tests/test_c
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.arrays import readonly_view
-from robot_change.change.epoch import Epoch
+from robot_change.change.epoch import Epoch, noise_table
 from robot_change.change.params import ChangeParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import InputError
+from robot_change.noise.kernels import margin_at
 
 __all__ = [
+    "FreeSpace",
+    "Votes",
     "free_and_observed",
     "free_space_views",
     "free_space_votes",
     "land_pixel",
+    "open_mask",
     "other_views",
     "sensing_window",
 ]
+
+
+#: How a pixel is seen through (:func:`_free_space_kernel`): by a reading beyond it, or by a
+#: hole that opens onto something beyond it.
+_THROUGH_READING = 1
+_THROUGH_HOLE = 2
+
+
+class Votes(NamedTuple):
+    """Free-space evidence per point (:func:`free_space_votes`), (M,) int32 each."""
+
+    votes: np.ndarray
+    total: np.ndarray
+    unseen: np.ndarray
+    core: np.ndarray
+
+
+class FreeSpace(NamedTuple):
+    """One direction's free-space check over a view's points (:func:`free_and_observed`),
+    (M,) bool each: seen through, observed by the other camera, seen through in the core."""
+
+    free: np.ndarray
+    observed: np.ndarray
+    core: np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
@@ -163,11 +192,12 @@ def _warp_kernel(own_depth, pixel_voxel, rot, trans, fx, fy, cx, cy, width, wind
 
 @numba.njit(cache=True, nogil=True)
 def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, other, width,
-                       shadow_bf, n_points, margin_m, margin_per_m2, no_reading_is_free,
+                       shadow_bf, n_points, noise, sigmas, pose_m, no_reading_is_free,
                        sensor_min_m, hole_needs_far_edge, own, rot_back, trans_back, fx, fy,
                        cx, cy, dropout_px):
-    """Per point: how many of its pixels the other image sees through, how many it has, and
-    how many of them the other camera could not have seen.
+    """Per pixel whether the other image sees through it (``_THROUGH_READING``: a reading
+    beyond it; ``_THROUGH_HOLE``: a hole that opens beyond it; 0: not), and per point how many
+    pixels it has and how many of them the other camera could not have seen.
 
     ``pixel_voxel`` (P,) int32 row of each pixel's point (-1 none); ``target`` (P,) and
     ``z_other`` (P,) from :func:`_warp_kernel`; ``near_other`` (P',) the other image's
@@ -184,10 +214,12 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
     ``sensor_min_m``, unless this epoch's camera did not see the stretch of the other
     camera's ray nearer than that empty (:func:`_near_ray_clear`; ``own`` (P,) uint16 mm this
     epoch's image, (``rot_back``, ``trans_back``) the other camera's frame into this one's,
-    ``dropout_px`` the widest hole taken for a dropout).  Seen through: reading
-    > z + margin_m + margin_per_m2 * z^2 (metres, z = ``z_other``).
+    ``dropout_px`` the widest hole taken for a dropout).  Seen through: reading > z + the
+    margin, ``sigmas`` sigmas of the difference of two readings at z (``noise`` the sigma
+    table, robot_change.noise.kernels.margin_at, ``pose_m`` what the registration leaves;
+    metres, z = ``z_other``).
     """
-    votes = np.zeros(n_points, dtype=np.int32)
+    through = np.zeros(pixel_voxel.shape[0], dtype=np.int8)
     total = np.zeros(n_points, dtype=np.int32)
     unseen = np.zeros(n_points, dtype=np.int32)
     # the first reading left and right of each pixel of ``other`` (mm, pixels away; 0: none),
@@ -208,7 +240,7 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
             unseen[v] += 1
             continue
         z = z_other[p]
-        margin = margin_m + margin_per_m2 * z * z
+        margin = margin_at(noise, z, sigmas, pose_m)
         if other[q] == 0 and z < sensor_min_m + margin:  # too near for the other camera
             unseen[v] += 1
             continue
@@ -229,18 +261,18 @@ def _free_space_kernel(pixel_voxel, target, z_other, near_other, far_other, othe
                 continue
             if sensor_min_m > 0.0 and not _near_ray_clear(
                     q, width, own, rot_back, trans_back, fx, fy, cx, cy, sensor_min_m,
-                    margin_m, margin_per_m2, dropout_px, shadow_bf):
+                    noise, sigmas, pose_m, dropout_px, shadow_bf):
                 continue
-            votes[v] += 1
+            through[p] = _THROUGH_HOLE
             continue
         if d1 * 0.001 > z + margin:
-            votes[v] += 1
-    return votes, total, unseen
+            through[p] = _THROUGH_READING
+    return through, total, unseen
 
 
 @numba.njit(cache=True, nogil=True)
 def _near_ray_clear(q, width, own, rot_back, trans_back, fx, fy, cx, cy, sensor_min_m,
-                    margin_m, margin_per_m2, dropout_px, shadow_bf):
+                    noise, sigmas, pose_m, dropout_px, shadow_bf):
     """Whether this epoch's camera saw the stretch of the other camera's ray through its
     pixel ``q`` (flat, ``width`` pixels a row) nearer than ``sensor_min_m`` empty: ``own``
     (flat uint16 mm, this epoch's image) reads beyond each of its samples (0.4, 0.6, 0.8 and
@@ -269,16 +301,16 @@ def _near_ray_clear(q, width, own, rot_back, trans_back, fx, fy, cx, cy, sensor_
         seen += 1
         i = r * width + c
         if own[i] == 0:
-            if not _hole_explained(own, width, i, dropout_px, shadow_bf, margin_m,
-                                   margin_per_m2):
+            if not _hole_explained(own, width, i, dropout_px, shadow_bf, noise, sigmas,
+                                   pose_m):
                 return False
-        elif own[i] * 0.001 <= z + margin_m + margin_per_m2 * z * z:
+        elif own[i] * 0.001 <= z + margin_at(noise, z, sigmas, pose_m):
             return False
     return seen > 0
 
 
 @numba.njit(cache=True, nogil=True)
-def _hole_explained(depth, width, i, dropout_px, shadow_bf, margin_m, margin_per_m2):
+def _hole_explained(depth, width, i, dropout_px, shadow_bf, noise, sigmas, pose_m):
     """Whether the run of pixels with no reading along the row of pixel ``i`` of ``depth``
     (flat uint16 mm, ``width`` pixels a row) is a dropout (``dropout_px`` pixels or fewer) or
     a projector shadow: a nearer reading on one side, a farther one (by more than the margin
@@ -299,7 +331,7 @@ def _hole_explained(depth, width, i, dropout_px, shadow_bf, margin_m, margin_per
         return True
     z_far = max(depth[a - 1], depth[b]) * 0.001
     return _casts_shadow(min(depth[a - 1], depth[b]), b - a, z_far,
-                         margin_m + margin_per_m2 * z_far * z_far, shadow_bf)
+                         margin_at(noise, z_far, sigmas, pose_m), shadow_bf)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -334,6 +366,17 @@ def _casts_shadow(near_mm, distance_px, z, margin, shadow_bf):
     return z_near < z - margin and distance_px <= shadow_bf * (1.0 / z_near - 1.0 / z) + 1.0
 
 
+def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
+    """(H, W) bool: the morphological opening of ``mask`` (H, W) bool by a square of side
+    ``2 radius + 1``: what fits no such square is dropped, the rest kept whole (the square is
+    clipped at the image's border; radius 0: the mask as it is)."""
+    if radius <= 0:
+        return mask.copy()
+    inside = np.ascontiguousarray(~mask, dtype=np.uint16)
+    core = _window_filter(inside, radius, False) == 0  # eroded: every pixel around is in mask
+    return _window_filter(np.ascontiguousarray(core, dtype=np.uint16), radius, False) > 0
+
+
 def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the free-space check reads of the other epoch's (H, W) uint16 depth image:
@@ -348,7 +391,7 @@ def other_views(other_depth: np.ndarray, pose_radius: int, hole_radius: int
 
 
 def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth: np.ndarray,
-                     n_points: int, margin_m: float, margin_per_m2: float = 0.0,
+                     n_points: int, noise: np.ndarray, sigmas: float = 3.0, pose_m: float = 0.0,
                      pose_radius: int = 0, hole_radius: int = 0,
                      no_reading_is_free: bool = True, *,
                      intrinsics: Intrinsics | None = None,
@@ -357,19 +400,21 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                      shadow_baseline_m: float = 0.0,
                      sensor_min_m: float = 0.0,
                      hole_needs_far_edge: bool = False,
-                     views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                     edge_px: int = 0) -> Votes:
     """Free-space evidence per point of one epoch against the other epoch's depth image.
 
     Each of the point's pixels (``pixel_voxel == v``) is back-projected with its own reading,
     moved into the other camera by ``other_from_own`` ((4, 4), the registration; identity when
     not given, and then the pixel is its own projection) and projected into the other image
     (same ``intrinsics``).  There the other epoch saw *through* the point when its reading is
-    farther by more than ``margin_m + margin_per_m2 * z**2`` (z = the depth in the other
-    frame, m).  The reading used is the *nearest* one of the other image within
-    ``pose_radius`` pixels (a square window: a small residual pose error does not make static
-    edges look seen through); where that window has no reading, the *farthest* reading within
-    ``hole_radius`` pixels (projector shadows and dropouts border the surface behind them);
+    farther by more than ``sigmas`` sigmas of the difference of two readings at z, k sqrt(2
+    sigma(z)^2 + ``pose_m``^2) (z = the depth in the other frame, m; ``noise`` the (n,) sigma
+    table of one reading, :func:`robot_change.change.epoch.noise_table`).  The reading used
+    is the *nearest* one of the other image within ``pose_radius`` pixels (a square window: a
+    small residual pose error does not make static edges look seen through); where that
+    window has no reading, the *farthest* reading within ``hole_radius`` pixels (projector
+    shadows and dropouts border the surface behind them);
     with none there either, the pixel counts as seen through when ``no_reading_is_free``
     (open space beyond the sensor's range) and, with ``hole_needs_far_edge``, the first
     reading along its row on one side lies beyond the point (the hole opens onto something
@@ -387,8 +432,14 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
 
     Returns
     -------
-    votes, total, unseen : (n_points,) int32
-        Pixels seen through, pixels, and pixels the other camera could not observe, per point.
+    Votes: votes, total, unseen, core : (n_points,) int32
+        Pixels seen through, pixels, pixels the other camera could not observe, and pixels
+        seen through in the core of what is seen through: by a reading of the other image
+        (a hole it has is no measurement: a real camera leaves them beside every edge, on
+        dark and shiny surfaces, wider than any shadow), opened (:func:`open_mask`) by
+        ``edge_px``, so that what is narrower than ``2 edge_px + 1`` pixels -- flying pixels
+        along a depth edge, an edge that a residual pose error or lens distortion moved by a
+        few pixels, a pixel that flickered -- has no core.
     """
     if pixel_voxel.ndim != 2 or pixel_voxel.shape != own_depth.shape or \
             own_depth.shape != other_depth.shape:
@@ -398,6 +449,10 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
         if a.dtype != np.uint16:
             raise InputError(f"{name} must be uint16 millimetres, got {a.dtype}")
     height, width = own_depth.shape
+    noise = np.ascontiguousarray(noise, dtype=np.float64)
+    if noise.ndim != 1 or noise.size < 2 or not np.all(noise > 0):
+        raise InputError("noise must be a (n,) table of positive sigmas, metres "
+                         "(robot_change.noise.profile.NoiseProfile.kernel_table)")
     if intrinsics is None:
         intrinsics = Intrinsics(width, height, 525.0, 525.0, (width - 1) / 2, (height - 1) / 2)
     T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
@@ -417,13 +472,19 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
                                        float(depth_range_m[0]), float(depth_range_m[1]))
     other = readonly_view(np.ascontiguousarray(other_depth))
     back = np.linalg.inv(T)  # the other camera's frame into this one's
-    return _free_space_kernel(pv.ravel(), target, z_other, near.ravel(), far.ravel(),
-                              other.ravel(), width, float(shadow_baseline_m) * intrinsics.fx,
-                              int(n_points), float(margin_m), float(margin_per_m2),
-                              bool(no_reading_is_free), float(sensor_min_m),
-                              bool(hole_needs_far_edge), own.ravel(), back[:3, :3].copy(),
-                              back[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
-                              intrinsics.cx, intrinsics.cy, 2 * int(hole_radius))
+    through, total, unseen = _free_space_kernel(
+        pv.ravel(), target, z_other, near.ravel(), far.ravel(), other.ravel(), width,
+        float(shadow_baseline_m) * intrinsics.fx, int(n_points), noise, float(sigmas),
+        float(pose_m), bool(no_reading_is_free), float(sensor_min_m), bool(hole_needs_far_edge),
+        own.ravel(), back[:3, :3].copy(), back[:3, 3].copy(), intrinsics.fx, intrinsics.fy,
+        intrinsics.cx, intrinsics.cy, 2 * int(hole_radius))
+    flat = pv.ravel()
+    votes = np.bincount(flat[through > 0], minlength=int(n_points)).astype(np.int32)
+    read = (through == _THROUGH_READING).reshape(own.shape)
+    if edge_px > 0:
+        read = open_mask(read, int(edge_px))
+    core = np.bincount(flat[read.ravel()], minlength=int(n_points)).astype(np.int32)
+    return Votes(votes, total, unseen, core)
 
 
 def free_space_views(base: Epoch, params: ChangeParams
@@ -438,23 +499,52 @@ def free_space_views(base: Epoch, params: ChangeParams
     return views
 
 
-def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams, base_from_other: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """(free, observed), (M,) bool each over ``other``'s points: the points ``base``'s depth
-    image sees through, and those ``base``'s camera could see at all (the majority of their
-    pixels land inside its image and depth range)."""
+def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams,
+                      base_from_other: np.ndarray | None) -> FreeSpace:
+    """:class:`FreeSpace` over ``other``'s points: those ``base``'s depth image sees through
+    (free), those ``base``'s camera could see at all (observed: the majority of their pixels
+    land inside its image and within its depth range and its camera's reliable range,
+    ``noise.max_range_m``), and those seen through in the core of what is
+    (:func:`free_space_votes`, the cameras' ``edge_px``) at the registration's estimate and
+    at every pose ``free_space_pose_deg`` about it (turned about the base camera's x and y
+    axes): a registration a little off moves an edge by several pixels, and the strip along
+    it is seen through at the estimate, not at the pose a little the other way."""
     cp = base.cloud_params or CloudParams()
-    votes, total, unseen = free_space_votes(
-        other.pixel_voxel, other.depth, base.depth, other.n_points, params.free_space_margin_m,
-        params.free_space_margin_per_m2, params.free_space_pose_radius_px,
-        params.free_space_hole_radius_px, params.free_space_no_reading_is_free,
-        intrinsics=other.intrinsics, other_from_own=base_from_other,
-        depth_range_m=(cp.min_depth_m, cp.max_depth_m),
-        shadow_baseline_m=params.free_space_shadow_baseline_m,
-        sensor_min_m=params.free_space_sensor_min_m,
-        hole_needs_far_edge=params.free_space_hole_needs_far_edge,
-        views=free_space_views(base, params))
+    T = np.eye(4) if base_from_other is None else np.asarray(base_from_other, dtype=np.float64)
+
+    def votes_at(pixel_voxel: np.ndarray, pose: np.ndarray | None) -> Votes:
+        return free_space_votes(
+            pixel_voxel, other.depth, base.depth, other.n_points, noise_table(base, other),
+            params.free_space_sigmas, params.free_space_pose_m,
+            params.free_space_pose_radius_px, params.free_space_hole_radius_px,
+            params.free_space_no_reading_is_free, intrinsics=other.intrinsics,
+            other_from_own=pose,
+            depth_range_m=(cp.min_depth_m, min(cp.max_depth_m, base.noise.max_range_m)),
+            shadow_baseline_m=base.noise.shadow_baseline_m, sensor_min_m=base.noise.min_range_m,
+            hole_needs_far_edge=params.free_space_hole_needs_far_edge,
+            views=free_space_views(base, params),
+            edge_px=max(base.noise.edge_px, other.noise.edge_px))
+
+    votes, total, unseen, core_votes = votes_at(other.pixel_voxel, base_from_other)
     observed = (total > 0) & (2 * unseen < total)
-    seen = total - unseen
-    free = observed & (votes >= params.free_space_min_fraction * np.maximum(seen, 1))
-    return free, observed
+    need = params.free_space_min_fraction * np.maximum(total - unseen, 1)
+    free = observed & (votes >= need)
+    core = free & (core_votes >= need)
+    if core.any() and params.free_space_pose_deg > 0:
+        pv = other.pixel_voxel
+        kept = np.where((pv >= 0) & core[np.maximum(pv, 0)], pv, -1).astype(np.int32)
+        angle = math.radians(params.free_space_pose_deg)
+        for axis in (0, 1):
+            for sign in (-1.0, 1.0):
+                turn = np.eye(4)
+                turn[:3, :3] = _axis_rotation(axis, sign * angle)
+                core &= votes_at(kept, turn @ T).core >= need
+    return FreeSpace(free, observed, core)
+
+
+def _axis_rotation(axis: int, angle: float) -> np.ndarray:
+    """(3, 3): a turn by ``angle`` (radians) about the camera's x (0) or y (1) axis."""
+    c, s = math.cos(angle), math.sin(angle)
+    if axis == 0:
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])

@@ -112,10 +112,21 @@ class ChangeParams:
     # --- the geometric part -----------------------------------------------------------------
     # Free-space check against the other epoch's depth image.
     free_space: bool = True
-    # Seen through = other depth > own depth + margin_m + margin_rel_per_m * z^2 (z in m; the
-    # z^2 term follows the Kinect's axial noise), or no reading when no_reading_is_free.
-    free_space_margin_m: float = 0.03
-    free_space_margin_per_m2: float = 0.004
+    # Seen through = other depth > own depth + free_space_sigmas x the noise of the
+    # difference of two readings at that depth, sqrt(2 sigma(z)^2 + free_space_pose_m^2):
+    # sigma(z) from the camera's profile (robot_change.noise; the reference's, raised by its
+    # frames), free_space_pose_m what the registration and the camera's resting pose leave.
+    # With the Kinect's profile: 3.0 / 3.0 / 4.2 / 7.3 / 12.7 cm at 0.5 / 1 / 2 / 3 / 4 m;
+    # before the profile (until 2026-12-06) 3 cm + 0.004 z^2, a margin under 2 sigma beyond
+    # 3.5 m, where a real Xtion's static rooms were reported changed (docs/evaluation.md).
+    free_space_sigmas: float = 3.0
+    free_space_pose_m: float = 0.01
+    # ... and what it leaves of the camera's turn, degrees: what is seen through must be seen
+    # through (in its core, away from flying pixels) at the estimate and at the poses turned
+    # this much about the camera's x and y axes, or it makes no region by itself (a turn of
+    # 0.5 degrees moves the image 5 px at an Xtion's focal length; real registrations were
+    # 0.3-1 degree off on the SUN3D study room, docs/evaluation.md).  0: the estimate alone.
+    free_space_pose_deg: float = 0.5
     free_space_no_reading_is_free: bool = True
     # The other image's nearest reading within this many pixels is compared (a camera back
     # at its station within a few pixels must not make static edges look seen through).
@@ -124,16 +135,14 @@ class ChangeParams:
     # in (projector shadows and dropouts); 0 = the pixel alone.
     free_space_hole_radius_px: int = 5
     # With no reading in either window, a pixel is not seen through when a nearer reading
-    # along its row could cast a projector shadow that wide on it: a structured-light camera's
-    # projector stands this far from its camera (metres; Kinect, PrimeSense, Xtion: 7.5 cm;
-    # 0 = no shadows).  A table's edge or legs, a cupboard, 1-1.5 m away, shadow the floor
-    # and wall behind them over 10-30 pixels, wider than the hole window.
-    free_space_shadow_baseline_m: float = 0.075
-    # A depth camera reads nothing nearer than this (metres; Kinect, PrimeSense, Xtion: about
-    # 0.5 m): a point that lands nearer than it plus the margin on a pixel of the other image
-    # with no reading was not observed by the other camera (a table's edge right before the
-    # robot, an object close to the lens), rather than seen through.  0 = no such limit.
-    free_space_sensor_min_m: float = 0.5
+    # along its row could cast a shadow that wide on it: the camera's projector (structured
+    # light) or second imager (stereo) stands the profile's shadow_baseline_m from it (Kinect,
+    # PrimeSense, Xtion: 7.5 cm).  A table's edge or legs, a cupboard, 1-1.5 m away, shadow the
+    # floor and wall behind them over 10-30 pixels, wider than the hole window.  And a camera
+    # reads nothing nearer than the profile's min_range_m (about 0.5 m for those): a point
+    # that lands nearer than that plus the margin on a pixel of the other image with no
+    # reading was not observed by the other camera (a table's edge right before the robot,
+    # an object close to the lens), rather than seen through.
     # With no reading in either window, a pixel is seen through only when the hole opens onto
     # something farther: the first reading along its row, to the left or to the right, lies
     # beyond the point by more than the margin.  A hole bordered only by surfaces at the
@@ -153,6 +162,11 @@ class ChangeParams:
     # min_region_points / min_region_extent_mm start from these.
     min_region_points: int = 12
     min_region_extent_m: float = 0.01
+    # ... and it grows only from a connected group of changed points that holds at least this
+    # many seen through in the core (robot_change.change.free_space: by a reading of the other
+    # image, clear of flying pixels, at every pose the registration may be off by): what
+    # noise, flicker, an edge a registration moved or a hole cannot make by themselves.
+    evidence_min_points: int = 4
     # Changed points are completed to the objects they lie on (robot_change.change.objects):
     # the depth image is cut into surface segments, on cells of object_cell_px pixels, where
     # the surface folds inwards by more than object_fold_deg (an object's foot, an object
@@ -186,16 +200,6 @@ class ChangeParams:
     object_hidden_gap_m: float = 0.3
     object_hidden_share: float = 0.9
     object_hidden_shape: float = 1.5
-    # ... or when it was turned where it stands: more than object_turned_share of its pixels
-    # that land on a reading of the other image land on a surface within the free-space
-    # margin whose normal lies more than object_fold_deg and at most 60 degrees from theirs
-    # (a box turned by 20-45 degrees and moved a few centimetres, of which neither epoch
-    # found more than an edge; a piece of table at the foot of an object that stood there
-    # lands on its face, at 90: stations 8000 and 8001); a majority, chosen before any run,
-    # of every pixel landing on a reading (a sliver of floor at a table's edge lands partly
-    # on its front face: station 8001), on segments of at least 400 pixels (fragments of a
-    # far wall have scattered normals: robot_change.change.objects).  1: off.
-    object_turned_share: float = 0.5
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -231,25 +235,23 @@ class ChangeParams:
         _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
         _num("accept_min_drop_rel", self.accept_min_drop_rel, 0.0, 1.0)
         _num("posterior_threshold", self.posterior_threshold, 0.0, 1.0, low_open=True)
-        _num("free_space_margin_m", self.free_space_margin_m, 0.0, 10.0, unit=" metres")
-        _num("free_space_margin_per_m2", self.free_space_margin_per_m2, 0.0, 1.0,
-             unit=" per metre")
+        _num("free_space_sigmas", self.free_space_sigmas, 0.0, 100.0, low_open=True,
+             unit=" sigmas")
+        _num("free_space_pose_m", self.free_space_pose_m, 0.0, 10.0, unit=" metres")
+        _num("free_space_pose_deg", self.free_space_pose_deg, 0.0, 10.0, unit=" degrees")
         _num("free_space_min_fraction", self.free_space_min_fraction, 0.0, 1.0, low_open=True)
         _num("nn_check_m", self.nn_check_m, 0.0, 10.0, unit=" metres")
         _int("free_space_pose_radius_px", self.free_space_pose_radius_px, 0, 50)
         _int("free_space_hole_radius_px", self.free_space_hole_radius_px, 0, 50)
-        _num("free_space_shadow_baseline_m", self.free_space_shadow_baseline_m, 0.0, 1.0,
-             unit=" metres")
-        _num("free_space_sensor_min_m", self.free_space_sensor_min_m, 0.0, 10.0, unit=" metres")
         _int("region_connectivity", self.region_connectivity, 1, 3)
         _int("min_region_points", self.min_region_points, 1, 10**9)
+        _int("evidence_min_points", self.evidence_min_points, 1, 10**9)
         _num("min_region_extent_m", self.min_region_extent_m, 0.0, 10.0, unit=" metres")
         _num("object_min_share", self.object_min_share, 0.0, 1.0, low_open=True)
         _num("object_counterpart_share", self.object_counterpart_share, 0.0, 1.0)
         _num("object_hidden_gap_m", self.object_hidden_gap_m, 0.0, 2.0, unit=" metres")
         _num("object_hidden_share", self.object_hidden_share, 0.0, 1.0)
         _num("object_hidden_shape", self.object_hidden_shape, 1.0, 10.0)
-        _num("object_turned_share", self.object_turned_share, 0.0, 1.0)
         _num("object_fold_deg", self.object_fold_deg, 0.0, 180.0, unit=" degrees")
         _int("object_cell_px", self.object_cell_px, 1, 64, unit=" pixels")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)

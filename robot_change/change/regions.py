@@ -92,6 +92,21 @@ def label_voxel_components(keys: np.ndarray, radius: int = 1) -> np.ndarray:
     return labels
 
 
+def in_groups_of(epoch: Epoch, changed: np.ndarray, core: np.ndarray, min_points: int,
+                 connectivity: int) -> np.ndarray:
+    """(M,) bool: the ``changed`` (M,) bool points of ``epoch`` in connected groups (voxel
+    keys, :func:`label_voxel_components`) that hold at least ``min_points`` points of
+    ``core`` (M,) bool."""
+    idx = np.flatnonzero(changed)
+    out = np.zeros_like(changed)
+    if np.count_nonzero(core[idx]) < min_points:
+        return out
+    labels = label_voxel_components(epoch.keys[idx], connectivity)
+    held = np.bincount(labels, weights=core[idx])
+    out[idx[held[labels] >= min_points]] = True
+    return out
+
+
 def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangeParams,
                   posterior: np.ndarray | None = None,
                   change_components: np.ndarray | None = None) -> tuple[Region, ...]:

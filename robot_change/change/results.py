@@ -9,12 +9,14 @@ from typing import Any
 
 import numpy as np
 
+from robot_change.change.limits import DetectionLimit
 from robot_change.change.mount import CameraMount
 from robot_change.change.registration import (
     Registration,
     identity_registration,
 )
 from robot_change.mixture.model import Mixture
+from robot_change.noise.profile import NoiseProfile
 
 __all__ = [
     "ChangeSet",
@@ -124,7 +126,9 @@ class ChangeSet:
     could not have seen (outside its image or range), neither appeared nor disappeared.
     ``not_at_station_reason``: why, for that outcome (else "").  ``current_points`` (N, 3)
     float32: the current's whole clean cloud (the rows ``appeared_index`` refer to; None when
-    not kept).
+    not kept).  ``noise``: the camera's noise profile the check was scaled by (the
+    reference's; robot_change.noise); ``limit``: the smallest change the check could report in
+    each part of the view (robot_change.change.limits).
     """
 
     changed: bool
@@ -150,6 +154,8 @@ class ChangeSet:
     unobserved_fraction: float = 0.0
     not_at_station_reason: str = ""
     current_points: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    noise: NoiseProfile | None = dataclasses.field(default=None, repr=False)
+    limit: DetectionLimit | None = dataclasses.field(default=None, repr=False)
 
     @property
     def regions(self) -> tuple[Region, ...]:
@@ -183,4 +189,19 @@ class ChangeSet:
             "greedy_disappeared": (self.greedy_disappeared.to_dict()
                                    if self.greedy_disappeared is not None else None),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            "noise": self.noise_summary(),
+            "detection_limit": self.limit.to_dict() if self.limit is not None else None,
         }
+
+    def noise_summary(self) -> dict | None:
+        """The camera's noise the check was scaled by: the profile's summary and the margin a
+        surface had to lie beyond the other epoch's to be seen through, at 1-4 m (mm)."""
+        if self.noise is None:
+            return None
+        out = self.noise.summary()
+        sigmas = getattr(self.params, "free_space_sigmas", None)
+        pose = getattr(self.params, "free_space_pose_m", None)
+        if sigmas is not None and pose is not None:
+            out["margin_mm"] = {f"{z:g}m": round(float(self.noise.margin(z, sigmas, pose))
+                                                 * 1000, 1) for z in (1.0, 2.0, 3.0, 4.0)}
+        return out

@@ -28,25 +28,27 @@ import numpy as np
 
 import robot_change
 from hw.depth import DepthFrame, DepthSource, Intrinsics
-from hw.errors import FrameError
 from robot_change import npzfile, validate
 from robot_change.change.mount import CameraMount
-from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, CloudParams, clean_cloud
+from robot_change.cloud.chain import CleanCloud, CloudParams, clean_cloud
 from robot_change.cloud.fusion import fuse_depth
-from robot_change.cloud.plane import Plane
 from robot_change.errors import (
     BadValue,
     EmptySceneError,
     InputError,
-    SceneFileError,
     SceneMismatchError,
 )
 from robot_change.mixture.model import (
     CRITERIA,
-    FitRecord,
-    FitStep,
     Mixture,
     fit_mixture,
+)
+from robot_change.noise.estimate import measure_frames
+from robot_change.noise.profile import (
+    DEFAULT_PROFILE,
+    RAISE_TOLERANCE,
+    NoiseProfile,
+    builtin_profile,
 )
 
 __all__ = [
@@ -59,6 +61,7 @@ __all__ = [
     "build_scene",
     "build_scene_from_source",
     "check_compatible",
+    "measured_profile",
     "scene_differences",
 ]
 
@@ -175,7 +178,9 @@ class SceneModel:
     per stage (``fusion``, ``points``, ``voxel``, ``outliers``, ``plane``, ``cloud`` (all four),
     ``fit``, ``total``; ``read`` when built from a source); ``created`` (UTC, ISO 8601);
     ``version`` (robot_change's); ``source`` (e.g. the depth URI); ``mount``: the camera's
-    mounting on the base when the reference was captured (None: not recorded).
+    mounting on the base when the reference was captured (None: not recorded); ``noise``:
+    the camera's noise profile (robot_change.noise), raised where the fused frames showed
+    more noise, and what they showed (``noise.measured``, ``noise.flicker_*``).
     """
 
     depth: np.ndarray
@@ -193,6 +198,8 @@ class SceneModel:
     version: str
     source: str = ""
     mount: CameraMount | None = None
+    noise: NoiseProfile = dataclasses.field(
+        default_factory=lambda: builtin_profile(DEFAULT_PROFILE))
 
     def __post_init__(self) -> None:
         d = self.depth
@@ -212,6 +219,8 @@ class SceneModel:
             raise InputError("SceneModel.mixture must be a Mixture and params a SceneParams")
         if self.mount is not None and not isinstance(self.mount, CameraMount):
             raise InputError("SceneModel.mount must be a robot_change.change.mount.CameraMount or None")
+        if not isinstance(self.noise, NoiseProfile):
+            raise InputError("SceneModel.noise must be a NoiseProfile (robot_change.noise)")
         if d.flags.writeable:
             d = d.copy()
             d.setflags(write=False)
@@ -258,7 +267,9 @@ class SceneModel:
         params, provenance, the cloud's counts and timings, the fit record, the arrays' dtypes
         and shapes, and a SHA-256 over the header and the arrays (checked by :meth:`load`).
         """
-        npzfile.write(path, FILE_FORMAT, FILE_VERSION, _arrays_of(self), _header_of(self))
+        from robot_change.change import scene_file
+        npzfile.write(path, FILE_FORMAT, FILE_VERSION, scene_file.arrays_of(self),
+                      scene_file.header_of(self))
 
     @classmethod
     def load(cls, path) -> SceneModel:
@@ -273,7 +284,8 @@ class SceneModel:
         FileNotFoundError
             ``path`` does not exist.
         """
-        return _load(cls, Path(path))
+        from robot_change.change import scene_file
+        return scene_file.load_model(cls, Path(path))
 
 
 # --------------------------------------------------------------------------- building
@@ -389,8 +401,9 @@ def build_scene(
     intrinsics: Intrinsics | None = None,
     source: str = "",
     mount: CameraMount | None = None,
+    noise: NoiseProfile | None = None,
 ) -> SceneModel:
-    """Fuse frames, clean the cloud, fit the mixture: a :class:`SceneModel`.
+    """Fuse frames, clean the cloud, fit the mixture, measure the noise: a :class:`SceneModel`.
 
     Parameters
     ----------
@@ -407,6 +420,10 @@ def build_scene(
     mount : robot_change.change.mount.CameraMount, optional
         The camera's mounting on the base (recorded; ``detect`` uses it for base-frame
         results when not told otherwise).
+    noise : robot_change.noise.profile.NoiseProfile, optional
+        The camera's profile (default: the built-in ``DEFAULT_PROFILE``).  Two frames or more
+        are measured (:func:`robot_change.noise.estimate.measure_frames`) and raise it where
+        they are noisier by more than ``RAISE_TOLERANCE`` (never lower it).
 
     Raises
     ------
@@ -422,9 +439,13 @@ def build_scene(
         raise InputError(f"params must be a SceneParams, got {type(params).__name__}")
     if not isinstance(source, str):
         raise InputError(f"source must be a string (e.g. the depth URI), got {source!r}")
+    if noise is not None and not isinstance(noise, NoiseProfile):
+        raise InputError(f"noise must be a robot_change.noise.profile.NoiseProfile, got "
+                         f"{type(noise).__name__}")
     stack, camera, (ts0, ts1, i0, i1) = _to_stack(frames, intrinsics)
     n_frames = int(stack.shape[0])
     fused = fuse_depth(np.ascontiguousarray(stack), params.min_valid(n_frames))
+    profile = measured_profile(stack, noise or builtin_profile(DEFAULT_PROFILE), source)
     t1 = time.perf_counter()
     cloud = clean_cloud(fused, camera, params.cloud)
     t2 = time.perf_counter()
@@ -453,8 +474,21 @@ def build_scene(
         n_frames=n_frames, first_timestamp_us=ts0, last_timestamp_us=ts1, first_index=i0,
         last_index=i1, seconds=seconds,
         created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds"),
-        version=robot_change.__version__, source=source, mount=mount,
+        version=robot_change.__version__, source=source, mount=mount, noise=profile,
     )
+
+
+def measured_profile(stack: np.ndarray, noise: NoiseProfile, source: str = "") -> NoiseProfile:
+    """``noise`` raised where the frames of ``stack`` ((N, H, W) uint16 mm) are noisier
+    (:meth:`NoiseProfile.raised_by` with ``RAISE_TOLERANCE``); as it is for one frame."""
+    if stack.shape[0] < 2:
+        return noise
+    found = measure_frames(stack)
+    if not found.bins:
+        return noise
+    said = f"the {stack.shape[0]} frames of {source or 'the reference'}"
+    return noise.raised_by(found.bins, said, tolerance=RAISE_TOLERANCE,
+                           flicker_valid=found.flicker_valid, flicker_step=found.flicker_step)
 
 
 def build_scene_from_source(
@@ -563,155 +597,3 @@ def check_compatible(reference: SceneModel, current) -> None:
         where = f" ({reference.source})" if reference.source else ""
         raise SceneMismatchError(f"the reference{where} cannot be compared with the current "
                                  "view: " + "; ".join(parts))
-
-
-# --------------------------------------------------------------------------- file format
-
-#: name -> (dtype, number of dimensions) of every array in a scene file.
-_ARRAYS = {
-    "depth": ("<u2", 2),
-    "points": ("<f4", 2),
-    "keys": ("<i8", 1),
-    "counts": ("<i4", 1),
-    "pixel_voxel": ("<i4", 2),
-    "pixel_stage": ("|u1", 2),
-    "plane_normal": ("<f8", 1),
-    "plane_inliers": ("|b1", 1),
-    "weights": ("<f8", 1),
-    "means": ("<f8", 2),
-    "covariances": ("<f8", 3),
-}
-
-
-def _arrays_of(model: SceneModel) -> dict[str, np.ndarray]:
-    c, m = model.cloud, model.mixture
-    raw = {
-        "depth": model.depth, "points": c.points, "keys": c.keys, "counts": c.counts,
-        "pixel_voxel": c.pixel_voxel, "pixel_stage": c.pixel_stage,
-        "plane_normal": c.plane.normal, "plane_inliers": c.plane.inliers,
-        "weights": m.weights, "means": m.means, "covariances": m.covariances,
-    }
-    return {k: np.ascontiguousarray(raw[k], dtype=np.dtype(dt)) for k, (dt, _) in _ARRAYS.items()}
-
-
-def _record_to_dict(record: FitRecord | None) -> dict | None:
-    if record is None:
-        return None
-    d = dataclasses.asdict(record)
-    d["steps"] = [dataclasses.asdict(s) for s in record.steps]
-    return d
-
-
-def _record_from_dict(d: dict | None) -> FitRecord | None:
-    if d is None:
-        return None
-    d = dict(d)
-    d["steps"] = tuple(FitStep(**s) for s in d["steps"])
-    return FitRecord(**d)
-
-
-def _header_of(model: SceneModel) -> dict[str, Any]:
-    """The header fields of a scene (robot_change.npzfile adds format, version, saved_by, the
-    arrays' dtypes and shapes and the checksum)."""
-    c = model.cloud
-    return {
-        "library_version": model.version,
-        "created": model.created,
-        "source": model.source,
-        "mount": None if model.mount is None else model.mount.to_dict(),
-        "n_frames": model.n_frames,
-        "first_timestamp_us": model.first_timestamp_us,
-        "last_timestamp_us": model.last_timestamp_us,
-        "first_index": model.first_index,
-        "last_index": model.last_index,
-        "seconds": dict(model.seconds),
-        "intrinsics": dataclasses.asdict(model.intrinsics),
-        "params": model.params.to_dict(),
-        "cloud": {
-            "stage_counts": dict(c.stage_counts),
-            "timings_ms": dict(c.timings_ms),
-            "plane_offset": c.plane.offset,
-            "plane_n_inliers": c.plane.n_inliers,
-            "plane_iterations": c.plane.iterations,
-        },
-        "fit": _record_to_dict(model.mixture.record),
-    }
-
-
-def _load(cls, path: Path) -> SceneModel:
-    redo = "build and save the reference again"
-    header, arrays = npzfile.read(path, FILE_FORMAT, FILE_VERSION, _ARRAYS, SceneFileError, redo)
-    try:
-        return _model_from(cls, header, arrays)
-    except SceneFileError:
-        raise
-    except (InputError, FrameError, KeyError, TypeError, ValueError) as exc:
-        raise SceneFileError(f"{path}: the file does not hold a valid scene "
-                             f"({type(exc).__name__}: {exc}); {redo}") from exc
-
-
-def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> SceneModel:
-    for name, (dtype, ndim) in _ARRAYS.items():
-        a = arrays[name]
-        if a.dtype != np.dtype(dtype) or a.ndim != ndim:
-            raise SceneFileError(f"array {name!r} is {a.dtype} with {a.ndim} dimensions, "
-                                 f"expected {np.dtype(dtype)} with {ndim}")
-    params = SceneParams.from_dict(header["params"])
-    camera = Intrinsics(**header["intrinsics"])
-    m = arrays["points"].shape[0]
-    shape = arrays["depth"].shape
-    checks = [
-        (arrays["points"].shape == (m, 3), "points is not (M, 3)"),
-        (arrays["keys"].shape == (m,) and arrays["counts"].shape == (m,),
-         "keys / counts do not match points"),
-        (arrays["pixel_voxel"].shape == shape and arrays["pixel_stage"].shape == shape,
-         "pixel_voxel / pixel_stage do not match the depth image"),
-        (m == 0 or (arrays["pixel_voxel"].min() >= -1 and arrays["pixel_voxel"].max() < m),
-         "pixel_voxel points outside the cloud"),
-        (arrays["pixel_stage"].max(initial=0) <= PIXEL_KEPT, "pixel_stage has unknown codes"),
-        (arrays["plane_normal"].shape == (3,), "plane_normal is not a 3-vector"),
-    ]
-    for ok, what in checks:
-        if not ok:
-            raise SceneFileError(what)
-    for a in arrays.values():
-        a.setflags(write=False)
-    ch = header["cloud"]
-    plane = Plane(normal=arrays["plane_normal"], offset=float(ch["plane_offset"]),
-                  inliers=arrays["plane_inliers"], n_inliers=int(ch["plane_n_inliers"]),
-                  iterations=int(ch["plane_iterations"]))
-    if header["version"] == 1:
-        # keys in the old layout: rebuild the cloud as this version makes it
-        cloud = clean_cloud(arrays["depth"], camera, params.cloud)
-    else:
-        cloud = CleanCloud(
-            points=arrays["points"], keys=arrays["keys"], counts=arrays["counts"],
-            pixel_voxel=arrays["pixel_voxel"], pixel_stage=arrays["pixel_stage"], plane=plane,
-            stage_counts={k: int(v) for k, v in ch["stage_counts"].items()},
-            timings_ms={k: float(v) for k, v in ch["timings_ms"].items()}, params=params.cloud,
-        )
-    mixture = Mixture(arrays["weights"], arrays["means"], arrays["covariances"],
-                      _record_from_dict(header["fit"]))
-
-    def opt_int(key):
-        v = header[key]
-        return None if v is None else int(v)
-
-    return cls(
-        depth=arrays["depth"], intrinsics=camera, cloud=cloud, mixture=mixture, params=params,
-        n_frames=int(header["n_frames"]), first_timestamp_us=opt_int("first_timestamp_us"),
-        last_timestamp_us=opt_int("last_timestamp_us"), first_index=opt_int("first_index"),
-        last_index=opt_int("last_index"),
-        seconds={k: float(v) for k, v in header["seconds"].items()},
-        created=str(header["created"]), version=str(header["library_version"]),
-        source=str(header["source"]), mount=_mount_from(header.get("mount")),
-    )
-
-
-def _mount_from(d: Any) -> CameraMount | None:
-    """The header's ``mount`` (absent in files from before it was recorded: None)."""
-    if d is None:
-        return None
-    if not isinstance(d, dict) or "xyz_m" not in d or "rpy_deg" not in d:
-        raise SceneFileError(f"mount {d!r} is not an object with xyz_m and rpy_deg")
-    return CameraMount(tuple(d["xyz_m"]), tuple(d["rpy_deg"]))

@@ -40,6 +40,13 @@ from robot_change.errors import BadValue, ConfigError
 from robot_change.export.live import DEFAULT_HOST, DEFAULT_PORT
 from robot_change.fleet.connection import BrokerSettings
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
+from robot_change.noise.profile import (
+    BUILTIN,
+    DEFAULT_PROFILE,
+    NoiseProfile,
+    ProfileFileError,
+    resolve_profile,
+)
 from robot_change.service.store import (
     DEFAULT_MAX_STATIONS,
     DEFAULT_MIN_FREE_MB,
@@ -248,10 +255,21 @@ class CameraConfig(_Section):
     mount_rpy_deg: tuple = _key((0.0, 0.0, 0.0), _triple(180.0, " degrees"),
                                 "the camera on the base: roll, pitch, yaw of its body frame in "
                                 "base_link, degrees (a camera tilted down 10 deg: [0, 10, 0])")
+    profile: str = _key(DEFAULT_PROFILE, _choice(tuple(BUILTIN)),
+                        "the camera's noise, a built-in profile: " + ", ".join(BUILTIN))
+    profile_file: str | None = _key(None, _text,
+                             "a profile measured with `robot-change calibrate` (JSON); it wins "
+                             "over profile; a relative path is taken from the config file's "
+                             "folder")
 
     def mount(self) -> CameraMount:
         """The :class:`robot_change.change.mount.CameraMount` these keys describe."""
         return CameraMount(self.mount_xyz_m, self.mount_rpy_deg)
+
+    def noise_profile(self) -> NoiseProfile:
+        """The camera's noise profile: the measured one in ``profile_file`` when set, else the
+        built-in ``profile`` (:class:`ProfileFileError` for a file that cannot be read)."""
+        return resolve_profile(self.profile, self.profile_file)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -672,6 +690,16 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
     store = sections["store"]
     if base_dir is not None and not os.path.isabs(store.state_dir):
         sections["store"] = dataclasses.replace(store, state_dir=str(base_dir / store.state_dir))
+    camera = sections["camera"]
+    if camera.profile_file:
+        if base_dir is not None and not os.path.isabs(camera.profile_file):
+            camera = dataclasses.replace(camera, profile_file=str(base_dir / camera.profile_file))
+            sections["camera"] = camera
+        try:
+            camera.noise_profile()
+        except ProfileFileError as exc:
+            raise ConfigError(f"{source}: camera.profile_file = {_show(camera.profile_file)}: "
+                              f"{exc}") from None
     fleet = sections["fleet"]
     if base_dir is not None and fleet.files:  # a relative path: from the file's folder
         sections["fleet"] = dataclasses.replace(fleet, **{

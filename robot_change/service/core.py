@@ -924,11 +924,12 @@ class Service:
         frames = self._fresh_frames(n, f"CAPTURE_REFERENCE {station}")
         t0 = time.perf_counter()
         model = scene.build_scene(frames, scene_params(self.config, self.params),
-                                  source=self.camera_uri, mount=self.config.camera.mount())
+                                  source=self.camera_uri, mount=self.config.camera.mount(),
+                                  noise=self.config.camera.noise_profile())
         path = self.store.save(station, model)
-        log.info("station %s: reference of %d frames (%d points, K=%d) built in %.0f ms, saved "
-                 "to %s", station, n, len(model), model.mixture.n_components,
-                 (time.perf_counter() - t0) * 1e3, path)
+        log.info("station %s: reference of %d frames (%d points, K=%d, noise %s) built in "
+                 "%.0f ms, saved to %s", station, n, len(model), model.mixture.n_components,
+                 model.noise.name, (time.perf_counter() - t0) * 1e3, path)
         self._send(Captured(station))
 
     def _check(self, station: str) -> None:

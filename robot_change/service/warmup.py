@@ -95,6 +95,9 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
     (a read-only (H, W) int32 pixel -> point map, uint16 depth images), on the synthetic rooms
     without cleaning them."""
     from robot_change.change.free_space import free_space_votes
+    from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
+
+    profile = builtin_profile(DEFAULT_PROFILE)
 
     offset = np.eye(4)
     offset[:3, 3] = (0.01, 0.0, 0.0)
@@ -104,8 +107,9 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
         pixel_voxel[valid] = np.arange(int(valid.sum())) // 4
         pixel_voxel.setflags(write=False)
         n_points = int(pixel_voxel.max()) + 1
-        free_space_votes(pixel_voxel, after, before.copy(), n_points, 0.03, 0.004, 3, 5, True,
-                         intrinsics=cam, other_from_own=offset)
+        free_space_votes(pixel_voxel, after, before.copy(), n_points, profile.kernel_table(),
+                         3.0, 0.01, 3, 5, True, intrinsics=cam, other_from_own=offset,
+                         edge_px=profile.edge_px)
 
 
 def _region_kernels() -> None:
@@ -240,12 +244,12 @@ def _table_top_kernels() -> None:
     """The registration kernels only a table reaches (the table-plane starts' grid; the
     table station's counts over many poses; the synthetic room passes neither gate), with
     the argument types a check gives them: float32 vertex maps, float64 transforms."""
-    from robot_change.change.registration import agreement, table_top
+    from robot_change.change.registration import RegistrationParams, agreement, table_top
 
     v = np.zeros((2, 2, 3), np.float32)
     table_top._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)
     agreement.through_counts(v, v, np.eye(3)[None], np.zeros((1, 3)), 1.0, 1.0, 0.5, 0.5,
-                             0.03, 0.004)
+                             *RegistrationParams().through_args())
 
 
 def _exit_with_parent(parent: int) -> None:

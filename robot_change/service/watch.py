@@ -41,6 +41,7 @@ from robot_change.change.results import ChangeSet
 from robot_change.change.scene import SceneModel
 from robot_change.errors import EmptySceneError, SceneMismatchError
 from robot_change.link.protocol import FaultCode, PauseCause
+from robot_change.noise.profile import NoiseProfile
 from robot_change.service.liveness import Progress
 
 __all__ = ["GateOptions", "StationWatch", "WatchHost", "depth_gate"]
@@ -48,20 +49,20 @@ __all__ = ["GateOptions", "StationWatch", "WatchHost", "depth_gate"]
 log = logging.getLogger(__name__)
 
 
-def depth_gate(reference: np.ndarray, depth: np.ndarray, margin_m: float, margin_per_m2: float,
-               step: int = 4) -> int:
+def depth_gate(reference: np.ndarray, depth: np.ndarray, noise: NoiseProfile, sigmas: float,
+               pose_m: float, step: int = 4) -> int:
     """How many sampled pixels (every ``step``-th of every ``step``-th row) read nearer or
-    farther than the reference by more than the sensor's noise, ``margin_m + margin_per_m2 *
-    z^2`` (the free-space check's margin: ChangeParams.free_space_margin_m / _per_m2).
+    farther than the reference by more than the camera's noise allows (the free-space check's
+    margin: ``noise.margin`` with ChangeParams.free_space_sigmas / free_space_pose_m).
 
     A cheap per-frame trigger for WATCH checks, never a decision: a jump in this count means the
-    scene is no longer what the last check saw, so a check runs at once.  ~0.3 ms at VGA.
+    scene is no longer what the last check saw, so a check runs at once.  ~0.5 ms at VGA.
     """
     r = reference[::step, ::step].astype(np.float32)
     c = depth[::step, ::step].astype(np.float32)
     both = (r > 0) & (c > 0)
-    margin = 1000.0 * margin_m + 1e-3 * margin_per_m2 * r * r  # mm, r in mm
-    return int(np.count_nonzero(both & (np.abs(c - r) > margin)))
+    margin = 1000.0 * noise.margin(r[both] * 1e-3, sigmas, pose_m)  # mm
+    return int(np.count_nonzero(np.abs(c[both] - r[both]) > margin))
 
 
 
@@ -182,8 +183,9 @@ class StationWatch:
     def _gate(self, depth: np.ndarray) -> int | None:
         if depth.shape != self.reference.depth.shape:
             return None  # the check itself reports the mismatch
-        return depth_gate(self.reference.depth, depth, self._change.free_space_margin_m,
-                          self._change.free_space_margin_per_m2, self._gate_options.step)
+        return depth_gate(self.reference.depth, depth, self.reference.noise,
+                          self._change.free_space_sigmas, self._change.free_space_pose_m,
+                          self._gate_options.step)
 
     def frame(self, frame: DepthFrame, seq: int) -> None:
         """Every frame the camera delivers: kept as the newest, and checked at once when the

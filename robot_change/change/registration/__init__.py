@@ -56,7 +56,6 @@ Kernels are ``@njit(cache=True, nogil=True)`` with NumPy twins in
 from __future__ import annotations
 
 from .params import RegistrationParams
-from .pyramid import depth_sigma
 from .register import register_depth
 from .result import AXES, Registration, identity_registration
 from .rigid import (
@@ -71,7 +70,6 @@ __all__ = [
     "AXES",
     "Registration",
     "RegistrationParams",
-    "depth_sigma",
     "identity_registration",
     "invert",
     "register_depth",

@@ -12,21 +12,25 @@ import math
 import numba
 import numpy as np
 
+from robot_change.noise.kernels import floored_margin_at, sigma_at
+
 from .icp import land, pair
 from .params import RegistrationParams
-from .pyramid import Level, depth_sigma
+from .pyramid import Level
 from .rigid import exp_so3, invert
 
 
 @numba.njit(cache=True, nogil=True)
 def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                sigmas, margin_m, margin_per_m2, facing, min_facing):
+                noise, sigmas, through_sigmas, margin_m, margin_per_m2, facing, min_facing):
     """What the reference says of each current cell (``cur_v``, ``cur_n`` (h, w, 3)) moved by
     (rot, trans) and projected into it: 2 (contradicts) when it sees through the cell (its
-    reading farther by more than ``margin_m + margin_per_m2 * z^2``) or pairs it
-    (:func:`~.icp.pair`) with a residual beyond ``sigmas`` depth-noise sigmas; 1 (fits)
-    when it pairs it within them; 0 otherwise (outside its image, on no reading, hidden
-    behind a nearer reading, or not paired).  Only the cells whose normal has
+    reading farther by more than the margin: ``margin_m + margin_per_m2 z^2``, or
+    ``through_sigmas`` sigmas of the difference of two readings where wider,
+    robot_change.noise.kernels.floored_margin_at with the sigma table ``noise``) or pairs
+    it (:func:`~.icp.pair`) with a residual beyond ``sigmas`` sigmas of the noise of one
+    reading; 1 (fits) when it pairs it within them; 0 otherwise (outside its image, on no
+    reading, hidden behind a nearer reading, or not paired).  Only the cells whose normal has
     |n . ``facing``| >= ``min_facing`` (``facing`` (3,), current frame) are judged; the
     others are 0 (``min_facing`` 0: every cell).  Returns (h, w) int8."""
     h, w = cur_v.shape[0], cur_v.shape[1]
@@ -46,7 +50,7 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
             rz = ref_v[v, u, 2]
             if rz <= 0.0:
                 continue
-            margin = margin_m + margin_per_m2 * pz * pz
+            margin = floored_margin_at(noise, pz, through_sigmas, margin_m, margin_per_m2)
             if rz > pz + margin:
                 out[i, j] = 2
                 continue
@@ -56,13 +60,14 @@ def cell_states(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist
                                       min_cos)
             if not paired:
                 continue
-            out[i, j] = 1 if abs(r) <= sigmas * depth_sigma(pz) else 2
+            out[i, j] = 1 if abs(r) <= sigmas * sigma_at(noise, pz) else 2
     return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos,
-                  sigmas, margin_m, margin_per_m2, count_pairs, stop_below, pairable_after):
+                  noise, sigmas, through_sigmas, margin_m, margin_per_m2, count_pairs,
+                  stop_below, pairable_after):
     """:func:`agreement_counts`, given up after a row ``i`` where the inliers less the cells
     seen through, plus ``pairable_after[i]`` (the view's cells with a normal in the rows
     after it: the most inliers still to come), fall below ``stop_below`` (-inf: never).
@@ -89,7 +94,7 @@ def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, ma
                 holes += 1
                 continue
             compared += 1
-            margin = margin_m + margin_per_m2 * pz * pz
+            margin = floored_margin_at(noise, pz, through_sigmas, margin_m, margin_per_m2)
             if rz > pz + margin:
                 through += 1
             elif rz < pz - margin:
@@ -98,7 +103,7 @@ def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, ma
                 continue
             paired, r, _, _, _ = pair(own_n[i, j], other_v, other_n, v, u, px, py, pz, rot,
                                       md2, min_cos)
-            if paired and abs(r) <= sigmas * depth_sigma(pz):
+            if paired and abs(r) <= sigmas * sigma_at(noise, pz):
                 inliers += 1
                 sq_sum += r * r
         if inliers - through + pairable_after[i] < stop_below:
@@ -108,30 +113,34 @@ def _counts_until(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, ma
 
 @numba.njit(cache=True, nogil=True)
 def agreement_counts(own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist,
-                     min_cos, sigmas, margin_m, margin_per_m2, count_pairs):
+                     min_cos, noise, sigmas, through_sigmas, margin_m, margin_per_m2,
+                     count_pairs):
     """What the other view says of one view's cells (``own_v``, ``own_n`` (h, w, 3)) moved
     by (``rot`` (3, 3), ``trans`` (3,) m) into its image (intrinsics fx, fy, cx, cy of
     ``other_v``, ``other_n``), in one pass.  Of the cells that land inside its image: those
     that land on no reading (holes); those that land on one (compared), of them those it sees
-    *through* (its reading farther than the point by more than ``margin_m + margin_per_m2 *
-    z^2``) and those that lie *behind* it (its reading nearer by as much: hidden from it).
-    When ``count_pairs``: the inliers, the pairs (:func:`~.icp.pair`: within ``max_dist``,
-    normals within acos ``min_cos``) whose residual is within ``sigmas`` depth-noise sigmas,
-    and the sum of their squared residuals (m^2); else both 0.
+    *through* (its reading farther than the point by more than the margin, ``margin_m +
+    margin_per_m2 z^2`` or ``through_sigmas`` sigmas of the difference of two readings where
+    wider: robot_change.noise.kernels.floored_margin_at with the sigma table ``noise``) and
+    those that lie *behind* it (its reading nearer by as much: hidden from it).  When
+    ``count_pairs``: the inliers, the pairs (:func:`~.icp.pair`: within ``max_dist``, normals
+    within acos ``min_cos``) whose residual is within ``sigmas`` sigmas of one reading's
+    noise, and the sum of their squared residuals (m^2); else both 0.
     Returns (inliers, squared residuals, through, compared, holes, behind)."""
     inliers, sq_sum, through, compared, holes, behind, _ = _counts_until(
-        own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos, sigmas,
-        margin_m, margin_per_m2, count_pairs, -np.inf, np.zeros(own_v.shape[0], np.int64))
+        own_v, own_n, other_v, other_n, rot, trans, fx, fy, cx, cy, max_dist, min_cos, noise,
+        sigmas, through_sigmas, margin_m, margin_per_m2, count_pairs, -np.inf,
+        np.zeros(own_v.shape[0], np.int64))
     return inliers, sq_sum, through, compared, holes, behind
 
 
 @numba.njit(cache=True, nogil=True)
-def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, margin_m, margin_per_m2):
+def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_sigmas,
+                   margin_m, margin_per_m2):
     """For each pose (``rots`` (n, 3, 3), ``transs`` (n, 3) m: other-from-own), the cells of
     ``own_v`` (h, w, 3) m (z = 0: none) that ``other_v`` (intrinsics fx, fy, cx, cy) sees
-    through: they land on a reading of it farther than their depth by more than
-    ``margin_m + margin_per_m2 * z^2`` (:func:`agreement_counts`' through, for many poses in
-    one call).  Returns (n,) int64."""
+    through: they land on a reading of it farther than their depth by more than the margin
+    (:func:`agreement_counts`' through, for many poses in one call).  Returns (n,) int64."""
     n = rots.shape[0]
     out = np.zeros(n, dtype=np.int64)
     h = other_v.shape[0]
@@ -149,7 +158,8 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, margin_m, margi
                 if u < 0:
                     continue
                 rz = other_v[v, u, 2]
-                if rz > 0.0 and rz > pz + margin_m + margin_per_m2 * pz * pz:
+                if rz > 0.0 and rz > pz + floored_margin_at(noise, pz, through_sigmas, margin_m,
+                                                            margin_per_m2):
                     count += 1
         out[m] = count
     return out
@@ -157,7 +167,8 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, margin_m, margi
 
 @numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
-                 sigmas, margin_m, margin_per_m2, both_ways, hole_weight, prune):
+                 noise, sigmas, through_sigmas, margin_m, margin_per_m2, both_ways, hole_weight,
+                 prune):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
     metres): per pose, the current's inlier pairs (:func:`agreement_counts`; with ``both_ways``
     those of the reference's cells moved into the current view too) minus the cells of either
@@ -185,8 +196,9 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         rot = rots[m]
         t = transs[m]
         inliers_cur, _, through_cur, _, holes_cur, _, whole = _counts_until(
-            cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, sigmas,
-            margin_m, margin_per_m2, True, best if prune else -np.inf, pairable_after)
+            cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, noise, sigmas,
+            through_sigmas, margin_m, margin_per_m2, True, best if prune else -np.inf,
+            pairable_after)
         if prune and (not whole or inliers_cur - through_cur - hole_weight * holes_cur < best):
             out[m] = -np.inf
             continue
@@ -194,8 +206,8 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         for a in range(3):
             back[a] = -(rot_t[a, 0] * t[0] + rot_t[a, 1] * t[1] + rot_t[a, 2] * t[2])
         inliers_ref, _, through_ref, _, holes_ref, _ = agreement_counts(
-            ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy, max_dist, min_cos, sigmas,
-            margin_m, margin_per_m2, both_ways)
+            ref_v, ref_n, cur_v, cur_n, rot_t, back, fx, fy, cx, cy, max_dist, min_cos, noise,
+            sigmas, through_sigmas, margin_m, margin_per_m2, both_ways)
         out[m] = (inliers_cur + inliers_ref - through_cur - through_ref
                   - hole_weight * (holes_cur + holes_ref))
         best = max(best, out[m])
@@ -212,8 +224,7 @@ def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: Registrat
     rots = np.array([T[:3, :3] for T in poses])
     transs = np.array([T[:3, 3] for T in poses])
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
-                        rl.cx, rl.cy, params.search_step_m, min_cos, params.inlier_sigmas,
-                        params.seen_through_margin_m, params.seen_through_margin_per_m2,
+                        rl.cx, rl.cy, params.search_step_m, min_cos, *params.noise_args(),
                         bool(both_ways), float(hole_weight), bool(prune))
 
 
@@ -329,8 +340,7 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
         states = cell_states(own.vertex, own.normal, other.vertex, other.normal,
                              M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
                              other.cy, params.max_distance_m[-1], min_cos,
-                             params.inlier_sigmas, params.seen_through_margin_m,
-                             params.seen_through_margin_per_m2, d, 0.5)
+                             *params.noise_args(), d, 0.5)
         fit += int(np.count_nonzero(states == 1))
         contradict += int(np.count_nonzero(states == 2))
     return fit, contradict
@@ -352,8 +362,7 @@ def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationPar
         k, sq_sum, through, compared, _, behind = agreement_counts(
             own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
             M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, params.max_distance_m[-1],
-            min_cos, params.inlier_sigmas, params.seen_through_margin_m,
-            params.seen_through_margin_per_m2, count_pairs)
+            min_cos, *params.noise_args(), count_pairs)
         through_share = max(through_share, through / compared if compared else 0.0)
         if own is cl:
             inliers = k

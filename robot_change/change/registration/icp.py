@@ -12,8 +12,10 @@ import math
 import numba
 import numpy as np
 
+from robot_change.noise.kernels import sigma_at
+
 from .params import RegistrationParams
-from .pyramid import Level, depth_sigma
+from .pyramid import Level
 from .result import AXES
 from .rigid import exp_so3
 
@@ -106,11 +108,12 @@ def _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
 
 
 @numba.njit(cache=True, nogil=True)
-def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
+def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m, noise):
     """The robustly weighted 6x6 normal equations of the first ``n`` pairs (``res`` (N,) m,
     ``jac`` (N, 6), ``zs`` (N,) m, from :func:`_associate`).
 
-    Weight of a pair: 1 / sigma(z)^2 (:func:`depth_sigma`) times Tukey's biweight of its
+    Weight of a pair: 1 / sigma(z)^2 (the sigma table ``noise``,
+    robot_change.noise.kernels.sigma_at) times Tukey's biweight of its
     normalised residual e = res / sigma(z), with constant ``tukey_c`` times the scale
     max(1.4826 median |e|, 0.5), and no narrower than ``min_cut_m`` metres.  Returns (A (6, 6)
     = J^T W J, b (6,) = J^T W r, the sum of the weights, radius: the root of the median squared
@@ -119,7 +122,7 @@ def _weighted_system(res, jac, zs, n, tukey_c, min_cut_m):
     inv_var = np.empty(n)
     z2 = np.empty(n)
     for k in range(n):
-        sig = depth_sigma(zs[k])
+        sig = sigma_at(noise, zs[k])
         e[k] = abs(res[k]) / sig
         inv_var[k] = 1.0 / (sig * sig)
         z2[k] = zs[k] * zs[k]
@@ -179,14 +182,15 @@ def _gauss_newton_step(A, b, radius, wsum, weak_eigenvalue):
 
 @numba.njit(cache=True, nogil=True)
 def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min_cos, tukey_c,
-                    min_cut_m, weak_eigenvalue, iterations, tol_m, res, jac, zs):
+                    min_cut_m, weak_eigenvalue, iterations, tol_m, res, jac, zs, noise):
     """Gauss-Newton iterations of one level from ``T`` (4, 4) (T_ref_from_cur): per
     iteration :func:`_associate`, :func:`_weighted_system` and :func:`_gauss_newton_step`, a
     trust region (no step moves a point by more than half of ``max_dist``: a first step from
     many wrong pairs must not throw the estimate out of the basin), the step applied on the
     left; at most ``iterations``, ending early when fewer than 6 pairs are left or a step
     moves a point by less than ``tol_m``.  ``res``, ``jac``, ``zs``: scratch arrays of
-    :func:`_associate`.  Returns (T, iterations done, converged, eigenvalues (6,) per unit
+    :func:`_associate`; ``noise`` the sigma table.  Returns (T, iterations done, converged,
+    eigenvalues (6,) per unit
     weight, eigenvectors (6, 6), the last normal matrix (6, 6), whether there was one)."""
     T = T.copy()
     lam_n = np.zeros(6)
@@ -205,7 +209,7 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
                        min_cos, res, jac, zs)
         if n < 6:
             break
-        A, b, wsum, radius = _weighted_system(res, jac, zs, n, tukey_c, min_cut_m)
+        A, b, wsum, radius = _weighted_system(res, jac, zs, n, tukey_c, min_cut_m, noise)
         has_system = True
         step, lam_n, vec = _gauss_newton_step(A, b, radius, wsum, weak_eigenvalue)
         length = math.sqrt((step[0] ** 2 + step[1] ** 2 + step[2] ** 2) * radius * radius
@@ -254,5 +258,5 @@ def icp_level(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, l
         cl.vertex, cl.normal, rl.vertex, rl.normal, np.ascontiguousarray(T, dtype=np.float64),
         rl.fx, rl.fy, rl.cx, rl.cy, params.max_distance_m[li], min_cos, params.tukey_c,
         min_cut_m, params.weak_eigenvalue, params.iterations[li], params.tol_m, pairs.res,
-        pairs.jac, pairs.zs)
+        pairs.jac, pairs.zs, params.noise_args()[0])
     return T, n_it, converged, lam_n, vec, (A if has_system else None)

@@ -7,8 +7,11 @@ import dataclasses
 import functools
 from typing import Any
 
+import numpy as np
+
 from robot_change import validate
 from robot_change.errors import InputError
+from robot_change.noise.profile import DEFAULT_PROFILE, NoiseProfile, builtin_profile
 
 _num = functools.partial(validate.number, "RegistrationParams")
 _int = functools.partial(validate.whole, "RegistrationParams")
@@ -181,7 +184,8 @@ class RegistrationParams:
     band_slope: float = 2.0
     # Tukey's constant, in units of the robust residual scale (4.685: 95 % efficiency).
     tukey_c: float = 4.685
-    # A correspondence is an inlier (fitness, RMSE) within this many noise sigmas.
+    # A correspondence is an inlier (fitness, RMSE) within this many sigmas of the camera's
+    # noise at its depth (``noise``).
     inlier_sigmas: float = 3.0
     # Eigenvalues of the scaled normal matrix per unit weight below this are weak directions.
     weak_eigenvalue: float = 1e-4
@@ -195,16 +199,25 @@ class RegistrationParams:
     # either whole view seen through by the other (the views contradict each other: another
     # place, or a change too large to register against) is "not at the station".  Seen
     # through: a reading farther by more than seen_through_margin_m +
-    # seen_through_margin_per_m2 * z^2; behind: nearer by as much.
+    # seen_through_margin_per_m2 * z^2, or by seen_through_sigmas sigmas of the difference of
+    # two readings of the camera (k sqrt(2) sigma(z)) where that is wider (with the Kinect's
+    # noise beyond 3 m: 9.4 -> 12.3 cm at 4 m; the paper's 100 mm noise: 42 cm); behind:
+    # nearer by as much.  The floor is what the table stations were tuned with (a 5 mm lower
+    # one takes station 0's every-object-moved revisit at 15 cm 33 cm off).
     min_fitness: float = 0.5
     max_seen_through: float = 0.25
     seen_through_margin_m: float = 0.03
     seen_through_margin_per_m2: float = 0.004
+    seen_through_sigmas: float = 3.0
     max_translation_m: float = 0.5
     max_rotation_deg: float = 20.0
     # Depth readings outside this range are not used (metres).
     min_depth_m: float = 0.4
     max_depth_m: float = 5.0
+    # The camera's noise (robot_change.noise): weighs each residual, makes the inlier band and
+    # the seen-through margin.  A check sets it from its reference's profile.
+    noise: NoiseProfile = dataclasses.field(default_factory=lambda: builtin_profile(
+        DEFAULT_PROFILE))
 
     def __post_init__(self) -> None:
         _bool("enabled", self.enabled)
@@ -271,6 +284,10 @@ class RegistrationParams:
         _num("seen_through_margin_m", self.seen_through_margin_m, 0.0, 10.0, unit=" metres")
         _num("seen_through_margin_per_m2", self.seen_through_margin_per_m2, 0.0, 1.0,
              unit=" per metre")
+        _num("seen_through_sigmas", self.seen_through_sigmas, 0.0, 100.0, unit=" sigmas")
+        if not isinstance(self.noise, NoiseProfile):
+            raise InputError(f"RegistrationParams.noise must be a NoiseProfile "
+                             f"(robot_change.noise), got {type(self.noise).__name__}")
         _num("max_translation_m", self.max_translation_m, 0.0, 100.0, unit=" metres")
         _num("max_rotation_deg", self.max_rotation_deg, 0.0, 180.0)
         _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
@@ -280,3 +297,23 @@ class RegistrationParams:
     def replace(self, **changes: Any) -> RegistrationParams:
         """A copy with some fields changed (validated)."""
         return dataclasses.replace(self, **changes)
+
+    def noise_args(self, inlier_sigmas: float | None = None) -> tuple:
+        """What the agreement kernels take of the noise: (sigma table, inlier sigmas,
+        :meth:`through_args` less the table)."""
+        return (noise_table(self.noise), self.inlier_sigmas if inlier_sigmas is None
+                else inlier_sigmas, *self.through_args()[1:])
+
+    def through_args(self) -> tuple:
+        """The seen-through margin's (robot_change.noise.kernels.floored_margin_at): (sigma
+        table, sigmas, floor m, floor per m^2)."""
+        return (noise_table(self.noise), self.seen_through_sigmas, self.seen_through_margin_m,
+                self.seen_through_margin_per_m2)
+
+
+@functools.lru_cache(maxsize=16)
+def noise_table(profile: NoiseProfile) -> np.ndarray:
+    """A profile's sigma table (read-only), made once per profile."""
+    table = profile.kernel_table()
+    table.setflags(write=False)
+    return table

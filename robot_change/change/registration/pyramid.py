@@ -25,17 +25,6 @@ from .params import RegistrationParams
 
 
 @numba.njit(cache=True, nogil=True)
-def depth_sigma(z):
-    """Axial depth noise of a Kinect-class sensor at depth ``z`` (m), metres: the noise of
-    Nguyen et al. 2012, 0.0012 + 0.0019 (z - 0.4)^2, with the disparity quantisation step
-    2.85e-3 z^2 (Khoshelham & Oude Elberink 2012) added as a uniform error (step / sqrt 12)."""
-    noise = 0.0012 + 0.0019 * (z - 0.4) ** 2
-    quant = 2.85e-3 / math.sqrt(12.0) * z * z
-    return np.sqrt(noise * noise + quant * quant)
-
-
-
-@numba.njit(cache=True, nogil=True)
 def _vertex_level(depth, factor, fx, fy, cx, cy, min_mm, max_mm, band_m, band_slope):
     """Vertex map of one pyramid level: (h, w, 3) float32 metres, h = H // factor.
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.errors import InputError
+from robot_change.noise.profile import NoiseProfile
 
 from .agreement import (
     best_pose,
@@ -44,7 +45,6 @@ from .table_top import (
     without_changed_objects,
 )
 
-
 #: Two coarsest-level ends this near (metres, degrees) are one: the levels after them end
 #: alike, and step 7d's passes give up the later.
 _SAME_M = 0.002
@@ -69,7 +69,8 @@ class _Pass(NamedTuple):
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
                    params: RegistrationParams = RegistrationParams(), *,
                    initial: np.ndarray | None = None, keep: dict | None = None,
-                   keep_current: dict | None = None) -> Registration:
+                   keep_current: dict | None = None, noise: NoiseProfile | None = None
+                   ) -> Registration:
     """Estimate ``T_ref_from_cur``, the rigid transform that maps the current camera frame
     into the reference camera frame, from the two depth images.
 
@@ -88,6 +89,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     keep_current : dict, optional
         Where the current's pyramid is left (for the epoch made of ``current``: the object
         completion's segments start from its finest level).
+    noise : robot_change.noise.profile.NoiseProfile, optional
+        The camera's noise (instead of ``params.noise``): a check passes its reference's.
 
     Returns
     -------
@@ -107,6 +110,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         raise InputError("initial must be a finite (4, 4) rigid transform")
     if not params.enabled:
         return identity_registration(T)
+    if noise is not None:
+        params = params.replace(noise=noise)
     t0 = time.perf_counter()
     ref_levels = kept_levels(ref, intrinsics, params, keep)
     cur_levels = kept_levels(cur, intrinsics, params, keep_current)

@@ -211,7 +211,7 @@ def _structure_through(rs: Level, cs: Level, rl: Level, cl: Level,
         return np.zeros(0, dtype=np.int64)
     Ts = np.array(poses)
     inv = np.array([invert(T) for T in poses])
-    margins = (params.seen_through_margin_m, params.seen_through_margin_per_m2)
+    margins = params.through_args()
     return (through_counts(cs.vertex, rl.vertex, Ts[:, :3, :3].copy(), Ts[:, :3, 3].copy(),
                            rl.fx, rl.fy, rl.cx, rl.cy, *margins)
             + through_counts(rs.vertex, cl.vertex, inv[:, :3, :3].copy(), inv[:, :3, 3].copy(),

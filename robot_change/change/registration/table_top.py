@@ -270,8 +270,7 @@ def _object_states(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
                                & (plane.heights(own.vertex) > params.table_object_m))
     states = cell_states(own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
                          M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
-                         min_cos, params.inlier_sigmas, params.seen_through_margin_m,
-                         params.seen_through_margin_per_m2, _EVERY_CELL, 0.0)
+                         min_cos, *params.noise_args(), _EVERY_CELL, 0.0)
     return objects, n, states
 
 
@@ -335,8 +334,7 @@ def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
     table = np.where(on[:, :, None], own.vertex, 0.0)
     _, _, _, compared, holes, _ = agreement_counts(
         table, own.normal, other.vertex, other.normal, M[:3, :3].copy(), M[:3, 3].copy(),
-        other.fx, other.fy, other.cx, other.cy, 0.0, 1.0, 0.0, params.seen_through_margin_m,
-        params.seen_through_margin_per_m2, False)
+        other.fx, other.fy, other.cx, other.cy, 0.0, 1.0, *params.noise_args(0.0), False)
     return holes / (holes + compared) if holes + compared else 0.0
 
 
