@@ -846,9 +846,10 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
                           "too); exit 1 when one fails")
     base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
-    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3), default=3,
+    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3, 4), default=4,
                           help="the highest protocol version the simulated base speaks "
-                          "(1, 2: an older base firmware, whole frames; default 3: PARTs)")
+                          "(1, 2: an older base firmware, whole frames; 3: PARTs; default 4: "
+                          "CAPTURED tells what the station can see)")
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)
@@ -884,9 +885,9 @@ def build_parser() -> argparse.ArgumentParser:
     link_bench.add_argument("--noise", choices=("mixed", "flip"), default="mixed",
                             help="mixed: bit flips, drops and insertions in equal shares "
                             "(default); flip: bit flips only")
-    link_bench.add_argument("--proto", type=int, choices=(1, 2, 3), default=3,
+    link_bench.add_argument("--proto", type=int, choices=(1, 2, 3, 4), default=4,
                             help="highest protocol version both ends offer (2: whole frames, "
-                            "as before version 3; default 3)")
+                            "as before version 3; default 4)")
     link_bench.add_argument("--regions", type=int, default=3,
                             help="regions per change report in --mode report (default 3)")
     link_bench.add_argument("--corrupt", type=float, default=0.1,

@@ -65,7 +65,9 @@ STRATEGIES = {
     p.Status: st.builds(p.Status, st.sampled_from(p.ModuleState), bools, bools, bools, u16, u32, u32,
                         u32, st.one_of(st.just(""), stations)),
     p.ParamValue: param_values(p.ParamValue),
-    p.Captured: st.builds(p.Captured, stations),
+    p.Captured: st.one_of(st.builds(p.Captured, stations),
+                          st.builds(p.Captured, stations, u16,
+                                    st.text(string.ascii_letters + "_+:", max_size=64))),
     p.CheckResult: st.builds(p.CheckResult, stations, st.sampled_from(p.CheckOutcome), u16,
                              st.tuples(*[st.integers(-32768, 32767)] * 3),
                              st.tuples(*[st.integers(-32768, 32767)] * 3),
@@ -164,6 +166,26 @@ def test_doc_example_decodes_to_what_it_says(example):
     seq, flags = re.fullmatch(r"seq=(\d+) flags=0x([0-9A-F]{2})", example["header"]).groups()
     assert (frame.seq, frame.flags) == (int(seq), int(flags, 16))
     assert p.encode(frame.message, frame.seq, frame.flags, frame.version) == wire
+
+
+def test_captured_tells_what_a_station_can_see_from_version_4_only():
+    plain, told = p.Captured("dock"), p.Captured("dock", 120, "xtion+measured")
+    assert p.decode(p.encode(told, 3, 0, 4)).message == told
+    for version in (1, 2, 3):
+        assert p.decode(p.encode(plain, 3, 0, version)).message == plain
+        with pytest.raises(p.MessageError, match="version 4"):
+            p.encode(told, 3, 0, version)
+        # an older frame with the later fields: a bad payload, answered with a NAK
+        forged = raw_frame(version, p.MsgType.CAPTURED, 9, payload=told.pack())
+        error = p.decode(forged)
+        assert isinstance(error, p.DecodeError) and error.nak == p.NakReason.BAD_PAYLOAD
+    for bad in (dict(smallest_change_mm=5), dict(noise="x"),
+                dict(smallest_change_mm=70000, noise="x"), dict(smallest_change_mm=1,
+                                                                  noise="n" * 65)):
+        with pytest.raises(p.MessageError):
+            p.Captured("dock", **bad)
+    assert isinstance(p.decode(raw_frame(4, p.MsgType.CAPTURED, 9, payload=b"\x04dock\x01")),
+                      p.DecodeError)
 
 
 def test_doc_parameter_table_matches_the_whitelist():

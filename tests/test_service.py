@@ -165,6 +165,11 @@ def test_capture_then_check_without_change_answers_clear(rig: Rig) -> None:
     assert (rig.tmp / "reports" / "office.last-check.npz").is_file()
     # the reference records the camera's mounting of the configuration it was captured with
     assert rig.store.load("office").mount == rig.service.config.camera.mount()
+    # version 4: CAPTURED tells what the station can see and the camera's noise profile
+    captured = next(e.obj for e in rig.sim.log if e.name == "CAPTURED")
+    assert rig.sim.link.version == 4
+    assert captured.noise == rig.store.load("office").noise.name
+    assert 50 < captured.smallest_change_mm < 200
 
 
 def test_check_with_a_change_pauses_reports_and_resume_clears_the_latch(rig: Rig) -> None:
@@ -225,6 +230,9 @@ def test_an_older_base_gets_version_1_answers(tmp_path: Path, scene_frames) -> N
         """)
         assert rig.sim.link.version == rig.service.link.version == 1
         assert not [e for e in rig.sim.log if e.name == "CHECK_RESULT"]
+        # CAPTURED as version 1 has it: the station alone
+        captured = next(e.obj for e in rig.sim.log if e.name == "CAPTURED")
+        assert captured.smallest_change_mm is None and captured.noise is None
         region = next(e.obj for e in rig.sim.log if e.name == "REPORT").regions[0]
         assert 1800 < region.centroid_mm[2] < 2700  # camera optical frame, as version 1 says
 

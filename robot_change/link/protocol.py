@@ -25,7 +25,7 @@ from robot_change import validate
 from robot_change.errors import BadValue, MessageError
 
 #: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
-VERSION = 3
+VERSION = 4
 MIN_VERSION = 1
 MAX_PAYLOAD = 240
 HEADER = struct.Struct("<BBHB")
@@ -301,6 +301,11 @@ class Message:
 
     def pack(self) -> bytes:  # pragma: no cover - every subclass overrides
         raise NotImplementedError
+
+    def since(self) -> int:
+        """The first protocol version this message, as it stands, exists in (its type's, or
+        later where it carries a later version's fields)."""
+        return self.SINCE
 
     @classmethod
     def unpack(cls, payload: bytes) -> "Message":  # pragma: no cover
@@ -753,12 +758,52 @@ class ParamValue(_ParamValueMsg):
 
 
 @dataclass(frozen=True, slots=True)
-class Captured(_StationMsg):
-    """Module -> base: the reference of ``station`` is built and stored (answers CAPTURE_REFERENCE)."""
+class Captured(Message):
+    """Module -> base: the reference of ``station`` is built and stored (answers
+    CAPTURE_REFERENCE).  Version 4 adds what the station can see: ``smallest_change_mm``, the
+    edge of the smallest box a check reports at the view's median depth (0: nothing can be
+    told, no reading within the camera's range), and ``noise``, the camera's noise profile the
+    reference keeps; both None before version 4 (a module leaves them out for an older base)."""
 
     TYPE: ClassVar[MsgType] = MsgType.CAPTURED
     SENDER: ClassVar[Role | None] = Role.MODULE
     station: str
+    smallest_change_mm: int | None = None
+    noise: str | None = None
+
+    def __post_init__(self) -> None:
+        _set(self, "station", _station("CAPTURED", self.station))
+        if (self.smallest_change_mm is None) != (self.noise is None):
+            raise MessageError("CAPTURED: smallest_change_mm and noise come together (version "
+                               "4) or not at all", NakReason.BAD_PAYLOAD)
+        if self.noise is not None:
+            _set(self, "smallest_change_mm", _int("CAPTURED", "smallest_change_mm",
+                                                  self.smallest_change_mm, 0, 0xFFFF))
+            _text("CAPTURED", "noise", self.noise, 64)
+
+    def since(self) -> int:
+        return 1 if self.noise is None else 4
+
+    def pack(self) -> bytes:
+        if self.noise is None:
+            return _str8(self.station)
+        return (_str8(self.station) + _CAPTURED.pack(self.smallest_change_mm)
+                + _str8(self.noise))
+
+    @classmethod
+    def unpack(cls, payload: bytes) -> Message:
+        station, end = _read_str("CAPTURED", payload, 0)
+        if end == len(payload):
+            return cls(station)
+        if end + _CAPTURED.size > len(payload):
+            _exact(cls, payload, end + _CAPTURED.size + 1)
+        (smallest,) = _CAPTURED.unpack_from(payload, end)
+        noise, end = _read_str("CAPTURED", payload, end + _CAPTURED.size)
+        _exact(cls, payload, end)
+        return cls(station, smallest, noise)
+
+
+_CAPTURED = struct.Struct("<H")
 
 
 @dataclass(frozen=True, slots=True)
@@ -1071,9 +1116,9 @@ def encode_body(message: Message, seq: int = 0, flags: int = 0, version: int = V
     _int("frame", "seq", seq, 0, 0xFFFF, NakReason.BAD_PAYLOAD)
     _int("frame", "flags", flags, 0, 0xFF, NakReason.BAD_PAYLOAD)
     _int("frame", "version", version, MIN_VERSION, VERSION, NakReason.BAD_PAYLOAD)
-    if message.SINCE > version:
-        raise MessageError(f"{message.TYPE.name} exists from protocol version {message.SINCE}; "
-                           f"this session speaks {version}")
+    if message.since() > version:
+        raise MessageError(f"{describe(message)} exists from protocol version "
+                           f"{message.since()}; this session speaks {version}")
     payload = message.pack()
     if len(payload) > MAX_PAYLOAD:
         raise MessageError(f"{message.TYPE.name} payload is {len(payload)} bytes, at most "
@@ -1105,6 +1150,10 @@ def decode_body(body: bytes) -> Frame | DecodeError:
         message = cls.unpack(body[HEADER_SIZE:-CRC_SIZE])
     except MessageError as exc:
         return DecodeError(DecodeReason.BAD_PAYLOAD, str(exc), seq, mtype, NakReason(exc.reason))
+    if message.since() > version:  # a later version's fields in an older frame
+        return DecodeError(DecodeReason.BAD_PAYLOAD, f"{cls.TYPE.name} with the fields of "
+                           f"protocol version {message.since()} in a version-{version} frame",
+                           seq, mtype, NakReason.BAD_PAYLOAD)
     return Frame(message, seq, flags, version)
 
 
@@ -1238,6 +1287,8 @@ def describe(message: Message) -> str:
     parts = [message.TYPE.name]
     for f in fields(message):  # type: ignore[arg-type]
         value = getattr(message, f.name)
+        if value is None:  # a field of a later version, left out
+            continue
         if isinstance(value, IntEnum):
             value = value.name
         elif f.name == "param" and value in PARAM_BY_ID:

@@ -279,8 +279,8 @@ class Link:
         if not may_send(self.role, type(message)):
             raise LinkError(f"{name} is sent by the {message.SENDER.name.lower()}, "  # type: ignore[union-attr]
                             f"not by the {self.role.name.lower()}")
-        if message.SINCE > self.version:
-            raise LinkError(f"{name} needs protocol version {message.SINCE}; this session "
+        if message.since() > self.version:
+            raise LinkError(f"{name} needs protocol version {message.since()}; this session "
                             f"speaks {self.version} (check link.version first)")
         if coalesce is not None and not message.URGENT:
             for waiting in self._normal_q:
@@ -586,10 +586,10 @@ class Link:
         flags = (FLAG_URGENT if pending.urgent else 0) | (FLAG_RETRY if pending.tries else 0)
         # HELLO goes out in the lowest version, which every peer reads (its layout is frozen)
         version = MIN_VERSION if isinstance(pending.message, Hello) else self.version
-        if pending.message.SINCE > version:  # the peer went back to an older version
+        if pending.message.since() > version:  # the peer went back to an older version
             self._inflight.pop(pending.seq, None)
             self._fail(pending, f"{pending.message.TYPE.name} needs protocol version "
-                       f"{pending.message.SINCE}; the {self.peer_role.name.lower()} now speaks "
+                       f"{pending.message.since()}; the {self.peer_role.name.lower()} now speaks "
                        f"{version}")
             return
         if self._carries(pending, version):

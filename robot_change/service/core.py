@@ -65,6 +65,7 @@ import concurrent.futures
 import dataclasses
 import json
 import logging
+import math
 import queue
 import re
 import threading
@@ -79,6 +80,7 @@ from hw.atomic import write_atomically
 from hw.depth import DepthFrame, DepthSource
 from robot_change import npzfile
 from robot_change.change import detect, scene
+from robot_change.change.limits import detection_limit
 from robot_change.change.mount import CameraMount
 from robot_change.change.results import ChangeSet
 from robot_change.change.results import Region as ChangeRegion
@@ -927,10 +929,16 @@ class Service:
                                   source=self.camera_uri, mount=self.config.camera.mount(),
                                   noise=self.config.camera.noise_profile())
         path = self.store.save(station, model)
-        log.info("station %s: reference of %d frames (%d points, K=%d, noise %s) built in "
-                 "%.0f ms, saved to %s", station, n, len(model), model.mixture.n_components,
-                 model.noise.name, (time.perf_counter() - t0) * 1e3, path)
-        self._send(Captured(station))
+        limit = detection_limit(model.depth, model.noise, change_params(self.config, self.params),
+                                model.params.cloud.leaf_m, model.intrinsics.fx).median_m
+        smallest_mm = min(round(limit * 1000), 0xFFFF) if math.isfinite(limit) else 0
+        log.info("station %s: reference of %d frames (%d points, K=%d, noise %s, smallest change "
+                 "seen %d mm) built in %.0f ms, saved to %s", station, n, len(model),
+                 model.mixture.n_components, model.noise.name, smallest_mm,
+                 (time.perf_counter() - t0) * 1e3, path)
+        # version 4: what the station can see, with the answer
+        self._send(Captured(station, smallest_mm, model.noise.name) if self.link.version >= 4
+                   else Captured(station))
 
     def _check(self, station: str) -> None:
         self._set_activity(ModuleState.CHECKING)
