@@ -4,7 +4,7 @@ table-top pairs, for our method and the baselines.  docs/evaluation.md reports i
     .venv/bin/python bench/eval_change.py [--split dev|holdout|all] [--real] [--methods ...]
         [--single-frame] [--as-daemon] [--json OUT] [--plots DIR] [--speed] [--set field=value ...]
         [--scene-seed N] [--stations SEEDS [--station-seed-base N] [--station-tag T]
-        [--station-levels 0,5,10,15]] [--harsh]
+        [--station-levels 0,5,10,15]] [--harsh] [--static] [--heldout [DIR]]
 
 Truth and scoring (point level):
 
@@ -51,6 +51,15 @@ at its pose_2cm / 5cm / 10cm revisits, scored as the stored scenes; "harsh chang
 same rows for the scenes whose every changed side (the visible centroid's depth z, reference
 and current camera) lies within 1-3 m.
 
+``--static`` (and ``--real``): the real static rooms of ../shared/data
+(sim_fixtures.real_static.static_pairs; split "tuning": looked at while the defaults were set),
+"real static".  ``--heldout [DIR]``: the held-out real static recordings
+(sim_fixtures.real_static.heldout_pairs, read from DIR, default real_static.HELDOUT_DIR =
+../heldout-data beside the checkout), "real held-out": run it only to judge the defaults, never
+while setting them.  Both build each pair's scenes with its own built-in noise profile
+(``pair.profile``) and print the same verdict: how many ended changed (must be 0) and how many
+within the promised range ended no_change (all must).
+
 Every method sees the same two SceneModels: the reference and the current, each fused from the
 scene's 3 frames (``--single-frame``: the current from its first frame only) and cleaned with
 the same CloudParams.  ``--as-daemon``: each method gets the current as its (fused) depth
@@ -86,6 +95,7 @@ from bench.eval_sets import (  # noqa: E402
     level_of,
     load_harsh_pair,
     load_harsh_scene,
+    load_heldout,
     load_static,
     prf,
     static_summary,
@@ -112,9 +122,9 @@ HANDHELD_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl-gr
 
 def is_no_change(name: str) -> bool:
     from sim_fixtures import SCENES_DIR, load_scene
-    from sim_fixtures.real_static import static_pairs
+    from sim_fixtures.real_static import heldout_pairs, static_pairs
 
-    if name in HANDHELD or name in static_pairs():
+    if name in HANDHELD or name in static_pairs() or name in heldout_pairs():
         return True
     if name.startswith("harsh_"):  # --harsh: harsh_none_* pairs, harsh_<scene> changes
         return name.startswith("harsh_none_")
@@ -353,6 +363,8 @@ def speed(n_runs: int = 15) -> dict:
 
 
 def main(argv=None):
+    from sim_fixtures.real_static import HELDOUT_DIR
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", default="dev", choices=("dev", "holdout", "all", "none"))
     ap.add_argument("--levels", nargs="*", default=list(LEVELS),
@@ -381,6 +393,10 @@ def main(argv=None):
                     help="also the harsh Kinect model's no-change pairs (every layout, seeds 0 "
                          "and 1, 0 / 3 / 8 cm, the current from 3 and from 1 frame) and the "
                          "stored changed Kinect scenes re-rendered with it (not stored)")
+    ap.add_argument("--heldout", nargs="?", type=Path, default=None, const=HELDOUT_DIR,
+                    metavar="DIR", help="also the held-out real static recordings "
+                    "(sim_fixtures.real_static.heldout_pairs: no change) read from DIR (default "
+                    "../heldout-data beside the checkout); only to judge the defaults")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plots", type=Path)
     ap.add_argument("--speed", action="store_true")
@@ -442,10 +458,38 @@ def main(argv=None):
 
     if (args.real or args.static) and DATA_DIR.is_dir():
         print("== real static rooms (no change)", flush=True)
-        per, _ = run(static_pairs(), lambda n: load_static(n, sp), fns, not args.quiet)
+        within = {}
+
+        def static_loader(name):
+            out = load_static(name, sp)
+            within[name] = out[-1].within_range
+            return out
+
+        per, _ = run(static_pairs(), static_loader, fns, not args.quiet)
         report["results"]["real static"] = {m: {"total": summarise(rows), "scenes": rows,
-                                                "verdict": static_summary(rows)}
+                                                "verdict": static_summary(rows, within)}
                                             for m, rows in per.items()}
+    if args.heldout is not None:
+        from sim_fixtures.real_static import heldout_pairs
+
+        folder = args.heldout
+        if not folder.is_dir():
+            raise SystemExit(f"--heldout: {folder} is not a folder (the held-out recordings "
+                             "live outside ../shared/data; name their folder)")
+        names = heldout_pairs()
+        print(f"== real held-out static recordings (no change; {folder}, {len(names)} pairs)",
+              flush=True)
+        within = {}
+
+        def heldout_loader(name):
+            out = load_heldout(name, sp, folder)
+            within[name] = out[-1].within_range
+            return out
+
+        per, _ = run(names, heldout_loader, fns, not args.quiet)
+        report["results"]["real held-out"] = {m: {"total": summarise(rows), "scenes": rows,
+                                                  "verdict": static_summary(rows, within)}
+                                              for m, rows in per.items()}
     if args.stations:
         from sim_fixtures.stations import station_checks
 
@@ -564,7 +608,7 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
     folder.mkdir(parents=True, exist_ok=True)
     # the groups with changes to find (not_at_station and the hand-held no-change pairs have none)
     groups = [g for g in report["results"] if "not_at_station" not in g and "hand-held" not in g
-              and "static" not in g and "no-change" not in g]
+              and "static" not in g and "held-out" not in g and "no-change" not in g]
     methods = [m for m in ("ours", "geometric", "free_space_only", "nn", "plain")
                if m in report["results"][groups[0]]]
     fig, ax = plt.subplots(figsize=(2 + 1.1 * len(groups), 3.8))

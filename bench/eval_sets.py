@@ -1,6 +1,7 @@
 """The scoring totals, the pose levels, and the no-change and harsh-noise sets of
 bench/eval_change.py: the real static rooms
-(sim_fixtures.real_static: ``--static``, and with ``--real``) and the harsh Kinect model's
+(sim_fixtures.real_static: ``--static``, and with ``--real``), the held-out real static
+recordings (``--heldout [DIR]``) and the harsh Kinect model's
 no-change pairs and re-rendered changed scenes (sim_fixtures.real_noise / harsh_noise:
 ``--harsh``); how each is loaded and what each is told by.  A benchmark's helper, never a test.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from robot_change.change.scene import SceneParams, build_scene
+from robot_change.noise.profile import builtin_profile
 
 #: Offset groups of the simulated scenes: "" (the robot at its station) and the pose levels.
 LEVELS = ("", "pose_2cm", "pose_5cm", "pose_10cm")
@@ -41,30 +43,41 @@ def summarise(rows: list[dict]) -> dict:
             "dis_f1": d[2], "p": c[0], "r": c[1], "f1": c[2], **tot}
 
 
-def load_static(name: str, scene_params: SceneParams):
-    """A real static pair (sim_fixtures.real_static): each side's frames fused, no truth (any
-    change reported is false)."""
-    from sim_fixtures.real_static import load_static_pair
+def load_static(name: str, scene_params: SceneParams, heldout_dir=None, heldout=False):
+    """A real static pair (sim_fixtures.real_static; ``heldout``: a held-out one, read from
+    ``heldout_dir``, default real_static.HELDOUT_DIR): each side's frames fused with the pair's
+    built-in noise profile (``pair.profile``), no truth (any change reported is false)."""
+    from sim_fixtures.real_static import load_heldout_pair, load_static_pair
 
-    pair = load_static_pair(name)
+    pair = load_heldout_pair(name, heldout_dir) if heldout else load_static_pair(name)
+    noise = builtin_profile(pair.profile)
     ref = build_scene(pair.reference, scene_params, intrinsics=pair.intrinsics,
-                      source=f"{name}/reference")
+                      source=f"{name}/reference", noise=noise)
     cur = build_scene(pair.current, scene_params, intrinsics=pair.intrinsics,
-                      source=f"{name}/current")
+                      source=f"{name}/current", noise=noise)
     none = np.zeros(pair.reference[0].shape, bool)
     return ref, cur, none, none, pair
 
 
-def static_summary(rows: list[dict]) -> str:
+def load_heldout(name: str, scene_params: SceneParams, heldout_dir=None):
+    """A held-out real static pair (sim_fixtures.real_static.load_heldout_pair), as
+    :func:`load_static`."""
+    return load_static(name, scene_params, heldout_dir, heldout=True)
+
+
+def static_summary(rows: list[dict], within: dict[str, bool] | None = None) -> str:
     """The real static rooms' verdict: changed outcomes (must be 0), and within the promised
-    range how many ended no_change (all must)."""
+    range how many ended no_change (all must).  ``within``: each row's pair's
+    ``within_range`` by name (default: the tuning pairs, loaded again to tell)."""
     from sim_fixtures.real_static import load_static_pair
 
+    if within is None:
+        within = {r["scene"]: load_static_pair(r["scene"]).within_range for r in rows}
     changed = [r["scene"] for r in rows if r["outcome"] == "changed"]
-    within = [r for r in rows if load_static_pair(r["scene"]).within_range]
-    kept = [r["scene"] for r in within if r["outcome"] != "no_change"]
+    inside = [r for r in rows if within[r["scene"]]]
+    kept = [r["scene"] for r in inside if r["outcome"] != "no_change"]
     return (f"changed {len(changed)}/{len(rows)} {changed}; within range no_change "
-            f"{len(within) - len(kept)}/{len(within)} (not: {kept})")
+            f"{len(inside) - len(kept)}/{len(inside)} (not: {kept})")
 
 
 #: --harsh: the no-change pairs' seeds and offsets (metres), the current's frame counts.

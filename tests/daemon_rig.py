@@ -51,12 +51,14 @@ class Daemon:
     :meth:`arm`); ``watchdog_usec``: systemd's WATCHDOG_USEC (the stall bound is half of it,
     at least 2 s); ``env``: more environment (e.g. an empty NUMBA_CACHE_DIR); ``config``:
     more configuration (TOML sections) in every file written; ``state_dir``: the store's
-    folder (default ``tmp/state``), e.g. one kept across two daemons."""
+    folder (default ``tmp/state``), e.g. one kept across two daemons; ``source``: the camera's
+    depth URI (default: office_box_added's frames, :func:`camera_folder`)."""
 
     def __init__(self, tmp: Path, hang: str | None = None, watchdog_usec: int = 4_000_000,
                  env: dict[str, str] | None = None, config: str = "",
-                 state_dir: Path | None = None) -> None:
+                 state_dir: Path | None = None, source: str | None = None) -> None:
         self.tmp = tmp
+        self.source = source
         tmp.mkdir(parents=True, exist_ok=True)
         self.extra_config = config
         self.state_dir = state_dir or tmp / "state"
@@ -82,8 +84,9 @@ class Daemon:
         self.sims: list[BaseSim] = []
 
     def write_config(self, extra: str = "", epoch: str = "reference") -> None:
-        """The configuration: ``epoch``'s frames as the camera (see :func:`camera_folder`)."""
-        source = f"images:{camera_folder(epoch)}?rate=30&loop=1"
+        """The configuration: the ``source`` given, else ``epoch``'s frames as the camera (see
+        :func:`camera_folder`)."""
+        source = self.source or f"images:{camera_folder(epoch)}?rate=30&loop=1"
         self.config.write_text(f"[camera]\nsource = {json.dumps(source)}\n"
                                f"[serial]\nport = {json.dumps(os.ttyname(self.slave))}\n"
                                f"[store]\nstate_dir = {json.dumps(str(self.state_dir))}\n"
