@@ -4,6 +4,7 @@ change in view), weak directions of a bare wall, and the not-at-station outcome.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -26,6 +27,7 @@ from robot_change.change.registration import (
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from robot_change.noise.kernels import table_sigma
+from robot_change.noise.profile import NoiseProfile
 from sim_fixtures import load_scene, scene_names
 
 INTR = Intrinsics.openni_default()
@@ -1336,3 +1338,38 @@ def test_seen_from_keeps_what_the_camera_saw():
     assert len(landed) == 1  # both on one pixel of the new image
     (u, v), = landed
     assert moved[v, u] == 1000 and np.count_nonzero(moved) == 1
+
+
+def _level_at(depth_m: float, factor: int = 4) -> pyramid.Level:
+    """A flat wall ``depth_m`` ahead as one pyramid level (cells ``factor`` pixels wide)."""
+    h, w = 480 // factor, 640 // factor
+    vertex = np.zeros((h, w, 3), np.float32)
+    vertex[:, :, 2] = depth_m
+    normal = np.zeros((h, w, 3), np.float32)
+    normal[:, :, 2] = -1.0
+    return pyramid.Level(factor, vertex, normal, INTR.fx / factor, INTR.fy / factor,
+                         INTR.cx / factor, INTR.cy / factor)
+
+
+def test_fitness_pairing_widens_only_where_the_noise_outgrows_the_level():
+    params = RegistrationParams()
+    min_cos = math.cos(math.radians(30.0))
+    # A Kinect room at 1-3 m: the finest level's own distance and angle.
+    for depth in (1.0, 2.0, 3.0):
+        assert agreement.fitness_pairing(_level_at(depth), params, min_cos) == (
+            params.max_distance_m[-1], min_cos)
+    # At 4 m (29 mm a reading) the normals scatter past 30 degrees; the distance holds.
+    dist, cos = agreement.fitness_pairing(_level_at(4.0), params, min_cos)
+    assert dist == params.max_distance_m[-1] and 35.0 < math.degrees(math.acos(cos)) < 45.0
+    # The paper's protocol: 100 mm of noise on every reading.  A cell is a mean of 16
+    # readings (25 mm); two such means differ by 3 sqrt(2) 25 mm = 10.6 cm at 3 sigmas, and
+    # the normals, taken across two cells 4.6 cm wide, say nothing (normals facing more than
+    # 90 degrees apart pair).
+    noisy = dataclasses.replace(params, noise=NoiseProfile(
+        "paper_100mm", "simulated", (0.1, 0.0, 0.0), 0.0, 0.3, 10.0, 0.0))
+    dist, cos = agreement.fitness_pairing(_level_at(3.0), noisy, min_cos)
+    assert dist == pytest.approx(3.0 * math.sqrt(2.0) * 0.1 / 4, rel=1e-6)
+    assert cos < 0.0
+    # An empty level pairs as the level says.
+    empty = _level_at(0.0)
+    assert agreement.fitness_pairing(empty, noisy, min_cos) == (params.max_distance_m[-1], min_cos)

@@ -346,6 +346,28 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     return fit, contradict
 
 
+def fitness_pairing(cl: Level, params: RegistrationParams, min_cos: float
+                    ) -> tuple[float, float]:
+    """How far apart (m) and how far turned (the cosine) two cells may be to pair when the
+    fitness is counted: the finest level's ``max_distance_m`` and ``min_cos``, or, where the
+    camera's noise at the view's median depth makes two cells' means differ more or their
+    normals scatter more (``inlier_sigmas`` sigmas of the difference of two cells' means, and
+    of their normals' angle: each cell a mean of ``factor^2`` readings, its normal taken across
+    two cells), that.  With a Kinect at 1-3 m these are the level's own (at 4 m normals 40
+    degrees apart pair); with the paper's 100 mm noise no normal is trusted and means 11 cm
+    apart still pair."""
+    z = cl.vertex[:, :, 2]
+    z = z[z > 0]
+    if not z.size:
+        return params.max_distance_m[-1], min_cos
+    depth = float(np.median(z))
+    cell = float(params.noise.sigma(depth)) / cl.factor  # a cell's mean of factor^2 readings
+    spread = params.inlier_sigmas * math.sqrt(2.0) * cell
+    across = 2.0 * depth / cl.fx  # a normal is taken across two cells (m)
+    turned = params.inlier_sigmas * math.sqrt(2.0) * math.atan(math.sqrt(2.0) * cell / across)
+    return max(params.max_distance_m[-1], spread), min(min_cos, math.cos(min(turned, math.pi)))
+
+
 def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams,
                     min_cos: float) -> tuple[float, float, int, int, float, float]:
     """What the finest levels (``rl``, ``cl``) say of the estimate ``T`` (4, 4): (fitness, the
@@ -358,10 +380,11 @@ def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationPar
     through_share = 0.0
     fit = rmse = behind_share = 0.0
     inliers = 0
+    max_dist, min_cos = fitness_pairing(cl, params, min_cos)
     for own, other, M, count_pairs in ((cl, rl, T, True), (rl, cl, invert(T), False)):
         k, sq_sum, through, compared, _, behind = agreement_counts(
             own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
-            M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, params.max_distance_m[-1],
+            M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
             min_cos, *params.noise_args(), count_pairs)
         through_share = max(through_share, through / compared if compared else 0.0)
         if own is cl:
