@@ -138,14 +138,17 @@ def _pixels_twin(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy, m
     off = n[i, j, 0] * d[0] + n[i, j, 1] * d[1] + n[i, j, 2] * d[2]
     own = cells[i, j]
     placed = (z > 0) & (pixel_voxel[:rr.shape[0], :rr.shape[1]] >= 0)
-    keep = placed & (own >= 0) & (~np.any(n[i, j] != 0, axis=-1) | (np.abs(off) <= max_off * z))
+    near_own = d[0] ** 2 + d[1] ** 2 + d[2] ** 2 <= (max_step * z) ** 2
+    keep = placed & (own >= 0) & near_own & (~np.any(n[i, j] != 0, axis=-1)
+                                             | (np.abs(off) <= max_off * z))
     got = np.where(keep, own, -1)
     near = {}
     for r, c in zip(*np.nonzero(placed & ~keep)):
         a0, b0 = int(i[r, c]), int(j[r, c])
         if (a0, b0) not in near:
             near[a0, b0] = _near_twin(cells, normal, a0, b0, radius)
-        zz, best, best_off = z[r, c], own[r, c], max_off * z[r, c]
+        zz, best_off = z[r, c], max_off * z[r, c]
+        best = own[r, c] if near_own[r, c] else -1
         p = np.array([px[r, c], py[r, c], zz])
         for a, b in near[a0, b0]:
             dd = p - v[a, b]
@@ -222,9 +225,11 @@ def test_the_pixel_kernel_matches_its_twin(moved):
                                                         vertex, normal, f, *args))
         by_cell = np.repeat(np.repeat(cells, f, axis=0), f, axis=1)
         point = model.pixel_voxel >= 0
-        # pixels of fold and edge cells given a segment, all others kept, none without a point
+        # pixels of fold and edge cells given a segment, nearly all others kept (those that
+        # leave lie across a depth edge from their cell, or off its plane and on another's),
+        # none without a point
         assert ((got >= 0) & (by_cell < 0)).sum() > 5000
-        assert ((by_cell >= 0) & (got != by_cell) & point).sum() < 100
+        assert ((by_cell >= 0) & (got != by_cell) & point).sum() < 300
         assert not (got[~point] >= 0).any()
     # and on noise: a depth image of random steps, cells of random labels and normals
     rng = np.random.default_rng(5)
@@ -587,3 +592,22 @@ def test_bad_completion_parameters_are_refused(field, value):
     with pytest.raises(InputError, match=field):
         ChangeParams(**{field: value})
 
+
+
+def test_a_pixel_across_a_depth_edge_does_not_take_its_cells_segment():
+    # One cell of 4 x 4 pixels on a surface at 2.0 m (its point, a normal facing the camera),
+    # its right column 1.5 m farther (a wall seen beside an object's rim).
+    f, fx = 4, 60.0
+    depth = np.full((4, 4), 2000, np.uint16)
+    depth[:, 3] = 3500
+    pixel_voxel = np.zeros((4, 4), np.int32)
+    cells = np.zeros((1, 1), np.int64)
+    vertex = np.array([[[(1.5 - 2.0) * 2.0 / fx, (1.5 - 2.0) * 2.0 / fx, 2.0]]], np.float32)
+    args = (f, fx, fx, 2.0, 2.0, 4.0 / fx, 1.0 / fx, 2)
+    for normal in (np.array([[[0.0, 0.0, -1.0]]], np.float32),  # a cell with a normal
+                   np.zeros((1, 1, 3), np.float32)):  # and a rim's, without
+        got = _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, *args)
+        np.testing.assert_array_equal(got[:, :3], 0)
+        np.testing.assert_array_equal(got[:, 3], -1)
+        np.testing.assert_array_equal(
+            got, _pixels_twin(depth, pixel_voxel, cells, vertex, normal, *args))

@@ -116,12 +116,15 @@ def _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy,
     pixels with a point, >= 0, are placed), ``cells`` (h, w) int64 segment of each cell of
     ``f`` x ``f`` pixels (-1: none), ``vertex`` / ``normal`` (h, w, 3) float32 the cells'
     points (m) and unit normals (0: none).  A pixel whose point (p, depth z) lies within
-    ``max_off * z`` of its cell's tangent plane, or whose cell has a segment but no normal,
-    takes its cell's segment.  Any other pixel (on a fold, on a depth edge, or behind the
-    surface its cell was made of) takes, of the segments within ``radius`` cells (each stood
-    for by its nearest cell with a normal, :func:`_near_segments`, at most 4), the one whose
-    cell lies within ``max_step * z`` of p and whose tangent plane p is nearest to, if within
-    ``max_off * z``; else its cell's (-1 for none).  Returns (H, W) int64."""
+    ``max_step * z`` of its cell's point and within ``max_off * z`` of its tangent plane, or
+    whose cell has a segment but no normal, takes its cell's segment.  Any other pixel (on a
+    fold, on a depth edge, or behind the surface its cell was made of) takes, of the segments
+    within ``radius`` cells (each stood for by its nearest cell with a normal,
+    :func:`_near_segments`, at most 4), the one whose cell lies within ``max_step * z`` of p
+    and whose tangent plane p is nearest to, if within ``max_off * z``; else its cell's when
+    its cell's point lies within ``max_step * z`` of p (-1 for none: a pixel across a depth
+    edge from its cell, a wall's pixel in the cell of an object's rim, is on neither).
+    Returns (H, W) int64."""
     height, width = depth.shape
     h, w = cells.shape
     out = np.full((height, width), -1, dtype=np.int64)
@@ -147,15 +150,17 @@ def _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy,
                     z = depth[r, c] * 0.001
                     px = ray_x[c] * z
                     py = ray_y * z
+                    lim = max_step * z
+                    best = -1  # a pixel across a depth edge from its cell is not its surface
                     if own >= 0:
-                        if flat:
-                            out[r, c] = own
-                            continue
-                        off = nx * (px - vertex[i, j, 0]) + ny * (py - vertex[i, j, 1]) + \
-                            nz * (z - vertex[i, j, 2])
-                        if abs(off) <= max_off * z:
-                            out[r, c] = own
-                            continue
+                        dx = px - vertex[i, j, 0]
+                        dy = py - vertex[i, j, 1]
+                        dz = z - vertex[i, j, 2]
+                        if dx * dx + dy * dy + dz * dz <= lim * lim:
+                            if flat or abs(nx * dx + ny * dy + nz * dz) <= max_off * z:
+                                out[r, c] = own
+                                continue
+                            best = own
                     if n_near < 0:
                         n_near = _near_segments(cells, normal, i, j, radius, near)
                         for k in range(n_near):
@@ -165,9 +170,7 @@ def _pixels_kernel(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy,
                                 plane[k, m] = normal[a, b, m]
                                 plane[k, 3 + m] = vertex[a, b, m]
                             label[k] = cells[a, b]
-                    best = own
                     best_off = max_off * z
-                    lim = max_step * z
                     for k in range(n_near):
                         dx = px - plane[k, 3]
                         dy = py - plane[k, 4]
