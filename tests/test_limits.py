@@ -74,3 +74,39 @@ def test_a_view_is_told_part_by_part():
     assert len(told["grid_mm"]) == GRID[0] and len(told["grid_mm"][0]) == GRID[1]
     blind = detection_limit(np.zeros((480, 640), np.uint16), KINECT, PARAMS, 0.02, 570.0)
     assert np.isinf(blind.edge_m).all() and blind.to_dict()["median_mm"] is None
+
+
+@pytest.mark.parametrize("harsh", [False, True])
+@pytest.mark.parametrize("offset_m", [0.0, 0.05])
+def test_a_15_cm_cube_on_a_table_2_m_away_is_found(harsh, offset_m):
+    """The issue's small thing: a 15 cm cube put on a table about 2 m ahead (the camera 1.2 m
+    up, 15 degrees down) is found as one region where it stands, with the Kinect's noise and
+    with the harsh PrimeSense model fitted to real Xtion depth (sim_fixtures.harsh_noise), the
+    robot back at the station and 5 cm / 2 degrees off it."""
+    from sim_fixtures.harsh_noise import RealisticKinectNoise
+    from sim_fixtures.scenes import pose_offset, table
+
+    camera = Pose((0.3, 2.5, 1.2), 0.0, 15.0, 0.0)
+    furniture = room(6.0, 5.0, 3.0) + [table("table", 2.3, 2.5)]
+    cube = box("cube", 2.3, 2.5, (0.15, 0.15, 0.15), yaw_deg=20.0, z0=0.74)
+
+    def frames(objects, pose, epoch, count):
+        noise = RealisticKinectNoise().for_epoch(epoch) if harsh else KinectNoise()
+        r = render(objects, pose, projector_baseline_m=noise.projector_baseline_m)
+        return [noise.apply(r, np.random.default_rng([epoch, k])) for k in range(count)], r
+
+    reference_frames, r = frames(furniture, camera, 0, 3)
+    reference = build_scene(reference_frames, intrinsics=r.intrinsics)
+    moved = pose_offset(camera, offset_m, 40.0 * offset_m, 7) if offset_m else camera
+    current, _ = frames(furniture + [cube], moved, 1, 1)
+    changes = detect_changes(reference, current[0])
+    told = [(g.kind, g.n_points, np.round(g.centroid, 2).tolist()) for g in changes.regions]
+    assert changes.changed and len(changes.regions) == 1, told
+    region = changes.regions[0]
+    assert region.kind == "appeared", told
+    # where the cube stands: 2.0 m ahead of the reference camera (x), 0.39 m below it
+    x, y, z = region.centroid  # the reference camera's optical frame (x right, y down)
+    ahead = z * math.cos(math.radians(15.0)) + y * math.sin(math.radians(15.0))
+    assert abs(x) < 0.1 and ahead == pytest.approx(2.0, abs=0.15), told
+    quiet = detect_changes(reference, frames(furniture, moved, 1, 1)[0][0])
+    assert not quiet.changed, [(g.kind, g.n_points) for g in quiet.regions]
