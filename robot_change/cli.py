@@ -653,7 +653,9 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 def _setup_logging(level: str) -> None:
     """Log lines to stderr, with a timestamp unless the journal (which stamps them) reads it;
     ``level`` for robot_change and hw, warnings and worse from the libraries underneath."""
-    from robot_change.service.daemon import set_log_level  # (cli imports lazily: a quick --help)
+    from robot_change.service.daemon import (
+        set_log_level,  # (cli imports lazily: a quick --help)
+    )
 
     stamp = "" if os.environ.get("JOURNAL_STREAM") else "%(asctime)s "
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, force=True,

@@ -24,7 +24,12 @@ import zlib
 
 import numpy as np
 
-from sim_fixtures.noise import _edge_band, kinect_axial_sigma, quantise_depth, to_millimetres
+from sim_fixtures.noise import (
+    _edge_band,
+    kinect_axial_sigma,
+    quantise_depth,
+    to_millimetres,
+)
 from sim_fixtures.render import Render
 
 __all__ = [

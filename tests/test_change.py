@@ -11,11 +11,13 @@ from scipy import ndimage
 
 from hw.depth import Intrinsics
 from robot_change.change import free_space, greedy
-from robot_change.change.baselines import detect_geometric, detect_nn_threshold, detect_plain
+from robot_change.change.baselines import (
+    detect_geometric,
+    detect_nn_threshold,
+    detect_plain,
+)
 from robot_change.change.detect import detect_changes
 from robot_change.change.free_space import free_space_votes
-from robot_change.noise.kernels import table_sigma
-from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
 from robot_change.change.params import ChangeParams
 from robot_change.change.regions import label_voxel_components
 from robot_change.change.results import ChangeSet
@@ -23,6 +25,8 @@ from robot_change.change.scene import SceneParams, build_scene
 from robot_change.cloud.chain import CloudParams
 from robot_change.cloud.voxels import pack_keys
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
+from robot_change.noise.kernels import table_sigma
+from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
 from sim_fixtures import load_scene
 
 SCENES = ("office_box_added", "office_no_change", "lounge_chair_removed", "lab_crate_moved")

@@ -17,7 +17,12 @@ from robot_change.change.free_space import open_mask
 from robot_change.change.scene import SceneModel, build_scene
 from robot_change.errors import BadValue, InputError
 from robot_change.noise.estimate import measure_frames, profile_from_frames
-from robot_change.noise.kernels import floored_margin_at, margin_at, sigma_at, table_sigma
+from robot_change.noise.kernels import (
+    floored_margin_at,
+    margin_at,
+    sigma_at,
+    table_sigma,
+)
 from robot_change.noise.profile import (
     BUILTIN,
     DEFAULT_PROFILE,

@@ -11,19 +11,23 @@ import numpy as np
 import pytest
 
 from hw.depth import Intrinsics
-from robot_change.change.registration import (agreement, icp, pyramid, register,
-                                               table_station, table_top)
-from robot_change.change.registration.rigid import exp_so3
 from robot_change.change.detect import detect_changes
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration import (
     RegistrationParams,
+    agreement,
+    icp,
     invert,
+    pyramid,
+    register,
     register_depth,
     rotation_angle_deg,
     rotation_to_rpy_deg,
     rpy_deg_to_rotation,
+    table_station,
+    table_top,
 )
+from robot_change.change.registration.rigid import exp_so3
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from robot_change.noise.kernels import table_sigma

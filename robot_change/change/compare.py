@@ -23,7 +23,11 @@ from robot_change.change.epoch import (
     clean_current,
     current_epoch,
 )
-from robot_change.change.free_space import FreeSpace, free_and_observed, free_space_views
+from robot_change.change.free_space import (
+    FreeSpace,
+    free_and_observed,
+    free_space_views,
+)
 from robot_change.change.limits import DetectionLimit, detection_limit
 from robot_change.change.parallel import both
 from robot_change.change.params import ChangeParams

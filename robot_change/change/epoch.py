@@ -20,7 +20,12 @@ from robot_change.change.scene import (
 from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change.mixture.model import Mixture
-from robot_change.noise.profile import DEFAULT_PROFILE, NoiseProfile, builtin_profile
+from robot_change.noise.profile import (
+    DEFAULT_PROFILE,
+    NoiseProfile,
+    builtin_profile,
+    sigma_table,
+)
 
 __all__ = [
     "Epoch",
@@ -31,7 +36,7 @@ __all__ = [
     "clean_current",
     "current_epoch",
     "epoch_from_depth",
-    "noise_table",
+    "pair_sigma_table",
 ]
 
 
@@ -68,14 +73,14 @@ class Epoch:
         return int(self.points.shape[0])
 
 
-def noise_table(a: Epoch, b: Epoch) -> np.ndarray:
+def pair_sigma_table(a: Epoch, b: Epoch) -> np.ndarray:
     """(n,) float64 sigma table (robot_change.noise.kernels.sigma_at) of one reading when a
     reading of ``a`` is compared with one of ``b``: sqrt((sigma_a^2 + sigma_b^2) / 2), so that
     the margin of the two, k sqrt(2 sigma^2 + pose^2), holds both.  Kept in ``a.derived``."""
-    key = ("noise_table", a.noise, b.noise)
+    key = ("pair_sigma_table", a.noise, b.noise)
     table = a.derived.get(key)
     if table is None:
-        ta, tb = a.noise.kernel_table(), b.noise.kernel_table()
+        ta, tb = sigma_table(a.noise), sigma_table(b.noise)
         table = a.derived[key] = np.sqrt(0.5 * (ta * ta + tb * tb))
         table.setflags(write=False)
     return table

@@ -15,7 +15,7 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.arrays import readonly_view
-from robot_change.change.epoch import Epoch, noise_table
+from robot_change.change.epoch import Epoch, pair_sigma_table
 from robot_change.change.params import ChangeParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import InputError
@@ -410,7 +410,7 @@ def free_space_votes(pixel_voxel: np.ndarray, own_depth: np.ndarray, other_depth
     (same ``intrinsics``).  There the other epoch saw *through* the point when its reading is
     farther by more than ``sigmas`` sigmas of the difference of two readings at z, k sqrt(2
     sigma(z)^2 + ``pose_m``^2) (z = the depth in the other frame, m; ``noise`` the (n,) sigma
-    table of one reading, :func:`robot_change.change.epoch.noise_table`).  The reading used
+    table of one reading, :func:`robot_change.change.epoch.pair_sigma_table`).  The reading used
     is the *nearest* one of the other image within ``pose_radius`` pixels (a square window: a
     small residual pose error does not make static edges look seen through); where that
     window has no reading, the *farthest* reading within ``hole_radius`` pixels (projector
@@ -514,7 +514,7 @@ def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams,
 
     def votes_at(pixel_voxel: np.ndarray, pose: np.ndarray | None) -> Votes:
         return free_space_votes(
-            pixel_voxel, other.depth, base.depth, other.n_points, noise_table(base, other),
+            pixel_voxel, other.depth, base.depth, other.n_points, pair_sigma_table(base, other),
             params.free_space_sigmas, params.free_space_pose_m,
             params.free_space_pose_radius_px, params.free_space_hole_radius_px,
             params.free_space_no_reading_is_free, intrinsics=other.intrinsics,

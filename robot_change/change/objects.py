@@ -54,7 +54,7 @@ import numba
 import numpy as np
 
 from robot_change.arrays import readonly_view
-from robot_change.change.epoch import Epoch, noise_table
+from robot_change.change.epoch import Epoch, pair_sigma_table
 from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration.pyramid import surface_level
@@ -389,7 +389,7 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
         readonly_view(np.ascontiguousarray(other.pixel_voxel, dtype=np.int32)),
         np.ascontiguousarray(other_changed, dtype=np.bool_),
         params.free_space_pose_radius_px, _cell_normals(epoch, params),
-        _cell_normals(other, params), params.object_cell_px, noise_table(other, epoch),
+        _cell_normals(other, params), params.object_cell_px, pair_sigma_table(other, epoch),
         params.free_space_sigmas, params.free_space_pose_m,
         math.cos(math.radians(params.object_fold_deg)), _COUNTERPART_STEP,
         float(params.object_hidden_gap_m), o_image, len(o_size))

@@ -95,12 +95,12 @@ def _step_per_m(values_mm: np.ndarray, z: float) -> float:
     return gap / (z * z) if gap > 0.0025 else 0.0
 
 
-def _flying(median: np.ndarray, edge: np.ndarray) -> tuple[int, float]:
+def _flying(median: np.ndarray) -> tuple[int, float]:
     """(band width px, share): how far from a depth edge of the median image readings lie
     between the near and the far surface there (by more than 20 % of the jump from both),
     and the share of pixels next to an edge that do."""
     d = median.astype(np.float64)
-    h, w = d.shape
+    w = d.shape[1]
     width = 0
     share = 0.0
     for px in (1, 2, 3, 4):
@@ -125,7 +125,6 @@ def _flying(median: np.ndarray, edge: np.ndarray) -> tuple[int, float]:
         if s < 0.02:
             break
         width = px
-    del edge, h
     return width, share
 
 
@@ -161,7 +160,7 @@ def measure_frames(frames) -> FrameNoise:
     z_pair = np.where(both, d[1:], 0.0)
     whole_step = np.maximum(step * z_pair * z_pair, 0.002)
     jumped = (np.abs(d[1:] - d[:-1]) >= 0.999 * whole_step) & both & ~edge
-    edge_px, flying = _flying(median, edge)
+    edge_px, flying = _flying(median)
     return FrameNoise(
         n_frames=n, bins=tuple(bins), step_per_m=step,
         flicker_valid=float(toggles / max(either, 1)),
@@ -172,8 +171,8 @@ def measure_frames(frames) -> FrameNoise:
 def profile_from_frames(frames, base: NoiseProfile, source: str) -> tuple[NoiseProfile,
                                                                            FrameNoise]:
     """A measured camera profile (``robot-change calibrate``): ``base``'s principle, range and
-    shadow baseline, its axial sigma refitted to the measured bins (``base`` where nothing
-    was measured), the measured step, flicker and edge figures.  Returns (profile, the
+    shadow baseline, sigma the measured bins (``base``'s shape, scaled to meet them, beyond
+    the measured depths), the measured step, flicker and edge figures.  Returns (profile, the
     measurement).  Raises :class:`InputError` when no depth bin has enough readings."""
     noise = measure_frames(frames)
     if not noise.bins:

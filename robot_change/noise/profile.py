@@ -47,6 +47,7 @@ __all__ = [
     "TABLE_END_M",
     "builtin_profile",
     "resolve_profile",
+    "sigma_table",
 ]
 
 #: How a camera measures depth.
@@ -374,3 +375,11 @@ def resolve_profile(name: str = DEFAULT_PROFILE, path=None) -> NoiseProfile:
     if path is not None:
         return NoiseProfile.load(path)
     return builtin_profile(name)
+
+
+@functools.lru_cache(maxsize=16)
+def sigma_table(profile: NoiseProfile) -> np.ndarray:
+    """:meth:`NoiseProfile.kernel_table` of ``profile``, read-only, made once per profile."""
+    table = profile.kernel_table()
+    table.setflags(write=False)
+    return table

@@ -244,7 +244,11 @@ def _table_top_kernels() -> None:
     """The registration kernels only a table reaches (the table-plane starts' grid; the
     table station's counts over many poses; the synthetic room passes neither gate), with
     the argument types a check gives them: float32 vertex maps, float64 transforms."""
-    from robot_change.change.registration import RegistrationParams, agreement, table_top
+    from robot_change.change.registration import (
+        RegistrationParams,
+        agreement,
+        table_top,
+    )
 
     v = np.zeros((2, 2, 3), np.float32)
     table_top._plane_grid(v, np.eye(3), np.zeros(3), 0.02, 0.0, 0.0, 8, 8, 0.015, 0.03)

@@ -7,11 +7,14 @@ import dataclasses
 import functools
 from typing import Any
 
-import numpy as np
-
 from robot_change import validate
 from robot_change.errors import InputError
-from robot_change.noise.profile import DEFAULT_PROFILE, NoiseProfile, builtin_profile
+from robot_change.noise.profile import (
+    DEFAULT_PROFILE,
+    NoiseProfile,
+    builtin_profile,
+    sigma_table,
+)
 
 _num = functools.partial(validate.number, "RegistrationParams")
 _int = functools.partial(validate.whole, "RegistrationParams")
@@ -301,19 +304,11 @@ class RegistrationParams:
     def noise_args(self, inlier_sigmas: float | None = None) -> tuple:
         """What the agreement kernels take of the noise: (sigma table, inlier sigmas,
         :meth:`through_args` less the table)."""
-        return (noise_table(self.noise), self.inlier_sigmas if inlier_sigmas is None
+        return (sigma_table(self.noise), self.inlier_sigmas if inlier_sigmas is None
                 else inlier_sigmas, *self.through_args()[1:])
 
     def through_args(self) -> tuple:
         """The seen-through margin's (robot_change.noise.kernels.floored_margin_at): (sigma
         table, sigmas, floor m, floor per m^2)."""
-        return (noise_table(self.noise), self.seen_through_sigmas, self.seen_through_margin_m,
+        return (sigma_table(self.noise), self.seen_through_sigmas, self.seen_through_margin_m,
                 self.seen_through_margin_per_m2)
-
-
-@functools.lru_cache(maxsize=16)
-def noise_table(profile: NoiseProfile) -> np.ndarray:
-    """A profile's sigma table (read-only), made once per profile."""
-    table = profile.kernel_table()
-    table.setflags(write=False)
-    return table
