@@ -65,7 +65,7 @@ def one(name: str, source: str, checks: int, watch_s: float) -> dict:
                 "pauses": sum(e.name == "PAUSE" for e in got),
                 "reports": sum(e.name == "REPORT" for e in got),
                 "watch_s": watch_s, "watch_log_lines": watch_checks,
-                "check_s_median": round(checked / max(len(outcomes), 1), 2),
+                "check_s_mean": round(checked / max(len(outcomes), 1), 2),
                 "noise": getattr(captured, "noise", None),
                 "smallest_change_mm": getattr(captured, "smallest_change_mm", None)}
 

@@ -218,17 +218,24 @@ def _pose_gap(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(rel[:3, 3])), float(angle)
 
 
-def _sun3d(name: str, data_dir: Path | None) -> StaticPair:
-    folder = _folder(_SUN3D, data_dir) / "frames"
-    fused = name.startswith("sun3d-fused-")
+def _posed_pair(name: str, recording: str, folder: Path, camera: str, intrinsics: Intrinsics,
+                profile: str, split: str) -> StaticPair:
+    """A pair of a recording of frames with poses (``frame-NNNNNN.depth.png`` and
+    ``.pose.txt`` in ``folder``): ``<prefix>-A-B`` frames A and B, ``<prefix>-fused-A-B`` the 3
+    frames from each."""
     a, b = (int(v) for v in name.rsplit("-", 2)[-2:])
-    span = 3 if fused else 1
+    span = 3 if "-fused-" in name else 1
     read = [read_depth_image(folder / f"frame-{i:06d}.depth.png") for i in
             list(range(a, a + span)) + list(range(b, b + span))]
     pose = {i: np.loadtxt(folder / f"frame-{i:06d}.pose.txt") for i in (a, b)}
     gap_m, gap_deg = _pose_gap(pose[a], pose[b])
-    return StaticPair(name, _SUN3D, "Asus Xtion", read[:span], read[span:], _SUN3D_CAMERA,
-                      gap_m, gap_deg, True, profile="xtion")
+    return StaticPair(name, recording, camera, read[:span], read[span:], intrinsics, gap_m,
+                      gap_deg, True, split=split, profile=profile)
+
+
+def _sun3d(name: str, data_dir: Path | None) -> StaticPair:
+    return _posed_pair(name, _SUN3D, _folder(_SUN3D, data_dir) / "frames", "Asus Xtion",
+                       _SUN3D_CAMERA, "xtion", "tuning")
 
 
 def _pcl_room(name: str, data_dir: Path | None) -> StaticPair:
@@ -291,16 +298,8 @@ def load_static_pair(name: str, data_dir: Path | None = None) -> StaticPair:
 
 
 def _7scenes(name: str, data_dir: Path | None) -> StaticPair:
-    folder = _heldout_folder(_7SCENES, data_dir) / "frames"
-    fused = name.startswith("7scenes-fused-")
-    a, b = (int(v) for v in name.rsplit("-", 2)[-2:])
-    span = 3 if fused else 1
-    read = [read_depth_image(folder / f"frame-{i:06d}.depth.png") for i in
-            list(range(a, a + span)) + list(range(b, b + span))]
-    pose = {i: np.loadtxt(folder / f"frame-{i:06d}.pose.txt") for i in (a, b)}
-    gap_m, gap_deg = _pose_gap(pose[a], pose[b])
-    return StaticPair(name, _7SCENES, "Kinect v1", read[:span], read[span:], _7SCENES_CAMERA,
-                      gap_m, gap_deg, True, split="held-out", profile="kinect_v1")
+    return _posed_pair(name, _7SCENES, _heldout_folder(_7SCENES, data_dir) / "frames",
+                       "Kinect v1", _7SCENES_CAMERA, "kinect_v1", "held-out")
 
 
 def _apc_info(path: Path) -> dict[str, np.ndarray]:
