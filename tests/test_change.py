@@ -735,3 +735,69 @@ def test_posteriors_over_a_background_match_the_full_mixture():
     np.testing.assert_allclose(fast[:, 3:], full[:, 3:], rtol=1e-10, atol=1e-14)
     assert not fast[:, :3].any()
     assert not fast[np.setdiff1d(np.arange(200), rows)].any()
+
+
+def _read_through_twin(own, pixels, poses, intr, depth_range, window, views, other, sensor_min_m):
+    """NumPy twin of free_space._read_through_kernel: (K, N) bool."""
+    near, far = views[0].ravel(), views[1].ravel()
+    out = np.zeros((len(poses), len(pixels)), bool)
+    for k, T in enumerate(poses):
+        target, z = _warp_twin(own, T, intr, depth_range, window)
+        t, zz = target[pixels], z[pixels]
+        ok = t >= 0
+        q = np.where(ok, t, 0)
+        margin = _margin(zz, 3.0, 0.01)
+        near_cam = (other.ravel()[q] == 0) & (zz < sensor_min_m + margin)
+        d1 = np.where(near[q] > 0, near[q], far[q]).astype(np.float64)
+        out[k] = ok & ~near_cam & (d1 > 0) & (d1 * 0.001 > zz + margin)
+    return out
+
+
+def test_core_votes_at_several_poses_are_those_of_one_call_per_pose():
+    """free_space.core_votes_at_poses (one pass, every pose) gives, pose by pose, the core
+    counts of free_space_votes at that pose; its kernel matches a NumPy twin."""
+    from robot_change.change.registration import rpy_deg_to_rotation
+
+    rng = np.random.default_rng(3)
+    h, w, n = 40, 48, 50
+    intr = Intrinsics(w, h, 45.0, 45.0, 23.5, 19.5)
+    own = np.full((h, w), 2000, np.uint16)
+    own[10:30, 12:36] = 1500  # a box before a wall: blocks of pixels to be seen through
+    own = (own.astype(np.int64) + rng.integers(-20, 20, size=(h, w))).astype(np.uint16)
+    own[rng.random((h, w)) < 0.05] = 0
+    other = np.full((h, w), 2600, np.uint16)  # the other image sees the wall behind it
+    other[:, :6] = 1400
+    other[rng.random((h, w)) < 0.1] = 0
+    pv = np.where(rng.random((h, w)) < 0.98, rng.integers(0, n, size=(h, w)), -1).astype(np.int32)
+    pv[:4] = -1  # rows without a point
+    poses = []
+    for rpy, t in (((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), ((0.5, 0.0, 0.0), (0.01, 0.0, 0.0)),
+                   ((0.0, -0.5, 1.0), (0.0, 0.02, -0.03)), ((2.0, 1.0, 0.0), (0.1, 0.0, 0.0))):
+        T = np.eye(4)
+        T[:3, :3] = rpy_deg_to_rotation(*rpy)
+        T[:3, 3] = t
+        poses.append(T)
+    views = free_space.other_views(other, 2, 3)
+    kw = dict(intrinsics=intr, depth_range_m=(0.4, 4.0), sensor_min_m=0.5)
+    for edge_px in (0, 1, 2):
+        got = free_space.core_votes_at_poses(pv, own, other, n, NOISE, 3.0, 0.01,
+                                             np.array(poses), views=views, edge_px=edge_px,
+                                             **kw)
+        for k, T in enumerate(poses):
+            one = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, 2, 3, True,
+                                   other_from_own=T, views=views, edge_px=edge_px, **kw)
+            np.testing.assert_array_equal(got[k], one.core)
+        assert got.sum() > 0 and (got[0] != got[3]).any()  # seen through, and the poses differ
+    pixels = np.flatnonzero(pv.ravel() >= 0)
+    kernel = free_space._read_through_kernel(
+        own.ravel(), pixels, np.ascontiguousarray(np.array(poses)[:, :3, :3]),
+        np.ascontiguousarray(np.array(poses)[:, :3, 3]), intr.fx, intr.fy, intr.cx, intr.cy, w,
+        views[2], 0.4, 4.0, views[0].ravel(), views[1].ravel(), other.ravel(), NOISE, 3.0, 0.01,
+        0.5)
+    want = _read_through_twin(own, pixels, poses, intr, (0.4, 4.0), tuple(views[2]), views,
+                              other, 0.5)
+    np.testing.assert_array_equal(kernel, want)
+    assert want.any()
+    empty = free_space.core_votes_at_poses(np.full((h, w), -1, np.int32), own, other, n, NOISE,
+                                           3.0, 0.01, np.array(poses), views=views, **kw)
+    assert empty.shape == (4, n) and not empty.any()
