@@ -134,11 +134,19 @@ def measure_frames(frames) -> FrameNoise:
     another dtype."""
     stack = _as_stack(frames)
     n = stack.shape[0]
-    valid = stack > 0
-    all_valid = valid.all(axis=0)
-    d = stack.astype(np.float64) * 1e-3
-    mean = d.mean(axis=0)
-    var = d.var(axis=0, ddof=1)
+    # per-pixel mean (mm) and variance (m^2) from exact sums of the readings (mm, mm^2) taken
+    # frame by frame: the memory of a few images, whatever the number of frames; a pixel
+    # whose mean lies on a bin's edge falls in the upper bin
+    total = np.zeros(stack.shape[1:], np.int64)
+    squares = np.zeros(stack.shape[1:], np.int64)
+    all_valid = np.ones(stack.shape[1:], bool)
+    for k in range(n):
+        mm = stack[k].astype(np.int64)
+        total += mm
+        squares += mm * mm
+        all_valid &= mm > 0
+    mean_mm = total / n
+    var = (squares - total * total / n) / (n - 1) * 1e-6
     median = np.median(stack, axis=0).astype(np.uint16)
     edge = ndimage.binary_dilation(_edges(median), iterations=2)  # 4-neighbourhood, 2 px
     use = all_valid & ~edge
@@ -146,7 +154,7 @@ def measure_frames(frames) -> FrameNoise:
     steps = []
     lo = MIN_BIN_M
     while lo < MAX_BIN_M:
-        sel = use & (mean >= lo) & (mean < lo + BIN_M)
+        sel = use & (mean_mm >= lo * 1000) & (mean_mm < (lo + BIN_M) * 1000)
         count = int(sel.sum())
         if count >= MIN_BIN_PIXELS:
             z = lo + BIN_M / 2
@@ -154,18 +162,23 @@ def measure_frames(frames) -> FrameNoise:
             steps.append(_step_per_m(stack[0][sel], z))
         lo += BIN_M
     step = float(np.median(steps)) if steps else 0.0
-    toggles = (valid[1:] ^ valid[:-1]).sum()
-    either = (valid[1:] | valid[:-1]).sum()
-    both = valid[1:] & valid[:-1]
-    z_pair = np.where(both, d[1:], 0.0)
-    whole_step = np.maximum(step * z_pair * z_pair, 0.002)
-    jumped = (np.abs(d[1:] - d[:-1]) >= 0.999 * whole_step) & both & ~edge
+    toggles = either = jumped = compared = 0
+    for k in range(1, n):  # consecutive frames, a pair at a time
+        before, after = stack[k - 1], stack[k]
+        was, now = before > 0, after > 0
+        toggles += int(np.count_nonzero(was ^ now))
+        either += int(np.count_nonzero(was | now))
+        both = was & now & ~edge
+        z = after * 1e-3
+        whole_step = np.maximum(step * z * z, 0.002)
+        moved = np.abs(z - before * 1e-3) >= 0.999 * whole_step
+        jumped += int(np.count_nonzero(moved & both))
+        compared += int(np.count_nonzero(both))
     edge_px, flying = _flying(median)
     return FrameNoise(
         n_frames=n, bins=tuple(bins), step_per_m=step,
         flicker_valid=float(toggles / max(either, 1)),
-        flicker_step=float(jumped.sum() / max(int((both & ~edge).sum()), 1)),
-        edge_px=edge_px, flying_share=flying)
+        flicker_step=float(jumped / max(compared, 1)), edge_px=edge_px, flying_share=flying)
 
 
 def profile_from_frames(frames, base: NoiseProfile, source: str) -> tuple[NoiseProfile,
