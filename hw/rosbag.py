@@ -8,10 +8,18 @@ no ROS installation needed).
 What a bag may be: a ROS 1 ``.bag`` file; a ROS 2 bag folder (``metadata.yaml`` beside ``.db3``
 or ``.mcap`` storage); a single ROS 2 ``.db3`` or ``.mcap`` file.  Depth is a
 ``sensor_msgs/Image`` topic in ``16UC1`` (millimetres) or ``32FC1`` (metres; NaN, infinities,
-readings <= 0 and beyond 65.535 m become 0, "no reading"), as REP 118 defines them.
+readings <= 0 and beyond 65.535 m become 0, "no reading"), as REP 118 defines them, or a
+``sensor_msgs/CompressedImage`` topic of depth as image_transport records it by default
+(``.../compressedDepth``: PNG or RVL after its 12-byte header, 16UC1 or quantised 32FC1; or the
+``compressed`` transport's 16-bit PNG), decoded by :mod:`hw.compressed_depth`; a payload that
+cannot be decoded is a :class:`FrameError` naming the bag, the topic and the message's index.
+RealSense recordings of librealsense 2.59 and later (a ROS 2 ``.db3``) read as they are: their
+depth is ``/device_0/sensor_0/Depth_0/image/data/compressedDepth`` and its samples are scaled
+from the sensor's ``Depth_Units`` option to millimetres.
 
 Intrinsics come from the ``sensor_msgs/CameraInfo`` beside the image topic (the same namespace's
-``camera_info``: ``/camera/depth/image_raw`` -> ``/camera/depth/camera_info``), or the topic
+``camera_info``: ``/camera/depth/image_raw`` -> ``/camera/depth/camera_info``, and the same for
+``/camera/depth/image_raw/compressedDepth``), or the topic
 given as ``?info=``, or ``?intrinsics=fx,fy,cx,cy`` (then no CameraInfo is needed).  A raw image
 must be undistorted: distortion model ``plumb_bob``, ``rational_polynomial`` or ``none`` with
 all coefficients zero (``K`` is used).  A rectified image (a topic whose last name starts with
@@ -28,7 +36,9 @@ keep increasing), as the other file sources do (:mod:`hw.options`).
 from __future__ import annotations
 
 import logging
+import math
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -37,6 +47,7 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from hw.atomic import commit_folder
+from hw.compressed_depth import COMPRESSED_TYPE, decode_compressed_depth, depth_format
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, UriError
 from hw.options import Pacer, flag, positive
@@ -100,6 +111,9 @@ class RosbagSource(DepthSource):
         self._first_stamp = self._last_stamp = 0
         self._last_seq: int | None = None
         self._first_lap_frames = 0
+        self._taken = 0  # image messages of this lap taken by read()
+        self._compressed = False
+        self._scale = 1.0  # millimetres per sample
 
     def __repr__(self) -> str:
         return f"<RosbagSource {self.path} {self.topic or '(no topic yet)'}>"
@@ -117,7 +131,7 @@ class RosbagSource(DepthSource):
         """Whether the image is read as rectified (``P``) rather than raw (``K``)."""
         if self._rectified is not None:
             return self._rectified
-        last = (self.topic or "").rstrip("/").rsplit("/", 1)[-1]
+        last = self._image_topic().rsplit("/", 1)[-1] if self.topic else ""
         return last.startswith("image_rect")
 
     def open(self) -> None:
@@ -133,7 +147,7 @@ class RosbagSource(DepthSource):
             self._peek()
             if self._pending is None:
                 raise DepthFileError(f"{self.path}: {self.topic} holds no message")
-            image_to_depth(self._pending[0], f"{self.path} {self.topic}")  # encoding, size
+            self._depth(self._pending[0], 0)  # encoding, size
         except BaseException:
             self.close()
             raise
@@ -177,11 +191,13 @@ class RosbagSource(DepthSource):
         message, log_time = self._pending
         self._pending = None
         try:
-            depth = image_to_depth(message, f"{self.path} {self.topic}")
+            depth = self._depth(message, self._taken)
             self._check_size(depth)
         except (DepthFileError, FrameError):
             self.stats.dropped += 1
             raise
+        finally:
+            self._taken += 1
         stamp = _stamp_us(message.header.stamp) or log_time // 1000
         if self._lap == 0:
             if self._lap_frames == 0:
@@ -199,47 +215,76 @@ class RosbagSource(DepthSource):
     def _choose_topic(self) -> None:
         topics = self._reader.topics
         if self.topic is None:
-            depth = [name for name, encoding in self._image_topics().items()
-                     if encoding in DEPTH_ENCODINGS]
+            depth = [name for name, (_, is_depth) in self._image_topics().items() if is_depth]
             if len(depth) != 1:
                 what = "no depth image topic" if not depth else "several depth image topics"
                 raise DepthFileError(f"{self.path}: {what}; name one with ?topic=. "
                                      + self._listing())
             self.topic = depth[0]
             log.info("%s: reading depth from %s", self.path, self.topic)
-        elif self.topic not in topics or topics[self.topic].msgtype != IMAGE_TYPE:
+        elif self.topic not in topics or \
+                topics[self.topic].msgtype not in (IMAGE_TYPE, COMPRESSED_TYPE):
             what = ("no topic" if self.topic not in topics else
                     f"{topics[self.topic].msgtype} (not a sensor_msgs/Image) on")
             raise DepthFileError(f"{self.path}: {what} {self.topic}. " + self._listing())
         self._connections = list(topics[self.topic].connections)
+        self._compressed = topics[self.topic].msgtype == COMPRESSED_TYPE
+        self._scale = self._realsense_units() * 1000.0
 
-    def _image_topics(self) -> dict[str, str]:
-        """Every sensor_msgs/Image topic -> the encoding of its first message ("" if none)."""
+    def _image_topic(self) -> str:
+        """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""
+        assert self.topic is not None
+        topic = self.topic.rstrip("/")
+        return topic.rsplit("/", 1)[0] if self._compressed else topic
+
+    def _realsense_units(self) -> float:
+        """Metres per sample of a librealsense recording's depth (its sensor's Depth_Units
+        option), else 0.001 (millimetres, REP 118)."""
+        match = re.match(r"^(/device_\d+/sensor_\d+)/Depth_\d+/", self.topic or "")
+        option = match and self._reader.topics.get(match.group(1) + "/option/Depth_Units/value")
+        if not option:
+            return 0.001
+        first = next(self._reader.messages(connections=option.connections), None)
+        text = "" if first is None else str(self._deserialize(first).data)
+        try:
+            units = float(text)
+        except ValueError:
+            units = math.nan
+        if not (math.isfinite(units) and 1e-6 <= units <= 0.1):
+            raise DepthFileError(f"{self.path}: the RealSense depth units {text!r} on "
+                                 f"{match.group(1)}/option/Depth_Units/value make no sense")
+        return units
+
+    def _image_topics(self) -> dict[str, tuple[str, bool]]:
+        """Every sensor_msgs/Image and CompressedImage topic -> (the encoding or format of its
+        first message, "" if none; whether that is depth)."""
         found = {}
         for name, info in sorted(self._reader.topics.items()):
-            if info.msgtype != IMAGE_TYPE:
+            if info.msgtype not in (IMAGE_TYPE, COMPRESSED_TYPE):
                 continue
             first = next(self._reader.messages(connections=info.connections), None)
-            found[name] = "" if first is None else self._deserialize(first).encoding
+            if first is None:
+                found[name] = ("", False)
+            elif info.msgtype == IMAGE_TYPE:
+                encoding = str(self._deserialize(first).encoding)
+                found[name] = (encoding, encoding in DEPTH_ENCODINGS)
+            else:
+                text = str(self._deserialize(first).format)
+                found[name] = (text, depth_format(text) is not None)
         return found
 
     def _listing(self) -> str:
         """The depth image topics of the bag (and what else it holds), for an error message."""
         images = self._image_topics()
-        depth = [f"{name} ({enc})" for name, enc in images.items() if enc in DEPTH_ENCODINGS]
-        other = [f"{name} ({enc or 'empty'})" for name, enc in images.items()
-                 if enc not in DEPTH_ENCODINGS]
+        depth = [f"{name} ({enc})" for name, (enc, is_depth) in images.items() if is_depth]
+        other = [f"{name} ({enc or 'empty'})" for name, (enc, is_depth) in images.items()
+                 if not is_depth]
         text = ("Depth image topics in this bag: " + ", ".join(depth[:_MAX_LISTED])) if depth \
-            else "This bag has no depth image topic (sensor_msgs/Image in 16UC1 or 32FC1)"
+            else ("This bag has no depth image topic (sensor_msgs/Image in 16UC1 or 32FC1, or "
+                  "its compressedDepth)")
         if other:
             text += "; other image topics (not depth): " + ", ".join(other[:_MAX_LISTED])
-        compressed = [name for name, info in self._reader.topics.items()
-                      if name.endswith("compressedDepth")]
-        if compressed:
-            text += ("; compressed depth (" + ", ".join(compressed[:_MAX_LISTED]) + ") is not "
-                     "read: republish it raw (image_transport republish compressedDepth raw) "
-                     "and record that")
-        if not images and not compressed:
+        if not images:
             names = sorted(self._reader.topics)
             text += "; its topics: " + (", ".join(f"{n} ({self._reader.topics[n].msgtype})"
                                                   for n in names[:_MAX_LISTED]) or "none")
@@ -258,7 +303,7 @@ class RosbagSource(DepthSource):
                                  f"{given.width}x{given.height}")
             return given
         topics = self._reader.topics
-        info_topic = self.info_topic or self.topic.rstrip("/").rsplit("/", 1)[0] + "/camera_info"
+        info_topic = self.info_topic or self._image_topic().rsplit("/", 1)[0] + "/camera_info"
         if info_topic not in topics or topics[info_topic].msgtype != INFO_TYPE:
             infos = sorted(name for name, info in topics.items() if info.msgtype == INFO_TYPE)
             looked = f"?info={info_topic}" if self.info_topic else f"{info_topic} (beside it)"
@@ -283,11 +328,12 @@ class RosbagSource(DepthSource):
         first = next(self._reader.messages(connections=self._connections), None)
         if first is None:
             raise DepthFileError(f"{self.path}: {self.topic} holds no message")
-        message = self._deserialize(first)
-        return int(message.width), int(message.height)
+        height, width = self._depth(self._deserialize(first), 0).shape
+        return width, height
 
     # the stream ----------------------------------------------------------------------------
     def _restart(self) -> None:
+        self._taken = 0
         self._messages = self._reader.messages(
             connections=self._connections + self._info_connections)
 
@@ -326,6 +372,17 @@ class RosbagSource(DepthSource):
             raise DepthFileError(f"{self.path}: a {connection.msgtype} message on "
                                  f"{connection.topic} cannot be decoded "
                                  f"({type(exc).__name__}: {exc})") from None
+
+    def _depth(self, message: Any, index: int) -> np.ndarray:
+        """The (H, W) uint16 millimetres of image message number ``index`` of the topic."""
+        if not self._compressed:
+            return image_to_depth(message, f"{self.path} {self.topic}")
+        depth = decode_compressed_depth(message.format, message.data,
+                                        f"{self.path} {self.topic} message {index}")
+        if self._scale != 1.0:
+            millimetres = np.floor(depth * self._scale + 0.5)
+            depth = np.where(millimetres <= 65535, millimetres, 0).astype(np.uint16)
+        return depth
 
     def _check_size(self, depth: np.ndarray) -> None:
         if self._intrinsics is None:

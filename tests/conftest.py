@@ -19,3 +19,11 @@ def shared_data() -> Path:
         pytest.skip(f"real depth data not found at {SHARED_DATA} (only present beside the "
                     "project's own checkout, not in a user's clone)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def depth_frames() -> list:
+    """The three (480, 640) uint16 mm frames of the fixture office_box_added's reference."""
+    from hw.oni import read_oni_frames
+    path = SIM_FIXTURES / "scenes" / "office_box_added" / "reference.oni"
+    return [frame.depth for frame in read_oni_frames(path)]

@@ -38,19 +38,16 @@ STAMPS_NS = [1_305_031_102_160_407_123 + k * 33_333_333 for k in range(3)]
 KINDS = ("ros1", "db3", "mcap")
 
 
-@pytest.fixture(scope="module")
-def depth_frames() -> list[np.ndarray]:
-    return [frame.depth for frame in read_oni_frames(SCENE / "reference.oni")]
-
-
 def write_bag(path: Path, kind: str, frames: list[np.ndarray], *, encoding: str = "16UC1",
               topic: str = DEPTH, info_topic: str | None = INFO, camera: Intrinsics = CAMERA,
               model: str = "plumb_bob", distortion=(0.0,) * 5, extra: dict | None = None,
               stamps: list[int] = STAMPS_NS, infos: list | None = None, seqs=None,
-              bigendian: bool = False, pad: int = 0) -> Path:
+              bigendian: bool = False, pad: int = 0, compressed=None) -> Path:
     """A bag written with rosbags' own writer: ``frames`` (H, W) uint16 mm as ``encoding`` on
     ``topic`` and a CameraInfo per frame on ``info_topic``; ``extra``: topic -> (msgtype,
-    [messages]) written too.  ``kind``: ros1 (path.bag), db3 or mcap (a ROS 2 folder)."""
+    [messages]) written too.  ``kind``: ros1 (path.bag), db3 or mcap (a ROS 2 folder).
+    ``compressed(k, depth) -> (format, bytes)``: a sensor_msgs/CompressedImage of that instead
+    of an Image (``topic`` is then the compressed topic)."""
     store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
     types = store.types
     Image, Info = types["sensor_msgs/msg/Image"], types["sensor_msgs/msg/CameraInfo"]
@@ -91,7 +88,14 @@ def write_bag(path: Path, kind: str, frames: list[np.ndarray], *, encoding: str 
             fields[name.upper() if kind == "ros1" else name] = value
         return Info(**fields)
 
+    def packed(k: int, depth: np.ndarray):
+        text, data = compressed(k, depth)
+        return types["sensor_msgs/msg/CompressedImage"](
+            header=header(k), format=text, data=np.frombuffer(data, np.uint8))
+
     serialize = store.serialize_ros1 if kind == "ros1" else store.serialize_cdr
+    Image = types["sensor_msgs/msg/CompressedImage"] if compressed else Image
+    image = packed if compressed else image
     if kind == "ros1":
         target = path.with_suffix(".bag")
         writer = Writer1(target)
