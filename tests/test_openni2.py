@@ -392,9 +392,9 @@ def test_a_reader_that_dies_at_start_says_how_and_what_it_wrote_last(
         recording: tuple[Path, list[np.ndarray]], monkeypatch) -> None:
     """Not "the file is probably corrupt": its header was checked; the exit status and the
     reader's last stderr line say what happened."""
-    import hw.openni2
+    import hw.supervised
 
-    monkeypatch.setattr(hw.openni2, "_BOOT", "import sys\nsys.stderr.write('driver: cannot map "
+    monkeypatch.setattr(hw.supervised, "_BOOT", "import sys\nsys.stderr.write('driver: cannot map "
                         "the device buffer\\n')\nsys.exit(3)\n")
     source = open_recording(str(recording[0]))
     with pytest.raises(DepthFileError) as info:
