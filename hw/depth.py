@@ -1,7 +1,7 @@
 """Depth frames, the DepthSource interface, and ``open_depth(uri)``.
 
-Every depth backend (a live OpenNI2 camera, an ``.oni`` recording, a folder of 16-bit images, a
-ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
+Every depth backend (a live OpenNI2 or RealSense camera, an ``.oni`` or RealSense recording, a
+folder of 16-bit images, a ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
 objects through the :class:`DepthSource` interface.  The rest of the project never knows which
 backend it is reading from.
 
@@ -10,6 +10,12 @@ URIs (python-can / pyserial style; the backend module is imported only when used
     openni2://                  first OpenNI2 camera (Kinect / PrimeSense / Xtion)
     openni2://<serial-or-uri>   a given camera
     oni:path/to/file.oni        an OpenNI2 recording; a bare path ending in .oni works too
+    realsense://                first Intel RealSense camera (pyrealsense2)
+    realsense://<serial>?resolution=848x480&fps=30&preset=high_accuracy
+                                a given one, in a given mode
+    realsense:path/to/run.db3   a RealSense recording (.db3, or .bag of librealsense < 2.59)
+                                played through librealsense; a bare .db3 path reads it through
+                                the bag backend instead (the same frames)
     images:path/to/folder/      16-bit PNG/TIFF depth images in name order
     images:path/to/frame.png    a single image; a bare path to an image or a folder works too
     rosbag:path/to/bag?topic=/camera/depth/image_raw
@@ -231,6 +237,7 @@ _BACKENDS: dict[str, str] = {
     "rosbag": "hw.rosbag:open_rosbag",
     "oni": "hw.openni2:open_recording",
     "openni2": "hw.openni2:open_device",
+    "realsense": "hw.realsense:open_realsense",
 }
 
 # what to install when a backend's import fails
@@ -242,6 +249,8 @@ _INSTALL_HINTS: dict[str, str] = {
     "(pip install openni)",
     "openni2": "Debian's libopenni2-0 (apt-get install libopenni2-0) and the 'openni' binding "
     "(pip install openni)",
+    "realsense": "librealsense's Python binding (pip install pyrealsense2, the realsense extra; "
+    "on ARM boards build librealsense with its Python binding)",
 }
 
 
@@ -273,7 +282,7 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
             + " (a bare path ending in .oni, .bag, .db3, .mcap, .pcd, .png or .tif, or a "
             "folder, works too)"
         )
-    if scheme != "openni2" and not rest:
+    if scheme not in ("openni2", "realsense") and not rest:
         raise UriError(f"depth URI {uri!r}: the {scheme!r} scheme needs a path after ':'")
     return scheme, rest, options
 

@@ -39,10 +39,16 @@ import numpy as np
 import openni.openni2  # noqa: F401  -- the binding (pure Python; the native library loads in the reader)
 
 from hw.depth import Intrinsics
-from hw.errors import BackendUnavailable, UriError
+from hw.errors import BackendUnavailable
 from hw.oni import intrinsics_from_fov, read_oni_header
-from hw.options import flag, positive
-from hw.supervised import ChildFailure, FrameFeed, SupervisedSource, ask_reader, reader_main
+from hw.supervised import (
+    ChildFailure,
+    FrameFeed,
+    SupervisedSource,
+    ask_reader,
+    reader_main,
+    source_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -359,13 +365,8 @@ class OpenNI2Source(SupervisedSource):
         return float(self._header.fps)
 
     def _reader_spec(self) -> dict[str, Any]:
-        spec: dict[str, Any] = {"lib_dir": self._lib_dir, "frames": 0, "lap_us": 0}
-        if self.kind == "file":
-            header = self._header
-            spec["frames"] = header.frames
-            spec["lap_us"] = (header.last_timestamp_us - header.first_timestamp_us
-                              + round(1e6 / max(header.fps, 1)))
-        return spec
+        return {"lib_dir": self._lib_dir,
+                "frames": self._header.frames if self.kind == "file" else 0}
 
     def _intrinsics_from(self, info: dict[str, Any]) -> Intrinsics:
         """From the stream's field of view (OpenNI's VGA defaults when the driver reports
@@ -380,43 +381,16 @@ class OpenNI2Source(SupervisedSource):
 # =================================================================================================
 # factories, device list, recording
 # =================================================================================================
-def _options(options: dict[str, Any]) -> dict[str, Any]:
-    """URI query options arrive as strings; convert the known ones."""
-    kinds = {"slots": int, "start_timeout": float, "stall_timeout": float, "lost_after": float,
-             "max_restarts": int, "loop": lambda v: flag("OpenNI2", "loop", v), "rate": _rate}
-    out = {}
-    for key, value in options.items():
-        if key not in kinds:
-            raise UriError(f"unknown OpenNI2 option {key!r}; known: {', '.join(sorted(kinds))}")
-        if key in ("loop", "rate"):
-            out[key] = kinds[key](value)
-            continue
-        try:
-            out[key] = kinds[key](value)
-        except (TypeError, ValueError):
-            raise UriError(f"OpenNI2 option {key}={value!r} must be a number") from None
-    return out
-
-
-def _rate(value: Any) -> float | str | None:
-    if value is None or value == "":
-        return None
-    if isinstance(value, str) and value.strip().lower() in ("auto", "fps"):
-        return "auto"
-    return positive("OpenNI2", "rate", value, "frames per second, or 'auto' for the "
-                    "recording's own fps")
-
-
 def open_device(target: str = "", **options: Any) -> OpenNI2Source:
     """A live camera: ``""`` for the first one, else a URI or serial number (``"Oz"`` is the
     DummyDevice).  Returned unopened."""
-    return OpenNI2Source("device", target.strip().strip("/"), **_options(options))
+    return OpenNI2Source("device", target.strip().strip("/"), **source_options("OpenNI2", options))
 
 
 def open_recording(target: str, **options: Any) -> OpenNI2Source:
     """An ``.oni`` recording, played frame by frame.  Raises :class:`DepthFileError` at once for
     a missing or corrupt file.  Returned unopened."""
-    return OpenNI2Source("file", str(Path(target).expanduser()), **_options(options))
+    return OpenNI2Source("file", str(Path(target).expanduser()), **source_options("OpenNI2", options))
 
 
 def list_devices(timeout: float = 10.0) -> list[dict[str, Any]]:

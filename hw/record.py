@@ -1,11 +1,12 @@
-"""Any depth source recorded to a file, stopped cleanly: an OpenNI2 ``.oni`` recording or a ROS 2
-bag (MCAP storage).
+"""Any depth source recorded to a file, stopped cleanly: an OpenNI2 ``.oni`` recording, a ROS 2
+bag (MCAP storage) or a RealSense recording (``.db3``, written by librealsense).
 
     with open_depth("openni2://") as camera:
         record(camera, "kitchen.oni")                      # until the end, --frames or Ctrl-C
         record(camera, "kitchen_bag", format="rosbag2")    # a ROS 2 bag folder
+        record(camera, "kitchen.db3", format="realsense")  # librealsense's recorder
 
-Both writers are atomic (the file or folder appears only when complete) and both stop the same
+The writers are atomic (the file or folder appears only when complete) and both stop the same
 way: after ``frames``, at the end of the source, or at SIGINT / SIGTERM, with what was recorded
 so far kept as a finished recording.
 """
@@ -29,9 +30,10 @@ __all__ = ["FORMATS", "record"]
 
 log = logging.getLogger(__name__)
 
-#: What :func:`record` writes: ``oni`` (an OpenNI2 recording, one file) and ``rosbag2`` (a ROS 2
-#: bag folder with MCAP storage, as ``ros2 bag record -s mcap`` makes).
-FORMATS = ("oni", "rosbag2")
+#: What :func:`record` writes: ``oni`` (an OpenNI2 recording, one file), ``rosbag2`` (a ROS 2
+#: bag folder with MCAP storage, as ``ros2 bag record -s mcap`` makes) and ``realsense`` (a
+#: RealSense ``.db3``: :func:`hw.realsense_record.write_realsense_recording`).
+FORMATS = ("oni", "rosbag2", "realsense")
 
 
 def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | None = None,
@@ -47,7 +49,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     at 0; ``codec`` ``"16zt"`` (lossless, about 4x smaller than raw on Kinect depth), ``"16z"``
     (lossless, for unquantised depth) or ``"none"``.  ``rosbag2``: ``out_path`` is the bag's
     folder (it must not exist yet), header stamps are the frames' timestamps as they are
-    (:func:`hw.rosbag.write_rosbag2`); ``codec`` is not used.  ``progress(frames, seconds,
+    (:func:`hw.rosbag.write_rosbag2`); ``realsense``: ``out_path`` ends in ``.db3``, frame
+    numbers and timestamps as they are; ``codec`` is for ``.oni`` only.  ``progress(frames, seconds,
     bytes)`` is called after every frame.  Opens the source if needed; the caller closes it.
     The recording appears only when complete (written atomically); on an error nothing is
     left.
@@ -73,6 +76,10 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
 
             return write_rosbag2(out_path, everything, on_frame=tell)
         fps = int(getattr(source, "info", {}).get("fps") or 30)
+        if format == "realsense":
+            from hw.realsense_record import write_realsense_recording
+
+            return write_realsense_recording(out_path, everything, fps=fps, on_frame=tell)
         return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell)
 
 

@@ -59,7 +59,7 @@ try:  # the backend's library: hw.depth.open_depth reports it missing with what 
 except ImportError as exc:  # pragma: no cover - exercised without rosbags installed
     raise ImportError(f"rosbags is not installed ({exc})") from exc
 
-__all__ = ["DEPTH_ENCODINGS", "RosbagSource", "open_rosbag", "write_rosbag2"]
+__all__ = ["DEPTH_ENCODINGS", "RosbagSource", "open_bag", "open_rosbag", "write_rosbag2"]
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class RosbagSource(DepthSource):
         """Open the bag and start at its first frame (again, after :meth:`close`)."""
         if self._reader is not None:
             return
-        reader = _open_reader(self.path)
+        reader = open_bag(self.path)
         try:
             self._reader = reader
             self._choose_topic()
@@ -407,7 +407,7 @@ class RosbagSource(DepthSource):
         return span + max(period, 1)
 
 
-def _open_reader(path: Path) -> Any:
+def open_bag(path: Path) -> Any:
     """An opened AnyReader on ``path``; :class:`DepthFileError` for what is not a bag."""
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise DepthFileError(f"{path}: a folder without metadata.yaml is not a ROS 2 bag (a ROS "

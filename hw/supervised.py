@@ -61,11 +61,11 @@ from hw.errors import (
     HwError,
     UriError,
 )
-from hw.options import Pacer
+from hw.options import Pacer, flag, positive
 from hw.supervised_child import ChildFailure, FrameFeed, reader_main
 
 __all__ = ["ChildFailure", "FrameFeed", "ReaderProcess", "SupervisedSource", "ask_reader",
-           "describe_exit", "reader_main"]
+           "describe_exit", "reader_main", "source_options"]
 
 log = logging.getLogger(__name__)
 
@@ -565,3 +565,40 @@ class SupervisedSource(DepthSource):
                 proc.join(2.0)
             with contextlib.suppress(Exception):
                 proc.close()
+
+
+# =================================================================================================
+# the options of a URI
+# =================================================================================================
+def source_options(backend: str, options: dict[str, Any],
+                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The options of a :class:`SupervisedSource` from a URI's query (strings) or keyword
+    arguments: ``slots``, ``start_timeout``, ``stall_timeout``, ``lost_after``,
+    ``max_restarts``, ``loop``, ``rate``, and the backend's ``extra`` (name -> parser raising
+    :class:`UriError`).  :class:`UriError` for an unknown option or a bad value."""
+    numbers = {"slots": int, "start_timeout": float, "stall_timeout": float,
+               "lost_after": float, "max_restarts": int}
+    parsers = {"loop": lambda value: flag(backend, "loop", value),
+               "rate": lambda value: _rate(backend, value), **(extra or {})}
+    out = {}
+    for key, value in options.items():
+        if key in parsers:
+            out[key] = parsers[key](value)
+        elif key in numbers:
+            try:
+                out[key] = numbers[key](value)
+            except (TypeError, ValueError):
+                raise UriError(f"{backend} option {key}={value!r} must be a number") from None
+        else:
+            raise UriError(f"unknown {backend} option {key!r}; known: "
+                           f"{', '.join(sorted([*numbers, *parsers]))}")
+    return out
+
+
+def _rate(backend: str, value: Any) -> float | str | None:
+    if value is None or value == "":
+        return None
+    if isinstance(value, str) and value.strip().lower() in ("auto", "fps"):
+        return "auto"
+    return positive(backend, "rate", value, "frames per second, or 'auto' for the recording's "
+                    "own fps")

@@ -125,6 +125,7 @@ class _Server:
                                buffer=self.shm)
         self.free = set(range(slots))
         self.frames_total = int(info.get("frames") or self.spec.get("frames") or 0)
+        self.frame_us = round(1e6 / max(float(info.get("fps") or 30), 1.0))
         self.feed.start()
         self._loop()
 
@@ -148,7 +149,7 @@ class _Server:
         is_file = self.feed.is_file
         skip = int(self.spec.get("skip", 0))  # frames a previous reader already delivered
         loop = bool(self.spec.get("loop")) and is_file
-        lap_us = int(self.spec.get("lap_us") or 0)  # a looped recording's time per lap
+        first_us = last_us = 0  # the first lap's first and last timestamps
         played = 0
         silence_limit = float(self.spec["stall_timeout" if is_file else "lost_after"])
         # a camera may take a few seconds for its first frame
@@ -175,6 +176,10 @@ class _Server:
             played += 1
             if loop and self.frames_total:  # later laps continue the count and the clock
                 lap = (played - 1) // self.frames_total
+                if lap == 0:
+                    first_us = stamp if played == 1 else first_us
+                    last_us = stamp
+                lap_us = last_us - first_us + self.frame_us
                 index, stamp = played, stamp + lap * lap_us
             if is_file and played <= skip:
                 continue

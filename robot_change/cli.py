@@ -545,14 +545,16 @@ def _print_change_summary(summary: dict[str, Any]) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    """Record any depth source (a live camera, images, a recording, a bag) to an .oni file or a
-    ROS 2 bag folder (MCAP storage)."""
+    """Record any depth source (a live camera, images, a recording, a bag) to an .oni file, a
+    ROS 2 bag folder (MCAP storage) or a RealSense recording (.db3, by librealsense)."""
     from hw.record import record
 
-    out_format = args.format or ("oni" if args.out.lower().endswith(".oni") else "rosbag2")
-    if out_format == "rosbag2" and args.codec is not None:
+    suffix = Path(args.out).suffix.lower()
+    out_format = args.format or {".oni": "oni", ".db3": "realsense"}.get(suffix, "rosbag2")
+    if out_format != "oni" and args.codec is not None:
         raise InputError("--codec is for .oni recordings; a ROS 2 bag is written with "
-                         "zstd-compressed MCAP chunks (lossless)")
+                         "zstd-compressed MCAP chunks, a RealSense recording with PNG (both "
+                         "lossless)")
     shown = [0.0]
 
     def progress(frames: int, seconds: float, size: int) -> None:
@@ -569,24 +571,44 @@ def cmd_record(args: argparse.Namespace) -> int:
     out = Path(args.out)
     size = sum(item.stat().st_size for item in out.iterdir()) if out.is_dir() else \
         out.stat().st_size
-    what = "" if out_format == "oni" else " (a ROS 2 bag: ros2 bag info / play it)"
+    what = {"oni": "", "rosbag2": " (a ROS 2 bag: ros2 bag info / play it)",
+            "realsense": " (a RealSense recording: play it with realsense:FILE or the "
+                         "RealSense Viewer)"}[out_format]
     print(f"wrote {written} frame(s), {size / 1e6:.1f} MB, to {args.out}{what}")
     return 0
 
 
 def cmd_list_devices(args: argparse.Namespace) -> int:
-    """The OpenNI2 cameras connected now."""
-    from hw.openni2 import list_devices
+    """The OpenNI2 and RealSense cameras connected now, each with its URI."""
+    import importlib
 
-    devices = list_devices()
+    from hw.errors import BackendUnavailable
+
+    devices, missing = [], {}
+    for backend, module in (("openni2", "hw.openni2"), ("realsense", "hw.realsense")):
+        try:
+            found = importlib.import_module(module).list_devices()
+        except (ImportError, BackendUnavailable) as exc:
+            missing[backend] = str(exc)
+            continue
+        for device in found:
+            serial = device.get("serial") or ""
+            uri = f"realsense://{serial}" if backend == "realsense" else \
+                f"openni2://{serial or device['uri']}"
+            devices.append({"backend": backend, "source": uri, **device})
     if args.json:
-        _print_json({"devices": devices})
-    elif not devices:
+        _print_json({"devices": devices, **({"unavailable": missing} if missing else {})})
+        return 0
+    for device in devices:
+        what = " ".join(str(device.get(key) or "") for key in ("vendor", "name")).strip()
+        firmware = f"  firmware {device['firmware']}" if device.get("firmware") else ""
+        print(f"{device['source']}  {what}{firmware}")
+    if not devices:
         print("no OpenNI2 camera found (is it plugged in? a Kinect v1 needs libfreenect's "
               "OpenNI2 driver; see the README)")
-    for device in devices if not args.json else []:
-        serial = device.get("serial", "")
-        print(f"{device['uri']}  {device['vendor']} {device['name']}  {serial}".rstrip())
+        print("no RealSense camera found" if "realsense" not in missing else
+              "RealSense cameras are not looked for: install the realsense extra "
+              "(pip install pyrealsense2)")
     return 0
 
 
@@ -814,22 +836,26 @@ def build_parser() -> argparse.ArgumentParser:
                              "nothing changed (2 stays an error), like git diff --exit-code")
     detect.set_defaults(func=cmd_detect)
 
-    record = commands.add_parser("record", help="record a depth source to an .oni file or a ROS 2 "
-                                 "bag (MCAP)")
+    record = commands.add_parser("record", help="record a depth source to an .oni file, a ROS 2 "
+                                 "bag (MCAP) or a RealSense recording (.db3)")
     record.add_argument("--source", required=True, help="depth URI (camera, .oni, images, bag)")
-    record.add_argument("--out", required=True, help="FILE.oni, or the folder of a ROS 2 bag "
-                        "(as ros2 bag record -o NAME: NAME/NAME.mcap and metadata.yaml)")
-    record.add_argument("--format", choices=("oni", "rosbag2"),
-                        help="oni, or rosbag2: sensor_msgs/Image 16UC1 on /camera/depth/image_raw "
-                        "and CameraInfo beside it, stamped with the frames' timestamps "
-                        "(default: oni for an --out ending in .oni, else rosbag2)")
+    record.add_argument("--out", required=True, help="FILE.oni, FILE.db3 (a RealSense "
+                        "recording), or the folder of a ROS 2 bag (as ros2 bag record -o NAME: "
+                        "NAME/NAME.mcap and metadata.yaml)")
+    record.add_argument("--format", choices=("oni", "rosbag2", "realsense"),
+                        help="oni; rosbag2: sensor_msgs/Image 16UC1 on /camera/depth/image_raw "
+                        "and CameraInfo beside it, stamped with the frames' timestamps; "
+                        "realsense: written by librealsense's own recorder (needs the realsense "
+                        "extra), plays in librealsense and the RealSense Viewer (default: by "
+                        "--out's ending, .oni, .db3, else rosbag2)")
     record.add_argument("--frames", type=_count, help="stop after N frames (default: to the end, or Ctrl-C)")
     record.add_argument("--codec", choices=("16zt", "16z", "none"),
                         help=".oni only: 16zt: lossless, ~4x smaller than raw on Kinect depth "
                         "(default); 16z: lossless, for unquantised depth; none: raw uint16")
     record.set_defaults(func=cmd_record)
 
-    devices = commands.add_parser("list-devices", help="list the OpenNI2 cameras connected now")
+    devices = commands.add_parser("list-devices", help="list the OpenNI2 and RealSense cameras "
+                                  "connected now, with the --source of each")
     devices.add_argument("--json", action="store_true", help="print one JSON object")
     devices.set_defaults(func=cmd_list_devices)
 

@@ -1,6 +1,7 @@
 """Compressed depth in bags (hw.compressed_depth, hw.rosbag): image_transport's compressedDepth
 (PNG and RVL, 16UC1 and quantised 32FC1) and compressed PNG, in ROS 1 and ROS 2 bags written by
-rosbags' own writers, and RealSense recordings written by librealsense itself.
+rosbags' own writers (RealSense recordings, compressedDepth written by librealsense itself, are
+in test_realsense.py).
 
 The RVL kernels have a plain-Python twin here, written from the reference codec's description
 (image_transport_plugins' rvl_codec.cpp), that they must match bit for bit.
@@ -230,31 +231,3 @@ def test_the_listing_names_compressed_depth_as_depth(tmp_path, depth_frames):
     with pytest.raises(Exception, match=f"Depth image topics in this bag: {TOPIC} "
                                         r"\(16UC1; compressedDepth rvl\)"):
         open_depth(f"rosbag:{bag}?topic=/nothing").open()
-
-
-# --- RealSense recordings written by librealsense --------------------------------------------
-def test_a_realsense_recording_reads_through_the_bag_backend_exactly(tmp_path, depth_frames):
-    pytest.importorskip("pyrealsense2", reason="pyrealsense2 (the realsense extra) writes the "
-                        "recording: pip install pyrealsense2")
-    from sim_fixtures.realsense_recording import write_realsense_recording
-    path = tmp_path / "run.db3"
-    assert write_realsense_recording(path, depth_frames, CAMERA) == len(depth_frames)
-    with open_depth(str(path)) as source:  # a bare .db3: the bag backend
-        frames = list(source)
-        assert source.topic == "/device_0/sensor_0/Depth_0/image/data/compressedDepth"
-        assert source.intrinsics.fx == pytest.approx(CAMERA.fx, abs=1e-3)
-        assert source.intrinsics.cy == pytest.approx(CAMERA.cy, abs=1e-3)
-    assert len(frames) == len(depth_frames)
-    assert all(np.array_equal(f.depth, d) for f, d in zip(frames, depth_frames))
-
-
-def test_realsense_depth_units_are_scaled_to_millimetres(tmp_path, depth_frames):
-    pytest.importorskip("pyrealsense2", reason="pyrealsense2 writes the recording")
-    from sim_fixtures.realsense_recording import write_realsense_recording
-    path = tmp_path / "d405.db3"
-    tenths = [np.minimum(d.astype(np.uint32) * 10, 65535).astype(np.uint16) for d in depth_frames]
-    write_realsense_recording(path, tenths, CAMERA, depth_units=0.0001)  # as a D405 sends
-    with open_depth(f"rosbag:{path}") as source:
-        frame = source.read()
-    expected = np.where(depth_frames[0] <= 6553, depth_frames[0], 6554)
-    assert np.array_equal(np.minimum(frame.depth, 6554), expected)
