@@ -4,7 +4,8 @@
 
 Bags of 640x480 depth are written with rosbags' own writers (a ROS 2 MCAP bag, a ROS 2 .db3, a
 ROS 1 .bag), as raw 16UC1 and as image_transport's compressedDepth (PNG at its default level 9,
-and RVL); with pyrealsense2 present, also a RealSense recording written by librealsense.  The
+and RVL); with pyrealsense2 present, also a RealSense recording written by librealsense, read
+by the bag backend and played by librealsense (``realsense:``, in its reader process).  The
 depth is the real SUN3D Xtion frames of ../shared/data (cycled), else the bundled Kinect-like
 fixture frames.  Each bag is read through ``open_depth`` from its first frame to its last;
 the rate is the median over the repeats, the kinds interleaved within each repeat.  Target
@@ -27,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from hw.compressed_depth import encode_compressed_depth  # noqa: E402
-from hw.depth import open_depth  # noqa: E402
+from hw.depth import DepthFrame, open_depth  # noqa: E402
+from hw.errors import BackendUnavailable  # noqa: E402
 from hw.imagefile import read_image  # noqa: E402
 from test_rosbag import CAMERA, write_bag  # noqa: E402
 
@@ -65,11 +67,13 @@ def write_all(folder: Path, frames: list[np.ndarray]) -> dict[str, str]:
     }
     uris = {kind: f"rosbag:{path}" for kind, path in bags.items()}
     try:
-        from sim_fixtures.realsense_recording import write_realsense_recording
-        write_realsense_recording(folder / "rs.db3", frames, CAMERA)
-        uris["librealsense .db3 (bag backend)"] = f"rosbag:{folder / 'rs.db3'}"
-    except ImportError:
-        pass
+        from hw.realsense_record import write_realsense_recording
+        write_realsense_recording(folder / "rs.db3", [DepthFrame(depth, k * 33_333, k, CAMERA)
+                                                      for k, depth in enumerate(frames)])
+    except BackendUnavailable:
+        return uris
+    uris["librealsense .db3, bag backend"] = f"rosbag:{folder / 'rs.db3'}"
+    uris["librealsense .db3, librealsense"] = f"realsense:{folder / 'rs.db3'}"
     return uris
 
 

@@ -1,7 +1,7 @@
 """The daemon's targets (issue 7): PAUSE latency, start to READY, CPU in watch mode, soak.
 
     .venv/bin/python bench/bench_service.py [--trials 20] [--ready-runs 3] [--cpu-seconds 20]
-                                            [--soak-seconds 600]
+                                            [--soak-seconds 600] [--soak-camera realsense]
                                             [--cold-runs 2]
                                             [--only latency,ready,ready-cold,cpu,soak,soak-daemon]
                                             [--json]
@@ -29,7 +29,10 @@ soak-daemon  The same soak with ``robot-change run`` as a subprocess (what tests
          runs for 60 s): RSS of the daemon and of its OpenNI2 reader child from /proc, heartbeat
          gaps at the simulated base, and the frame counts and the source's delivered count that
          the daemon writes when SIGTERM stops it (an observer around ``robot_change.cli.main``,
-         the console script's entry point: nothing else differs); plus its exit status.
+         the console script's entry point: nothing else differs); plus its exit status and the
+         reader's CPU.  ``--soak-camera realsense``: the same frames as a RealSense recording
+         (written by librealsense, played by it at 30 fps in a loop; issue 43's target: no
+         frame dropped or repeated, the reader under 10 % of one core).
 """
 
 from __future__ import annotations
@@ -270,21 +273,23 @@ sys.exit(code)
 
 
 class Daemon:
-    """``robot-change run`` on the looped reference.oni, a pty pair, a test notify socket.
+    """``robot-change run`` on the looped reference.oni (or ``source``), a pty pair, a test
+    notify socket.
 
     ``observe``: a file the daemon writes its frame counts to when it stops (``_OBSERVED_RUN``).
     """
 
     def __init__(self, tmp: Path, observe: Path | None = None,
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, source: str | None = None) -> None:
         self.tmp = tmp
         master, slave = os.openpty()
         tty.setraw(master)
         tty.setraw(slave)
         self.master, self.slave = master, slave
         config = tmp / "robot-change.toml"
+        default_source = f"oni:{SCENE / 'reference.oni'}?loop=1&rate=auto"
         config.write_text(
-            f'[camera]\nsource = "oni:{SCENE / "reference.oni"}?loop=1&rate=auto"\n'
+            f'[camera]\nsource = {json.dumps(source or default_source)}\n'
             f'[serial]\nport = "{os.ttyname(slave)}"\n[store]\nstate_dir = "{tmp / "state"}"\n'
             '[service]\nwatchdog = false\nlog_level = "warning"\n')
         self.notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -508,27 +513,37 @@ def bench_soak(seconds: float) -> dict:
 
 
 def _readers(pid: int) -> list[int]:
-    """The daemon's OpenNI2 reader children (``python -c`` running hw.openni2's
-    ``_child_main``)."""
+    """The daemon's reader children (``python -c`` running a backend's ``reader_entry``,
+    hw.supervised)."""
     out = []
     for child in _children(pid):
         try:
-            if b"_child_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+            if b"reader_entry" in Path(f"/proc/{child}/cmdline").read_bytes():
                 out.append(child)
         except OSError:
             pass
     return out
 
 
-def soak_daemon(seconds: float, warmup: float | None = None) -> dict:
+def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni") -> dict:
     """``robot-change run`` as a subprocess watching the looped reference.oni at 30 fps for
-    ``seconds`` (counted from WATCHING), then SIGTERM.  RSS growth is from ``warmup`` s
-    (default: 10 % of the run, at least 10 s) to the end.  Returns the figures as a dict
-    (``accounted``: received == processed + dropped + queued == the source's delivered)."""
+    ``seconds`` (counted from WATCHING), then SIGTERM; ``camera="realsense"``: the same frames
+    as a RealSense recording written by librealsense, played by it (``realsense:FILE``).  RSS
+    growth is from ``warmup`` s (default: 10 % of the run, at least 10 s) to the end.  Returns
+    the figures as a dict (``accounted``: received == processed + dropped + queued == the
+    source's delivered; ``reader_cpu_pct``: the reader's CPU time over the soak, % of one
+    core)."""
     warmup = max(10.0, 0.1 * seconds) if warmup is None else warmup
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        daemon = Daemon(tmp, observe=tmp / "counts.json")
+        source = None
+        if camera == "realsense":
+            from hw.oni import read_oni_frames
+            from hw.realsense_record import write_realsense_recording
+
+            write_realsense_recording(tmp / "room.db3", read_oni_frames(SCENE / "reference.oni"))
+            source = f"realsense:{tmp / 'room.db3'}?loop=1&rate=30"
+        daemon = Daemon(tmp, observe=tmp / "counts.json", source=source)
         code: int | None = None
         readers: set[int] = set()
         try:
@@ -549,7 +564,12 @@ def soak_daemon(seconds: float, warmup: float | None = None) -> dict:
                 readers.update(now)
                 return _rss_mb(daemon.proc.pid), sum(_rss_mb(r) for r in now)
 
+            cpu_start = {pid: _cpu_seconds(pid) for pid in _readers(daemon.proc.pid)}
+            soak_start = time.monotonic()
             samples, gaps, seen = _soak_loop(sim, seconds, rss)
+            soak_wall = time.monotonic() - soak_start
+            reader_cpu = sum(_cpu_seconds(pid) - cpu_start.get(pid, 0.0)
+                             for pid in _readers(daemon.proc.pid))
             log.close()
         finally:
             stopped = time.monotonic()
@@ -566,6 +586,7 @@ def soak_daemon(seconds: float, warmup: float | None = None) -> dict:
             **_rss_growth(samples, warmup), "reader_pids": len(readers),
             "longest_heartbeat_gap_s": round(max(gaps), 3),
             "heartbeat_states": seen["states"], "messages": seen["messages"],
+            "camera": camera, "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
             "frames": frames, "source_delivered": delivered,
             "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
             "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],
@@ -583,6 +604,9 @@ def main() -> int:
     parser.add_argument("--soak-seconds", type=float, default=0.0,
                         help="soak duration (0: no soak; the issue's target is 600)")
     parser.add_argument("--only", default="latency,ready,cpu,soak")
+    parser.add_argument("--soak-camera", choices=("oni", "realsense"), default="oni",
+                        help="soak-daemon's camera: the looped .oni through OpenNI2, or the same "
+                        "frames as a RealSense recording through librealsense")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)  # the service's PAUSE warnings are expected here
@@ -599,7 +623,7 @@ def main() -> int:
     if "soak" in only and args.soak_seconds > 0:
         result["soak"] = bench_soak(args.soak_seconds)
     if "soak-daemon" in only and args.soak_seconds > 0:
-        result["soak_daemon"] = soak_daemon(args.soak_seconds)
+        result["soak_daemon"] = soak_daemon(args.soak_seconds, camera=args.soak_camera)
     result["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(result, indent=None if args.json else 2))
     return 0

@@ -33,12 +33,14 @@ __all__ = ["write_realsense_recording"]
 
 def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[DepthFrame], *,
                               fps: int = 30, depth_units: float = 0.001,
-                              serial: str = "000000000001",
+                              name: str | None = None, serial: str = "000000000001",
                               on_frame: Callable[[int, int], None] | None = None) -> int:
     """Write ``frames`` (all of one size and intrinsics, those of the first) to a new recording
     ``path`` (``.db3``, must not exist) at a nominal ``fps``; returns the number of frames.
     ``depth_units``: metres a sample (the frames' samples are written as they are: 0.001 for
-    millimetres, 0.0001 for a D405's native tenths).
+    millimetres, 0.0001 for a D405's native tenths).  ``name``: the camera model the recording
+    names (the source's, e.g. "Intel RealSense D435": it picks the ``auto`` noise profile);
+    default "robot-change recording", which names no model.
     ``on_frame(frames, bytes)`` after each.  Raises :class:`DepthFileError` when it cannot be
     written, :class:`FrameError` for no frames or frames that change size,
     :class:`BackendUnavailable` without pyrealsense2."""
@@ -65,7 +67,8 @@ def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[Dep
         first = next(stream, None)
         if first is None:
             raise FrameError(f"{target}: no frames to write; a recording needs at least one")
-        device, sensor, profile = _software_camera(rs, first, fps, depth_units, serial)
+        device, sensor, profile = _software_camera(rs, first, fps, depth_units,
+                                                   name or "robot-change recording", serial)
         recorder = rs.recorder(scratch, device)
         queue = rs.frame_queue(64)
         sensor.open(profile)
@@ -97,13 +100,13 @@ def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[Dep
     return count
 
 
-def _software_camera(rs, first: DepthFrame, fps: int, depth_units: float, serial: str):
+def _software_camera(rs, first: DepthFrame, fps: int, depth_units: float, name: str,
+                     serial: str):
     """(device, depth sensor, Z16 stream profile) of a software camera with ``first``'s
     intrinsics."""
     cam = first.intrinsics
     device = rs.software_device()
-    device.register_info(rs.camera_info.name, "robot-change recording (librealsense software "
-                                              "device)")
+    device.register_info(rs.camera_info.name, name)
     device.register_info(rs.camera_info.serial_number, serial)
     sensor = device.add_sensor("Stereo Module")
     intrinsics = rs.intrinsics()

@@ -79,7 +79,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
         if format == "realsense":
             from hw.realsense_record import write_realsense_recording
 
-            return write_realsense_recording(out_path, everything, fps=fps, on_frame=tell)
+            return write_realsense_recording(out_path, everything, fps=fps, on_frame=tell,
+                                             name=getattr(source, "info", {}).get("name"))
         return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell)
 
 

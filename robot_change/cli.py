@@ -26,7 +26,7 @@ from hw.pointfile import POINT_FORMATS, write_points
 from robot_change import validate
 from robot_change.change.mount import CameraMount
 from robot_change.errors import ConfigError, InputError, RobotChangeError
-from robot_change.noise.profile import BUILTIN, DEFAULT_PROFILE
+from robot_change.noise.profile import AUTO_PROFILE, BUILTIN, DEFAULT_PROFILE
 
 #: Exit status for a configuration error (sysexits' EX_CONFIG); the unit file names it in
 #: RestartPreventExitStatus.  Kept equal to robot_change.service.config.EXIT_CONFIG (a test checks).
@@ -317,9 +317,12 @@ def _is_scene_file(target: str) -> bool:
 
 
 def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
-    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter)."""
+    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter).  The
+    camera's model, when the source names one, is kept in ``_CAMERA_MODEL[uri]`` (the
+    ``auto`` noise profile)."""
     read: list[DepthFrame] = []
     with open_depth(uri) as source:
+        _CAMERA_MODEL[uri] = (getattr(source, "info", None) or {}).get("name") or None
         for frame in source:
             read.append(frame)
             if len(read) == frames:
@@ -338,14 +341,19 @@ def _scene_params(args: argparse.Namespace):
     return SceneParams(cloud=_cloud_params(args))
 
 
-def _profile(args: argparse.Namespace):
-    """``--profile``: a built-in profile's name or a profile file (robot_change.noise)."""
+#: depth URI -> the camera model its source named (the ``auto`` profile of the frames read)
+_CAMERA_MODEL: dict[str, str | None] = {}
+
+
+def _profile(args: argparse.Namespace, uri: str | None = None):
+    """``--profile``: a built-in profile's name, ``auto`` (that of the camera model the source
+    ``uri`` named) or a profile file (robot_change.noise)."""
     from robot_change.noise.profile import resolve_profile
 
     name = args.profile
     if name.lower().endswith(".json") or "/" in name:
         return resolve_profile(path=name)
-    return resolve_profile(name)
+    return resolve_profile(name, camera=_CAMERA_MODEL.get(uri or ""))
 
 
 def _reference_scene(args: argparse.Namespace):
@@ -357,7 +365,7 @@ def _reference_scene(args: argparse.Namespace):
         return SceneModel.load(args.reference)
     frames = _read_frames(args.reference, args.frames)
     return build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
-                       source=args.reference, noise=_profile(args))
+                       source=args.reference, noise=_profile(args, args.reference))
 
 
 def _current_input(args: argparse.Namespace, reference):
@@ -383,7 +391,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     mount = CameraMount.parse(args.mount) if args.mount else None
     frames = _read_frames(args.source, args.frames)
     scene = build_scene(frames, _scene_params(args), intrinsics=_camera(frames, args.intrinsics),
-                        source=args.source, mount=mount, noise=_profile(args))
+                        source=args.source, mount=mount, noise=_profile(args, args.source))
     scene.save(args.out)
     limit = _limit_of(scene)
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
@@ -414,9 +422,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Measure a still camera's noise and write its profile (robot_change.tools.calibrate)."""
     from robot_change.tools.calibrate import calibrate, calibration_summary
 
-    base = _profile(args)
     out = Path(args.out)
     with open_depth(args.source) as source:
+        _CAMERA_MODEL[args.source] = (getattr(source, "info", None) or {}).get("name") or None
+        base = _profile(args, args.source)
         profile, noise, seconds = calibrate(source, base, out, args.frames)
     summary = calibration_summary(profile, base, noise, seconds, out)
     if args.json:
@@ -700,8 +709,10 @@ def _count(text: str) -> int:
 FORMAT_HELP = ("npy (default: (M,3) float32, camera optical frame), pcd (binary) or ply; "
                ".pcd / .ply are in base_link when the camera's --mount is known, else in the "
                "camera optical frame, and say which (PCD VIEWPOINT, PLY comment)")
-PROFILE_HELP = (f"the camera's noise: a built-in profile ({', '.join(BUILTIN)}; default "
-                f"{DEFAULT_PROFILE}) or a file written by `robot-change calibrate`")
+PROFILE_HELP = (f"the camera's noise: a built-in profile ({', '.join(BUILTIN)}), "
+                f"{AUTO_PROFILE} (default: the camera model's own, as its driver names it; "
+                f"{DEFAULT_PROFILE} for recordings, images and bags that name none) or a file "
+                "written by `robot-change calibrate`")
 MOUNT_HELP = ("the camera on the base: x,y,z,roll,pitch,yaw of its body frame (x forward, y "
               "left, z up) in base_link, metres and degrees; .pcd / .ply points are then "
               "written in base_link")
@@ -782,7 +793,7 @@ def build_parser() -> argparse.ArgumentParser:
     capture.add_argument("--format", choices=POINT_FORMATS,
                          help="also write the clean cloud beside --out (REF.scene.pcd, .ply or "
                          ".npy); " + FORMAT_HELP.split("; ", 1)[1])
-    capture.add_argument("--profile", default=DEFAULT_PROFILE, help=PROFILE_HELP)
+    capture.add_argument("--profile", default=AUTO_PROFILE, help=PROFILE_HELP)
     capture.set_defaults(func=cmd_capture)
 
     calibrate = commands.add_parser("calibrate", help="measure a still camera's noise and "
@@ -792,10 +803,11 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--out", required=True, help="the profile file to write (JSON)")
     calibrate.add_argument("--frames", type=_count, default=30,
                            help="frames to read (default 30: 1 s at 30 fps)")
-    calibrate.add_argument("--profile", default=DEFAULT_PROFILE,
+    calibrate.add_argument("--profile", default=AUTO_PROFILE,
                            help="the built-in profile of this kind of camera (its principle, "
                            "range and the shape of its noise beyond the measured depths; "
-                           f"default {DEFAULT_PROFILE})")
+                           f"default {AUTO_PROFILE}: the camera model's own, {DEFAULT_PROFILE} "
+                           "for a source that names none)")
     calibrate.add_argument("--json", action="store_true", help="print one JSON object")
     calibrate.set_defaults(func=cmd_calibrate)
 
@@ -811,7 +823,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "else OpenNI's VGA default)")
     detect.add_argument("--leaf", type=float,
                         help="voxel size in metres for a reference built from a URI")
-    detect.add_argument("--profile", default=DEFAULT_PROFILE,
+    detect.add_argument("--profile", default=AUTO_PROFILE,
                         help=PROFILE_HELP + " (a reference from a file keeps its own)")
     detect.add_argument("--method", choices=("novelty", "plain", "geometric", "nn"),
                         default="novelty", help="ours (default), the paper's plain method, or a "

@@ -109,6 +109,22 @@ def test_unknown_profiles_and_bad_fields_are_refused():
         NoiseProfile.from_dict({**good, "gain": 2})
 
 
+def test_auto_picks_the_profile_of_the_camera_model_its_driver_names():
+    from robot_change.noise.profile import profile_for_camera, resolve_profile
+
+    models = {"Intel RealSense D435": "realsense_d435", "Intel RealSense D435I":
+              "realsense_d435", "Intel RealSense D415": "realsense_d415",
+              "Intel RealSense D455": "realsense_d455", "Intel RealSense D457": "realsense_d455",
+              "PS1080": "xtion", "Xtion PRO LIVE": "xtion", "Kinect": "kinect_v1",
+              "Orbbec Astra Pro": "orbbec_astra", "Azure Kinect DK": "azure_kinect",
+              "Intel RealSense D405": "kinect_v1", "robot-change recording": "kinect_v1",
+              None: "kinect_v1", "": "kinect_v1"}
+    for model, name in models.items():
+        assert profile_for_camera(model) == name, model
+        assert resolve_profile("auto", camera=model).name == name
+    assert resolve_profile("xtion", camera="Intel RealSense D435").name == "xtion"  # named wins
+
+
 def test_a_profile_file_round_trips_and_a_bad_one_names_the_file(tmp_path):
     raised = KINECT.raised_by(((2.0, 0.05, 900), (3.0, 0.06, 900)), "test", tolerance=1.0)
     path = raised.save(tmp_path / "camera.json")

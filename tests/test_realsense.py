@@ -223,13 +223,15 @@ def reader_pids(parent: int) -> list[int]:
 
 
 def test_the_daemon_captures_checks_and_watches_on_a_looped_recording(tmp_path):
-    """The daemon's camera is a RealSense recording played in a loop at 30 fps: CAPTURE, CHECKs
-    that are CLEAR (the same room), a WATCH that never pauses, and a reader killed mid-WATCH
-    replaced without a FAULT (a recording resumes; only a camera that is gone is a fault)."""
+    """The daemon's camera is a RealSense recording played in a loop at 30 fps: CAPTURE (with
+    the D435's noise profile, as the recording names its camera), CHECKs that are CLEAR (the
+    same room), a WATCH that never pauses, and a reader killed mid-WATCH replaced without a
+    FAULT (a recording resumes; only a camera that is gone is a fault)."""
     from daemon_rig import Daemon
 
     recording = tmp_path / "room.db3"  # the room as it stays: the fixture's reference frames
-    write_realsense_recording(recording, read_oni_frames(SCENE / "reference.oni"))
+    write_realsense_recording(recording, read_oni_frames(SCENE / "reference.oni"),
+                              name="Intel RealSense D435")
     with Daemon(tmp_path / "d", source=f"realsense:{recording}?loop=1&rate=30") as d:
         d.wait_for("READY=1")
         script = ("capture room\nexpect CAPTURED station=room 20\n"
@@ -247,3 +249,5 @@ def test_the_daemon_captures_checks_and_watches_on_a_looped_recording(tmp_path):
         assert not [e for e in got if e.name in ("PAUSE", "REPORT", "FAULT")]
         results = [e.obj for e in got if e.name == "CHECK_RESULT"]
         assert len(results) == 3 and all(r.outcome.name == "NO_CHANGE" for r in results)
+        captured = next(e.obj for e in got if e.name == "CAPTURED")
+        assert captured.noise.startswith("realsense_d435")  # [camera] profile = auto

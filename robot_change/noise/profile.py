@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from robot_change.errors import BadValue, InputError
 
 __all__ = [
     "BUILTIN",
+    "AUTO_PROFILE",
     "DEFAULT_PROFILE",
     "NoiseProfile",
     "PRINCIPLES",
@@ -46,6 +48,7 @@ __all__ = [
     "TABLE_STEP_M",
     "TABLE_END_M",
     "builtin_profile",
+    "profile_for_camera",
     "resolve_profile",
     "sigma_table",
 ]
@@ -369,12 +372,35 @@ def builtin_profile(name: str) -> NoiseProfile:
                        f"one of the built-in profiles ({', '.join(sorted(BUILTIN))})") from None
 
 
-def resolve_profile(name: str = DEFAULT_PROFILE, path=None) -> NoiseProfile:
+#: The profile named by the camera itself: the built-in one of the model its driver reports
+#: (:func:`profile_for_camera`), :data:`DEFAULT_PROFILE` when it reports none (a recording, an
+#: image folder, a bag) or one without a built-in profile.
+AUTO_PROFILE = "auto"
+#: A camera model as its driver names it (a pattern) -> its built-in profile.
+_CAMERA_MODELS = (
+    (r"\bD415\b", "realsense_d415"), (r"\bD43[05]i?\b", "realsense_d435"),
+    (r"\bD45[5-7]\b", "realsense_d455"), (r"Azure Kinect", "azure_kinect"),
+    (r"\bAstra", "orbbec_astra"), (r"Xtion|Carmine|PrimeSense|PS1080", "xtion"),
+    (r"Kinect", "kinect_v1"),
+)
+
+
+def profile_for_camera(model: str | None) -> str:
+    """The built-in profile of a camera ``model`` as its driver names it ("Intel RealSense
+    D435", "PS1080", "Kinect"); :data:`DEFAULT_PROFILE` for no model or an unknown one."""
+    for pattern, name in _CAMERA_MODELS:
+        if model and re.search(pattern, model, re.IGNORECASE):
+            return name
+    return DEFAULT_PROFILE
+
+
+def resolve_profile(name: str = DEFAULT_PROFILE, path=None,
+                    camera: str | None = None) -> NoiseProfile:
     """The profile to use: the measured one in the file ``path`` when given (it wins), else
-    the built-in ``name``."""
+    the built-in ``name``; ``"auto"``: the built-in one of the ``camera`` model."""
     if path is not None:
         return NoiseProfile.load(path)
-    return builtin_profile(name)
+    return builtin_profile(profile_for_camera(camera) if name == AUTO_PROFILE else name)
 
 
 @functools.lru_cache(maxsize=16)

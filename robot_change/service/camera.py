@@ -122,6 +122,8 @@ class CameraThread:
         self.error = ""
         self.losses = 0
         self.uri = ""
+        #: the camera's model as its driver names it (None: the source names none)
+        self.model: str | None = None
         self._arrivals: collections.deque[float] = collections.deque(maxlen=31)
 
     def swap(self, camera: DepthSource | Callable[[], DepthSource]) -> None:
@@ -147,7 +149,8 @@ class CameraThread:
         source = cam if isinstance(cam, DepthSource) else cam()
         source.open()
         self.uri = getattr(source, "uri", "") or type(source).__name__
-        log.info("camera %s open", self.uri)
+        self.model = (getattr(source, "info", None) or {}).get("name") or None
+        log.info("camera %s open%s", self.uri, f" ({self.model})" if self.model else "")
         return source
 
     def run(self) -> None:

@@ -38,6 +38,7 @@ from robot_change.export.live import DEFAULT_HOST, DEFAULT_PORT
 from robot_change.fleet.connection import BrokerSettings
 from robot_change.link.protocol import PARAM_BY_NAME, PARAMS
 from robot_change.noise.profile import (
+    AUTO_PROFILE,
     BUILTIN,
     DEFAULT_PROFILE,
     NoiseProfile,
@@ -124,8 +125,10 @@ class CameraConfig(_Section):
     mount_rpy_deg: tuple = _key((0.0, 0.0, 0.0), _triple(180.0, " degrees"),
                                 "the camera on the base: roll, pitch, yaw of its body frame in "
                                 "base_link, degrees (a camera tilted down 10 deg: [0, 10, 0])")
-    profile: str = _key(DEFAULT_PROFILE, _choice(tuple(BUILTIN)),
-                        "the camera's noise, a built-in profile: " + ", ".join(BUILTIN))
+    profile: str = _key(AUTO_PROFILE, _choice((AUTO_PROFILE, *BUILTIN)),
+                        "the camera's noise, a built-in profile: " + ", ".join(BUILTIN)
+                        + f"; {AUTO_PROFILE}: the one of the camera's model as its driver names "
+                        f"it ({DEFAULT_PROFILE} when it names none: recordings, images, bags)")
     profile_file: str | None = _key(None, _text,
                              "a profile measured with `robot-change calibrate` (JSON); it wins "
                              "over profile; a relative path is taken from the config file's "
@@ -135,10 +138,11 @@ class CameraConfig(_Section):
         """The :class:`robot_change.change.mount.CameraMount` these keys describe."""
         return CameraMount(self.mount_xyz_m, self.mount_rpy_deg)
 
-    def noise_profile(self) -> NoiseProfile:
+    def noise_profile(self, camera: str | None = None) -> NoiseProfile:
         """The camera's noise profile: the measured one in ``profile_file`` when set, else the
-        built-in ``profile`` (:class:`ProfileFileError` for a file that cannot be read)."""
-        return resolve_profile(self.profile, self.profile_file)
+        built-in ``profile`` (``auto``: the one of the ``camera`` model the source reports);
+        :class:`ProfileFileError` for a file that cannot be read."""
+        return resolve_profile(self.profile, self.profile_file, camera)
 
 
 @dataclasses.dataclass(frozen=True)

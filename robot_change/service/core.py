@@ -927,7 +927,7 @@ class Service:
         t0 = time.perf_counter()
         model = scene.build_scene(frames, scene_params(self.config, self.params),
                                   source=self.camera_uri, mount=self.config.camera.mount(),
-                                  noise=self.config.camera.noise_profile())
+                                  noise=self.config.camera.noise_profile(self.camera.model))
         path = self.store.save(station, model)
         limit = detection_limit(model.depth, model.noise, change_params(self.config, self.params),
                                 model.params.cloud.leaf_m, model.intrinsics.fx).median_m
