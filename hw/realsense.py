@@ -40,6 +40,7 @@ import numpy as np
 from hw.depth import Intrinsics
 from hw.errors import DepthFileError, FrameError, UriError
 from hw.options import flag, positive
+from hw.realsense_bag import DEPTH_TOPIC, float32_decimal, stream_fps
 from hw.rosbag import open_bag
 from hw.supervised import (
     ChildFailure,
@@ -55,7 +56,6 @@ __all__ = ["PRESETS", "RealSenseSource", "list_devices", "open_realsense"]
 #: The D4xx visual presets by the names the option takes (rs.rs400_visual_preset).
 PRESETS = ("custom", "default", "hand", "high_accuracy", "high_density", "medium_density",
            "remove_ir_pattern")
-_DEPTH_TOPIC = re.compile(r"^/device_\d+/sensor_\d+/Depth_\d+/image/data(/compressedDepth)?$")
 _NO_CAMERA_HINT = ("Check the USB 3 cable and port (a D4xx on USB 2 offers fewer modes) and "
                    "that the user may access the camera (librealsense's udev rules, "
                    "99-realsense-libusb.rules).")
@@ -147,8 +147,9 @@ class _RealSenseFeed(FrameFeed):
         described = {key: (str(device.get_info(info)) if device.supports(info) else None)
                      for key, info in names.items()}
         return {"width": self.width, "height": self.height, "fps": int(stream.fps()),
-                "fx": _decimal(camera.fx), "fy": _decimal(camera.fy), "cx": _decimal(camera.ppx),
-                "cy": _decimal(camera.ppy), "distortion": str(camera.model), "coeffs": coeffs,
+                "fx": float32_decimal(camera.fx), "fy": float32_decimal(camera.fy),
+                "cx": float32_decimal(camera.ppx), "cy": float32_decimal(camera.ppy),
+                "distortion": str(camera.model), "coeffs": coeffs,
                 "depth_units_m": self.units_mm / 1000.0, "uri": spec["target"],
                 "mode_note": note, **described}
 
@@ -215,12 +216,6 @@ class _RealSenseFeed(FrameFeed):
             self.pipeline.stop()
 
 
-def _decimal(value: float) -> float:
-    """librealsense's float32 as the shortest decimal that is that float32 (612.4, not
-    612.4000244140625)."""
-    return float(np.format_float_positional(np.float32(value), unique=True, trim="-"))
-
-
 # =================================================================================================
 # the parent side
 # =================================================================================================
@@ -253,8 +248,8 @@ class RealSenseSource(SupervisedSource):
         reader = open_bag(path)
         try:
             topics = {name: info.msgcount for name, info in reader.topics.items()
-                      if _DEPTH_TOPIC.match(name)}
-            fps = _stream_fps(reader, min(topics, default=""))
+                      if DEPTH_TOPIC.match(name)}
+            fps = stream_fps(reader, min(topics, default=""))
         finally:
             reader.close()
         if not topics or not max(topics.values()):
@@ -278,19 +273,6 @@ class RealSenseSource(SupervisedSource):
 
     def _backend_hint(self) -> str:
         return "install the realsense extra (pip install pyrealsense2)"
-
-
-def _stream_fps(reader: Any, depth_topic: str) -> float:
-    """The fps a librealsense 2.59+ recording gives its depth stream (``<stream>/info``, a
-    string ``encoding=Z16;fps=30``); 30 when it is not there."""
-    stream = depth_topic.split("/image/")[0]
-    info = reader.topics.get(stream + "/info")
-    if info is None or info.msgtype != "std_msgs/msg/String":
-        return 30.0
-    first = next(reader.messages(connections=info.connections), None)
-    text = "" if first is None else str(reader.deserialize(first[2], info.msgtype).data)
-    match = re.search(r"(?:^|;)fps=(\d+(?:\.\d+)?)", text)
-    return float(match.group(1)) if match and float(match.group(1)) > 0 else 30.0
 
 
 # =================================================================================================

@@ -13,9 +13,10 @@ readings <= 0 and beyond 65.535 m become 0, "no reading"), as REP 118 defines th
 (``.../compressedDepth``: PNG or RVL after its 12-byte header, 16UC1 or quantised 32FC1; or the
 ``compressed`` transport's 16-bit PNG), decoded by :mod:`hw.compressed_depth`; a payload that
 cannot be decoded is a :class:`FrameError` naming the bag, the topic and the message's index.
-RealSense recordings of librealsense 2.59 and later (a ROS 2 ``.db3``) read as they are: their
-depth is ``/device_0/sensor_0/Depth_0/image/data/compressedDepth`` and its samples are scaled
-from the sensor's ``Depth_Units`` option to millimetres.
+RealSense recordings read as they are (:mod:`hw.realsense_bag`: a ROS 2 ``.db3`` of
+librealsense 2.59 and later, a ROS 1 ``.bag`` before, its ``mono16`` depth and its CameraInfo
+where librealsense keeps it), the samples scaled from the sensor's ``Depth_Units`` to
+millimetres.
 
 Intrinsics come from the ``sensor_msgs/CameraInfo`` beside the image topic (the same namespace's
 ``camera_info``: ``/camera/depth/image_raw`` -> ``/camera/depth/camera_info``, and the same for
@@ -35,10 +36,10 @@ keep increasing), as the other file sources do (:mod:`hw.options`).
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import logging
-import math
 import os
-import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -51,6 +52,13 @@ from hw.compressed_depth import COMPRESSED_TYPE, decode_compressed_depth, depth_
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, UriError
 from hw.options import Pacer, flag, positive
+from hw.realsense_bag import (
+    camera_info_topics,
+    depth_units_m,
+    float32_decimal,
+    is_realsense_depth,
+    lenient_ros1,
+)
 
 try:  # the backend's library: hw.depth.open_depth reports it missing with what to install
     from rosbags.highlevel import AnyReader
@@ -68,7 +76,9 @@ INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 #: Depth encodings read (REP 118): unit of a sample.
 DEPTH_ENCODINGS = {"16UC1": "mm", "32FC1": "m"}
 #: Distortion models that are a plain pinhole when all their coefficients are zero.
-PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "none", "")
+PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "none", "",
+                  # librealsense's names (its recordings' CameraInfo)
+                  "Brown Conrady", "Modified Brown Conrady", "Inverse Brown Conrady")
 #: What :func:`write_rosbag2` names things, as the openni2_camera / realsense ROS drivers do.
 DEFAULT_TOPIC = "/camera/depth/image_raw"
 DEFAULT_FRAME_ID = "camera_depth_optical_frame"
@@ -225,11 +235,13 @@ class RosbagSource(DepthSource):
         elif self.topic not in topics or \
                 topics[self.topic].msgtype not in (IMAGE_TYPE, COMPRESSED_TYPE):
             what = ("no topic" if self.topic not in topics else
-                    f"{topics[self.topic].msgtype} (not a sensor_msgs/Image) on")
+                    f"{topics[self.topic].msgtype} (not a sensor_msgs/Image or "
+                    "CompressedImage) on")
             raise DepthFileError(f"{self.path}: {what} {self.topic}. " + self._listing())
         self._connections = list(topics[self.topic].connections)
         self._compressed = topics[self.topic].msgtype == COMPRESSED_TYPE
-        self._scale = self._realsense_units() * 1000.0
+        self._scale = (depth_units_m(self._reader, self.topic, str(self.path)) * 1000.0
+                       if is_realsense_depth(self.topic) else 1.0)
 
     def _image_topic(self) -> str:
         """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""
@@ -237,23 +249,6 @@ class RosbagSource(DepthSource):
         topic = self.topic.rstrip("/")
         return topic.rsplit("/", 1)[0] if self._compressed else topic
 
-    def _realsense_units(self) -> float:
-        """Metres per sample of a librealsense recording's depth (its sensor's Depth_Units
-        option), else 0.001 (millimetres, REP 118)."""
-        match = re.match(r"^(/device_\d+/sensor_\d+)/Depth_\d+/", self.topic or "")
-        option = match and self._reader.topics.get(match.group(1) + "/option/Depth_Units/value")
-        if not option:
-            return 0.001
-        first = next(self._reader.messages(connections=option.connections), None)
-        text = "" if first is None else str(self._deserialize(first).data)
-        try:
-            units = float(text)
-        except ValueError:
-            units = math.nan
-        if not (math.isfinite(units) and 1e-6 <= units <= 0.1):
-            raise DepthFileError(f"{self.path}: the RealSense depth units {text!r} on "
-                                 f"{match.group(1)}/option/Depth_Units/value make no sense")
-        return units
 
     def _image_topics(self) -> dict[str, tuple[str, bool]]:
         """Every sensor_msgs/Image and CompressedImage topic -> (the encoding or format of its
@@ -267,7 +262,8 @@ class RosbagSource(DepthSource):
                 found[name] = ("", False)
             elif info.msgtype == IMAGE_TYPE:
                 encoding = str(self._deserialize(first).encoding)
-                found[name] = (encoding, encoding in DEPTH_ENCODINGS)
+                found[name] = (encoding, encoding in DEPTH_ENCODINGS or
+                               (encoding == "mono16" and is_realsense_depth(name)))
             else:
                 text = str(self._deserialize(first).format)
                 found[name] = (text, depth_format(text) is not None)
@@ -304,6 +300,9 @@ class RosbagSource(DepthSource):
             return given
         topics = self._reader.topics
         info_topic = self.info_topic or self._image_topic().rsplit("/", 1)[0] + "/camera_info"
+        if not self.info_topic and is_realsense_depth(self.topic):
+            info_topic = next((name for name in camera_info_topics(self.topic)
+                               if name in topics), info_topic)
         if info_topic not in topics or topics[info_topic].msgtype != INFO_TYPE:
             infos = sorted(name for name, info in topics.items() if info.msgtype == INFO_TYPE)
             looked = f"?info={info_topic}" if self.info_topic else f"{info_topic} (beside it)"
@@ -321,6 +320,9 @@ class RosbagSource(DepthSource):
         info = self._deserialize(first)
         intrinsics = intrinsics_from_camera_info(info, size, self.rectified,
                                                  f"{self.path} {info_topic}")
+        if is_realsense_depth(self.topic):  # librealsense's float32s, as librealsense gives them
+            intrinsics = dataclasses.replace(intrinsics, **{
+                key: float32_decimal(getattr(intrinsics, key)) for key in ("fx", "fy", "cx", "cy")})
         self._info_key = _info_key(info)
         return intrinsics
 
@@ -369,16 +371,21 @@ class RosbagSource(DepthSource):
         try:
             return self._reader.deserialize(raw, connection.msgtype)
         except Exception as exc:  # noqa: BLE001 - the library's own errors, on a broken message
+            if not self._reader.is2 and is_realsense_depth(connection.topic):
+                with contextlib.suppress(Exception):  # librealsense's ROS 1 Image slack
+                    return lenient_ros1(self._reader.typestore, raw, connection.msgtype)
             raise DepthFileError(f"{self.path}: a {connection.msgtype} message on "
                                  f"{connection.topic} cannot be decoded "
                                  f"({type(exc).__name__}: {exc})") from None
 
     def _depth(self, message: Any, index: int) -> np.ndarray:
         """The (H, W) uint16 millimetres of image message number ``index`` of the topic."""
-        if not self._compressed:
-            return image_to_depth(message, f"{self.path} {self.topic}")
-        depth = decode_compressed_depth(message.format, message.data,
-                                        f"{self.path} {self.topic} message {index}")
+        if self._compressed:
+            depth = decode_compressed_depth(message.format, message.data,
+                                            f"{self.path} {self.topic} message {index}")
+        else:
+            depth = image_to_depth(message, f"{self.path} {self.topic}",
+                                   mono16=is_realsense_depth(self.topic))
         if self._scale != 1.0:
             millimetres = np.floor(depth * self._scale + 0.5)
             depth = np.where(millimetres <= 65535, millimetres, 0).astype(np.uint16)
@@ -424,11 +431,14 @@ def open_bag(path: Path) -> Any:
     return reader
 
 
-def image_to_depth(message: Any, where: str) -> np.ndarray:
+def image_to_depth(message: Any, where: str, mono16: bool = False) -> np.ndarray:
     """A sensor_msgs/Image in 16UC1 (mm) or 32FC1 (m) -> (H, W) uint16 millimetres, 0 = no
-    reading.  Rows are read with the message's ``step`` and byte order.  Raises
-    :class:`DepthFileError` for another encoding or too little data."""
+    reading; ``mono16``: a mono16 image is depth too (a librealsense recording's).  Rows are
+    read with the message's ``step`` and byte order.  Raises :class:`DepthFileError` for
+    another encoding or too little data."""
     encoding = str(message.encoding)
+    if mono16 and encoding == "mono16":
+        encoding = "16UC1"
     if encoding not in DEPTH_ENCODINGS:
         raise DepthFileError(f"{where}: encoding {encoding!r} is not depth; depth images are "
                              "16UC1 (millimetres) or 32FC1 (metres)")

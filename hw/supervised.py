@@ -24,8 +24,8 @@ Recordings play frame by frame in lockstep: no frame is dropped however slow the
 from the start after the last frame, indices and timestamps increasing), ``rate=`` paces it.
 
 A backend gives a :class:`FrameFeed` (what the reader process does: open, wait for a frame,
-stop; :mod:`hw.supervised_child` serves it) and a :class:`SupervisedSource` subclass (how to describe it, its intrinsics, its
-reader's spec); everything else is here.
+stop; :mod:`hw.supervised_child` serves it) and a :class:`SupervisedSource` subclass (how to
+describe it, its intrinsics, its reader's spec); everything else is here.
 """
 
 from __future__ import annotations
@@ -538,7 +538,8 @@ class SupervisedSource(DepthSource):
                 how = self._proc.describe_exit()
                 if self.kind == "file":
                     raise DepthFileError(f"{self.uri}: the {self.library} player {how} while "
-                                         "opening the recording (its header was checked and is valid)")
+                                         "opening the recording (its header was checked and is "
+                                         "valid)")
                 raise DeviceError(f"{self.uri}: the {self.library} reader {how} while opening "
                                   "the camera")
             raise DeviceError(f"{self.uri}: the {self.library} reader did not open the {what} "

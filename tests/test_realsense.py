@@ -67,6 +67,19 @@ def test_a_recording_plays_in_librealsense_exactly_and_the_bag_backend_reads_the
     assert [f.timestamp_us for f in played] == [1_000_000 + k * 33_333 for k in range(12)]
 
 
+def test_a_ros1_recording_of_older_librealsense_plays_as_the_bag_backend_reads_it():
+    """A .bag that librealsense 2.56 wrote (sim_fixtures/realsense) plays in librealsense 2.59
+    and reads through the bag backend: the same frames, the same camera."""
+    folder = SIM_FIXTURES / "realsense"
+    expected = np.load(folder / "d435_ros1.npy")
+    for uri in (f"realsense:{folder / 'd435_ros1.bag'}", f"rosbag:{folder / 'd435_ros1.bag'}"):
+        with open_depth(uri) as source:
+            frames = list(source)
+            assert source.intrinsics == Intrinsics(64, 48, 57.6, 57.6, 31.5, 23.5), uri
+        assert [f.index for f in frames] == list(range(len(expected))), uri
+        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected)), uri
+
+
 def test_depth_units_are_converted_to_millimetres(tmp_path, twelve):
     tenths = [np.minimum(d.astype(np.uint32) * 10, 65535).astype(np.uint16) for d in twelve[:2]]
     path = tmp_path / "d405.db3"

@@ -464,3 +464,18 @@ def test_cli_record_format_choices_and_bad_bags_are_one_line_errors(tmp_path):
     result = run("cloud", "--source", str(tmp_path / "noise.bag"))
     assert result.returncode == 2 and "not a readable ROS bag" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_a_realsense_ros1_recording_reads_without_librealsense():
+    """librealsense before 2.58 recorded a ROS 1 .bag: mono16 depth (with 4 bytes of slack
+    after each Image that rosbags refuses), the CameraInfo under info/, 'Brown Conrady' with
+    zero coefficients; written by librealsense 2.56 itself (sim_fixtures/realsense)."""
+    folder = SIM_FIXTURES / "realsense"
+    with open_depth(str(folder / "d435_ros1.bag")) as source:
+        frames = list(source)
+        assert source.topic == "/device_0/sensor_0/Depth_0/image/data"
+        assert source.intrinsics == Intrinsics(64, 48, 57.6, 57.6, 31.5, 23.5)
+    expected = np.load(folder / "d435_ros1.npy")
+    assert len(frames) == len(expected)
+    assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected))
+    assert [f.index for f in frames] == list(range(len(expected)))
