@@ -40,7 +40,7 @@ import numpy as np
 from hw.depth import Intrinsics
 from hw.errors import DepthFileError, FrameError, UriError
 from hw.options import flag, positive
-from hw.realsense_bag import DEPTH_TOPIC, float32_decimal, stream_fps
+from hw.realsense_bag import DEPTH_TOPIC, float32_decimal, stream_fps, to_millimetres
 from hw.rosbag import open_bag
 from hw.supervised import (
     ChildFailure,
@@ -200,11 +200,8 @@ class _RealSenseFeed(FrameFeed):
         if not depth:
             return None
         samples = np.asanyarray(depth.get_data())
-        if abs(self.units_mm - 1.0) < 1e-6:
-            self.buffer[...] = samples
-        else:
-            millimetres = np.floor(samples * self.units_mm + 0.5)
-            self.buffer[...] = np.where(millimetres <= 65535, millimetres, 0)
+        self.buffer[...] = (samples if abs(self.units_mm - 1.0) < 1e-6 else
+                            to_millimetres(samples, self.units_mm))
         return self.buffer, int(depth.get_frame_number()), round(depth.get_timestamp() * 1000)
 
     def simulate_loss(self) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 from hw.errors import DepthFileError
 
 __all__ = ["DEPTH_TOPIC", "camera_info_topics", "depth_units_m", "float32_decimal",
-           "is_realsense_depth", "lenient_ros1", "stream_fps"]
+           "is_realsense_depth", "lenient_ros1", "stream_fps", "to_millimetres"]
 
 #: A librealsense recording's depth image topic (raw, or compressedDepth since 2.59).
 DEPTH_TOPIC = re.compile(r"^(/device_\d+/sensor_\d+)/Depth_\d+/image/data(/compressedDepth)?$")
@@ -80,6 +80,13 @@ def stream_fps(reader: Any, topic: str) -> float:
         return 30.0
     found = re.search(r"(?:^|;)fps=(\d+(?:\.\d+)?)", text)
     return float(found.group(1)) if found and float(found.group(1)) > 0 else 30.0
+
+
+def to_millimetres(samples: np.ndarray, mm_per_sample: float) -> np.ndarray:
+    """(H, W) depth samples in another unit -> (H, W) uint16 mm, rounded; beyond 65.535 m is 0
+    (no reading)."""
+    millimetres = np.floor(samples * mm_per_sample + 0.5)
+    return np.where(millimetres <= 65535, millimetres, 0).astype(np.uint16)
 
 
 def float32_decimal(value: float) -> float:

@@ -58,6 +58,7 @@ from hw.realsense_bag import (
     float32_decimal,
     is_realsense_depth,
     lenient_ros1,
+    to_millimetres,
 )
 
 try:  # the backend's library: hw.depth.open_depth reports it missing with what to install
@@ -386,9 +387,8 @@ class RosbagSource(DepthSource):
         else:
             depth = image_to_depth(message, f"{self.path} {self.topic}",
                                    mono16=is_realsense_depth(self.topic))
-        if self._scale != 1.0:
-            millimetres = np.floor(depth * self._scale + 0.5)
-            depth = np.where(millimetres <= 65535, millimetres, 0).astype(np.uint16)
+        if abs(self._scale - 1.0) > 1e-6:  # (librealsense's 1 mm is a float32's 0.001)
+            depth = to_millimetres(depth, self._scale)
         return depth
 
     def _check_size(self, depth: np.ndarray) -> None:
