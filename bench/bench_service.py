@@ -525,14 +525,16 @@ def _readers(pid: int) -> list[int]:
     return out
 
 
-def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni") -> dict:
+def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni",
+                compress: bool = True) -> dict:
     """``robot-change run`` as a subprocess watching the looped reference.oni at 30 fps for
     ``seconds`` (counted from WATCHING), then SIGTERM; ``camera="realsense"``: the same frames
     as a RealSense recording written by librealsense, played by it (``realsense:FILE``).  RSS
     growth is from ``warmup`` s (default: 10 % of the run, at least 10 s) to the end.  Returns
     the figures as a dict (``accounted``: received == processed + dropped + queued == the
     source's delivered; ``reader_cpu_pct``: the reader's CPU time over the soak, % of one
-    core)."""
+    core).  ``compress``: the RealSense recording's depth as compressedDepth PNG (librealsense's
+    default), else raw."""
     warmup = max(10.0, 0.1 * seconds) if warmup is None else warmup
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -541,7 +543,8 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
             from hw.oni import read_oni_frames
             from hw.realsense_record import write_realsense_recording
 
-            write_realsense_recording(tmp / "room.db3", read_oni_frames(SCENE / "reference.oni"))
+            write_realsense_recording(tmp / "room.db3", read_oni_frames(SCENE / "reference.oni"),
+                                      compress=compress)
             source = f"realsense:{tmp / 'room.db3'}?loop=1&rate=30"
         daemon = Daemon(tmp, observe=tmp / "counts.json", source=source)
         code: int | None = None
@@ -586,7 +589,7 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
             **_rss_growth(samples, warmup), "reader_pids": len(readers),
             "longest_heartbeat_gap_s": round(max(gaps), 3),
             "heartbeat_states": seen["states"], "messages": seen["messages"],
-            "camera": camera, "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
+            "camera": camera, "compressed": compress, "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
             "frames": frames, "source_delivered": delivered,
             "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
             "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],
@@ -607,6 +610,8 @@ def main() -> int:
     parser.add_argument("--soak-camera", choices=("oni", "realsense"), default="oni",
                         help="soak-daemon's camera: the looped .oni through OpenNI2, or the same "
                         "frames as a RealSense recording through librealsense")
+    parser.add_argument("--soak-raw", action="store_true",
+                        help="with --soak-camera realsense: the recording's depth raw, not PNG")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)  # the service's PAUSE warnings are expected here
@@ -623,7 +628,8 @@ def main() -> int:
     if "soak" in only and args.soak_seconds > 0:
         result["soak"] = bench_soak(args.soak_seconds)
     if "soak-daemon" in only and args.soak_seconds > 0:
-        result["soak_daemon"] = soak_daemon(args.soak_seconds, camera=args.soak_camera)
+        result["soak_daemon"] = soak_daemon(args.soak_seconds, camera=args.soak_camera,
+                                            compress=not args.soak_raw)
     result["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(result, indent=None if args.json else 2))
     return 0

@@ -50,7 +50,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     (lossless, for unquantised depth) or ``"none"``.  ``rosbag2``: ``out_path`` is the bag's
     folder (it must not exist yet), header stamps are the frames' timestamps as they are
     (:func:`hw.rosbag.write_rosbag2`); ``realsense``: ``out_path`` ends in ``.db3``, frame
-    numbers and timestamps as they are; ``codec`` is for ``.oni`` only.  ``progress(frames, seconds,
+    numbers and timestamps as they are; ``codec`` ``"png"`` (librealsense's compressedDepth) or
+    ``"none"`` (raw Images).  ``progress(frames, seconds,
     bytes)`` is called after every frame.  Opens the source if needed; the caller closes it.
     The recording appears only when complete (written atomically); on an error nothing is
     left.
@@ -80,7 +81,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
             from hw.realsense_record import write_realsense_recording
 
             return write_realsense_recording(out_path, everything, fps=fps, on_frame=tell,
-                                             name=getattr(source, "info", {}).get("name"))
+                                             name=getattr(source, "info", {}).get("name"),
+                                             compress=codec != "none")
         return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell)
 
 

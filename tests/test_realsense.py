@@ -80,6 +80,21 @@ def test_a_ros1_recording_of_older_librealsense_plays_as_the_bag_backend_reads_i
         assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected)), uri
 
 
+def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
+    """``compress=False`` (``record --codec none``): librealsense records raw Images, which both
+    backends read as they read its PNGs."""
+    path = tmp_path / "raw.db3"
+    write_realsense_recording(path, frames_of(twelve[:4]), compress=False)
+    for uri in (f"realsense:{path}", f"rosbag:{path}"):
+        with open_depth(uri) as source:
+            frames = list(source)
+            assert source.intrinsics == CAMERA, uri
+            if uri.startswith("rosbag"):
+                assert source.topic == "/device_0/sensor_0/Depth_0/image/data"
+        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, twelve[:4])), uri
+        assert len(frames) == 4, uri
+
+
 def test_depth_units_are_converted_to_millimetres(tmp_path, twelve):
     tenths = [np.minimum(d.astype(np.uint32) * 10, 65535).astype(np.uint16) for d in twelve[:2]]
     path = tmp_path / "d405.db3"
@@ -195,15 +210,18 @@ def run(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess:
 
 
 def test_cli_record_to_db3_then_detect_gives_what_the_same_depth_as_png_gives(tmp_path):
-    """``record --out X.db3`` writes through librealsense; ``detect`` on the two recordings
-    answers as on the same frames as PNG files."""
+    """``record --out X.db3`` writes through librealsense (PNG, or raw with ``--codec none``);
+    ``detect`` on the two recordings answers as on the same frames as PNG files."""
     from sim_fixtures import load_scene
 
     scene = load_scene("office_box_added")
-    for epoch in ("reference", "current"):
+    for epoch, codec in (("reference", "png"), ("current", "none")):  # PNG and raw
         done = run("record", "--source", str(SCENE / f"{epoch}.oni"), "--out",
-                   str(tmp_path / f"{epoch}.db3"))
+                   str(tmp_path / f"{epoch}.db3"), "--codec", codec)
         assert done.returncode == 0 and "RealSense recording" in done.stdout, done.stderr
+    done = run("record", "--source", str(SCENE / "current.oni"), "--out",
+               str(tmp_path / "x.db3"), "--codec", "16zt")
+    assert done.returncode == 2 and "choose png or none" in done.stderr
     results = {}
     for kind, ref, cur in (
             ("realsense", f"realsense:{tmp_path / 'reference.db3'}",
