@@ -451,7 +451,7 @@ def test_cli_record_then_capture_and_detect_on_bags(tmp_path, depth_frames):
 def test_cli_record_format_choices_and_bad_bags_are_one_line_errors(tmp_path):
     for args, text in [
         (["record", "--source", str(SCENE / "current.oni"), "--out", str(tmp_path / "a"),
-          "--codec", "16z"], "--codec is for .oni recordings"),
+          "--codec", "16z"], "--codec 16z is not for a rosbag2 recording"),
         (["record", "--source", str(SCENE / "current.oni"), "--out", str(tmp_path / "a.mcap")],
          "a ROS 2 bag is a folder"),
         (["cloud", "--source", f"rosbag:{tmp_path / 'none.bag'}"], "no such file or folder"),
