@@ -31,6 +31,7 @@ the same frames.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import re
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from hw.depth import Intrinsics
-from hw.errors import DepthFileError, FrameError, UriError
+from hw.errors import BackendUnavailable, DepthFileError, FrameError, UriError
 from hw.options import flag, positive
 from hw.realsense_bag import DEPTH_TOPIC, float32_decimal, stream_fps, to_millimetres
 from hw.rosbag import open_bag
@@ -228,6 +229,9 @@ class RealSenseSource(SupervisedSource):
     def __init__(self, kind: str, target: str, *, resolution: tuple[int, int] = (640, 480),
                  fps: int = 30, preset: str | None = None, emitter: bool = True,
                  **options: Any) -> None:
+        if importlib.util.find_spec("pyrealsense2") is None:  # the reader would fail on it
+            raise BackendUnavailable("the RealSense backend needs librealsense's Python binding: "
+                                     + self._backend_hint())
         self.resolution, self.fps, self.preset, self.emitter = resolution, fps, preset, emitter
         uri = f"realsense:{target}" if kind == "file" else f"realsense://{target}"
         super().__init__(kind, target, uri, **options)

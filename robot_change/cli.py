@@ -234,7 +234,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         options = ServiceOptions(report_dir=Path(config.store.state_dir) / "reports",
                                  stall_after_s=stall_bound(systemd.watchdog_interval()))
         service = Service(config, make_camera(config), port, store, options)
-        status = run_service(service, load=lambda: load_checked_config(args.config),
+        status = run_service(service, load=lambda: load_checked_config(args.config, reload=True),
                              make_camera=make_camera)
     finally:
         port.close()

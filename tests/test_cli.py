@@ -265,6 +265,14 @@ def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tm
     result = run("check-config", str(bad))
     assert result.returncode == 78
     assert "cloud.leaf_m = -1" in result.stderr and "Traceback" not in result.stderr
+    # the camera's URI is built as `run` builds it (not opened): its options are checked too
+    bad.write_text(f"[camera]\nsource = 'oni:{SCENES / 'office_box_added' / 'current.oni'}"
+                   "?lopp=1'\n[store]\nstate_dir = " + repr(str(tmp_path)) + "\n")
+    result = run("check-config", str(bad))
+    assert result.returncode == 78 and "unknown OpenNI2 option 'lopp'" in result.stderr
+    bad.write_text("[camera]\nsource = 'oni:/media/usb/missing.oni'\n[store]\nstate_dir = "
+                   + repr(str(tmp_path)) + "\n")
+    assert run("check-config", str(bad)).returncode == 0  # a missing file: a FAULT at run
 
 
 SCENES = REPO / "sim_fixtures" / "scenes"

@@ -141,6 +141,14 @@ def test_daemon_end_to_end_over_a_pty_with_systemd_notify(tmp_path: Path) -> Non
         got = list(notify.lines)
         assert got.count("WATCHDOG=1") >= 4, got  # every 0.5 s (WATCHDOG_USEC / 2)
         assert "RELOADING=1" in got and any(n.startswith("STATUS=") for n in got)
+        # an emptied file on SIGHUP is refused: the camera does not fall back to openni2://
+        config.write_text("")
+        daemon.send_signal(signal.SIGHUP)
+        code = run_base_sim(FdPort(master), script(tmp_path, "three.script", """
+            check office
+            expect PAUSE cause=CHANGE_CHECK 10
+        """), out=out, connect_timeout=10)
+        assert code == 0, out.getvalue()
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(15) == 0
         time.sleep(0.2)
@@ -155,6 +163,8 @@ def test_daemon_end_to_end_over_a_pty_with_systemd_notify(tmp_path: Path) -> Non
     text = (tmp_path / "daemon.log").read_text()
     assert "Traceback" not in text, text
     assert "configuration reloaded; reopening the camera" in text
+    assert "the new configuration is refused, the old one stays" in text
+    assert "holds no key at all" in text
     assert "quarantine" in text
 
 
@@ -167,6 +177,9 @@ def run(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     ("[watch]\nwatch_m = 11\n", "watch.watch_m = 11: must be a whole number in 1..10"),
     ("[watch]\nwatch_m = 4\nwatch_n = 3\n", "watch.watch_m = 4: must be <= watch.watch_n = 3"),
     ("[camera]\nsource = 'ftp://x'\n", "camera.source"),
+    ("[camera]\nsource = 'openni2://?lopp=1'\n", "unknown OpenNI2 option 'lopp'"),
+    ("[camera]\nsource = 'images:/data/run?rate=fast'\n", "rate='fast'"),
+    ("[camera]\nsource = 'realsense://?preset=ultra'\n", "preset='ultra'"),
     ("[change]\nfree_space_sigmas = -1.0\n", "free_space_sigmas=-1.0"),
     ('[fleet]\nbroker = "mqtt://broker"\nspool_mb = -1\n', "fleet.spool_mb = -1: must be"),
     (None, "no such configuration file"),

@@ -581,13 +581,18 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<config>",
     return Config(**sections)  # type: ignore[arg-type]
 
 
-def load_config(path: str | os.PathLike) -> Config:
+def load_config(path: str | os.PathLike, *, empty_ok: bool = True) -> Config:
     """Read and check a TOML configuration file (see the module docstring).
 
     Raises :class:`ConfigError` (file, dotted key, value, what is allowed) for a missing,
-    unreadable or invalid file, an unknown section or key, or a value out of range.
+    unreadable or invalid file, an unknown section or key, or a value out of range; and, with
+    ``empty_ok=False`` (a reload), for a file that holds no key at all (half-written, or
+    emptied by mistake: it would mean every default, ``openni2://`` as the camera).
     """
     path = Path(path)
     data = _read(path)
+    if not data and not empty_ok:
+        raise ConfigError(f"{path}: holds no key at all (a half-written or emptied file?); an "
+                          "empty configuration is refused on a reload")
     config = config_from_dict(data, str(path), base_dir=path.resolve().parent)
     return dataclasses.replace(config, path=path)

@@ -9,6 +9,8 @@ import difflib
 import os
 from pathlib import Path
 
+from hw.depth import open_depth
+from hw.errors import BackendUnavailable, HwError, UriError
 from robot_change.change.params import ChangeParams
 from robot_change.errors import ConfigError, FleetError, InputError
 from robot_change.export.foxglove import sdk
@@ -17,10 +19,11 @@ from robot_change.service.config import Config, load_config
 __all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
 
 
-def load_checked_config(path: str | os.PathLike) -> Config:
+def load_checked_config(path: str | os.PathLike, *, reload: bool = False) -> Config:
     """Read ``path`` (:func:`robot_change.service.config.load_config`) and :func:`check_config` it:
-    what ``check-config`` accepts, ``run`` starts with and a reload takes, and nothing else."""
-    config = load_config(path)
+    what ``check-config`` accepts, ``run`` starts with and a reload takes, and nothing else
+    (``reload``: an empty file is refused too)."""
+    config = load_config(path, empty_ok=not reload)
     check_config(config)
     return config
 
@@ -37,6 +40,7 @@ def check_config(config: Config) -> None:
         scene_params(config, params)
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
+    _check_camera_source(where, config.camera.source)
     _check_state_dir(where, Path(config.store.state_dir))
     _check_fleet_files(where, config)
     if config.viz.live:
@@ -45,6 +49,18 @@ def check_config(config: Config) -> None:
         except InputError as exc:
             raise ConfigError(f"{where}: viz.live = true: {exc}; or set viz.live = "
                               "false") from None
+
+
+def _check_camera_source(where: str, uri: str) -> None:
+    """The camera's URI as ``run`` opens it, without opening it: its backend found and its
+    options understood.  A file that is missing or damaged is the camera's problem, told as a
+    FAULT when it is opened (a recording may be on a disk mounted later)."""
+    try:
+        open_depth(uri)
+    except (UriError, BackendUnavailable) as exc:
+        raise ConfigError(f"{where}: camera.source = {uri!r}: {exc}") from None
+    except HwError:
+        pass
 
 
 def _check_fleet_files(where: str, config: Config) -> None:
