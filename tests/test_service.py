@@ -31,7 +31,7 @@ from robot_change.link import protocol as p
 from robot_change.link.session import LinkState
 from robot_change.service.camera import FrameQueue
 from robot_change.service.config import Config, config_from_dict
-from robot_change.service.core import Service, ServiceOptions
+from robot_change.service.core import Service, ServiceOptions, wire_text
 from robot_change.service.daemon import _reload
 from robot_change.service.store import ReferenceStore
 from robot_change.service.warmup import warm_up
@@ -113,6 +113,22 @@ def rig(tmp_path: Path, scene_frames):
 
 
 # --- units --------------------------------------------------------------------------------------
+
+
+def test_fault_texts_name_the_thing_without_the_machines_paths() -> None:
+    """Issue 44: a missing image folder was "the module's state folder", /dev/ttyUSB0 too."""
+    cases = {
+        "cannot open the camera: /data/runs/kitchen_frames: no such file or folder":
+            "cannot open the camera: kitchen_frames: no such file or folder",
+        "serial port /dev/ttyUSB0 lost": "serial port ttyUSB0 lost",
+        "reference /var/lib/robot-change/references/dock.scene.npz is damaged; moved to "
+        "/var/lib/robot-change/references/quarantine/": "reference dock.scene.npz is damaged; "
+        "moved to quarantine",
+        "disk full at / (5 MB free)": "disk full at / (5 MB free)",
+        "station dock: no reference": "station dock: no reference",
+    }
+    for text, wire in cases.items():
+        assert wire_text(text) == wire, text
 
 
 def test_frame_queue_drops_the_oldest_and_accounts_for_every_frame(scene_frames) -> None:

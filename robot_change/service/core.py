@@ -255,10 +255,10 @@ _ABSOLUTE_PATH = re.compile(r"(?<![\w.~-])/[^\s'\"(),;:]+")
 
 def wire_text(text: str) -> str:
     """A FAULT text for the wire: every absolute path of this machine replaced by its last
-    component (the log keeps the whole text; docs/protocol.md, FAULT)."""
+    component, the name of the file, folder or port (``/dev/ttyUSB0`` -> ``ttyUSB0``); the log
+    keeps the whole text (docs/protocol.md, FAULT)."""
     def name(match: re.Match) -> str:
-        last = match.group(0).rstrip("/").rsplit("/", 1)[-1]
-        return last if "." in last else "the module's state folder"
+        return match.group(0).rstrip("/").rsplit("/", 1)[-1] or "/"
     return _ABSOLUTE_PATH.sub(name, text)
 
 
