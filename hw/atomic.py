@@ -60,15 +60,21 @@ class AtomicFile:
         _fsync_folder(self.path.parent)
 
     def discard(self) -> None:
-        """Close and remove the temp file; ``path`` is left as it was."""
+        """Close and remove the temp file; ``path`` is left as it was.  The temp file goes even
+        when closing fails (a full disk refusing the last buffered bytes: they are thrown away
+        with it)."""
         if self._done:
             return
         self._done = True
-        self.file.close()
         try:
-            self.temp_path.unlink()
-        except FileNotFoundError:
+            self.file.close()
+        except OSError:
             pass
+        finally:
+            try:
+                self.temp_path.unlink()
+            except FileNotFoundError:
+                pass
 
     def __enter__(self) -> BinaryIO:
         return self.file

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
+import subprocess
 
 import pytest
 
@@ -60,3 +62,34 @@ def test_discard_leaves_nothing(tmp_path):
 def test_a_missing_folder_is_an_os_error(tmp_path):
     with pytest.raises(OSError):
         write_atomically(tmp_path / "nowhere" / "x.bin", b"x")
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 64 KiB tmpfs, filled up (needs root: skipped elsewhere)."""
+    folder = tmp_path / "small"
+    folder.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(folder)],
+                             capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        with open(folder / "filler", "wb", buffering=0) as filler:
+            with pytest.raises(OSError):
+                while True:
+                    filler.write(b"x" * 4096)
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+def test_a_full_disk_leaves_no_temp_file(full_disk):
+    """Issue 44: discard() closed the file first; on a full disk that close raised ENOSPC and
+    the temp file stayed."""
+    target = AtomicFile(full_disk / "last-check.json")
+    target.file.write(b"{}" * 100)  # buffered: the disk says no only when it is flushed
+    target.discard()
+    with pytest.raises(OSError) as caught:
+        write_atomically(full_disk / "view.mcap", b"x" * 10_000)
+    assert caught.value.errno == errno.ENOSPC
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
