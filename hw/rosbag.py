@@ -124,6 +124,7 @@ class RosbagSource(DepthSource):
         self._first_lap_frames = 0
         self._taken = 0  # image messages of this lap taken by read()
         self._compressed = False
+        self._realsense = False
         self._scale = 1.0  # millimetres per sample
 
     def __repr__(self) -> str:
@@ -241,8 +242,9 @@ class RosbagSource(DepthSource):
             raise DepthFileError(f"{self.path}: {what} {self.topic}. " + self._listing())
         self._connections = list(topics[self.topic].connections)
         self._compressed = topics[self.topic].msgtype == COMPRESSED_TYPE
+        self._realsense = is_realsense_depth(self.topic)  # a librealsense recording's depth
         self._scale = (depth_units_m(self._reader, self.topic, str(self.path)) * 1000.0
-                       if is_realsense_depth(self.topic) else 1.0)
+                       if self._realsense else 1.0)
 
     def _image_topic(self) -> str:
         """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""
@@ -301,7 +303,7 @@ class RosbagSource(DepthSource):
             return given
         topics = self._reader.topics
         info_topic = self.info_topic or self._image_topic().rsplit("/", 1)[0] + "/camera_info"
-        if not self.info_topic and is_realsense_depth(self.topic):
+        if not self.info_topic and self._realsense:
             info_topic = next((name for name in camera_info_topics(self.topic)
                                if name in topics), info_topic)
         if info_topic not in topics or topics[info_topic].msgtype != INFO_TYPE:
@@ -321,7 +323,7 @@ class RosbagSource(DepthSource):
         info = self._deserialize(first)
         intrinsics = intrinsics_from_camera_info(info, size, self.rectified,
                                                  f"{self.path} {info_topic}")
-        if is_realsense_depth(self.topic):  # librealsense's float32s, as librealsense gives them
+        if self._realsense:  # librealsense's float32s, as librealsense gives them
             intrinsics = dataclasses.replace(intrinsics, **{
                 key: float32_decimal(getattr(intrinsics, key)) for key in ("fx", "fy", "cx", "cy")})
         self._info_key = _info_key(info)
@@ -386,7 +388,7 @@ class RosbagSource(DepthSource):
                                             f"{self.path} {self.topic} message {index}")
         else:
             depth = image_to_depth(message, f"{self.path} {self.topic}",
-                                   mono16=is_realsense_depth(self.topic))
+                                   mono16=self._realsense)
         if abs(self._scale - 1.0) > 1e-6:  # (librealsense's 1 mm is a float32's 0.001)
             depth = to_millimetres(depth, self._scale)
         return depth
