@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/bench_service.py [--trials 20] [--ready-runs 3] [--cpu-seconds 20]
                                             [--soak-seconds 600] [--soak-camera realsense]
+                                            [--soak-check-every 60]
                                             [--cold-runs 2]
                                             [--only latency,ready,ready-cold,cpu,soak,soak-daemon]
                                             [--json]
@@ -33,6 +34,9 @@ soak-daemon  The same soak with ``robot-change run`` as a subprocess (what tests
          reader's CPU.  ``--soak-camera realsense``: the same frames as a RealSense recording
          (written by librealsense, played by it at 30 fps in a loop; issue 43's target: no
          frame dropped or repeated, the reader under 10 % of one core).
+         ``--soak-check-every S``: a CHECK every S seconds, then WATCH again (issue 44: a
+         60-minute soak in WATCH with CHECKs, its RSS slope over the last 30 minutes within
+         noise: ``rss_slope_last_half_mb_per_min`` against ``rss_residual_sd_last_half_mb``).
 """
 
 from __future__ import annotations
@@ -427,21 +431,28 @@ def bench_cpu(seconds: float) -> dict:
 
 
 def _soak_loop(sim: BaseSim, seconds: float, rss: Callable[[], tuple[float, float]],
-               frames: Callable[[], object] = lambda: "") -> tuple[list, list[float], dict]:
+               frames: Callable[[], object] = lambda: "",
+               check_every: float = 0.0) -> tuple[list, list[float], dict]:
     """Pump the base for ``seconds``; every second: the longest gap between the module's
-    heartbeats (up to now) and ``rss()`` (MB of the process and of its reader).  Returns
-    [(t, rss, reader rss)], the gaps, and what the heartbeats and messages showed
-    (``states``: heartbeat state -> count; ``messages``: the other messages -> count)."""
+    heartbeats (up to now) and ``rss()`` (MB of the process and of its reader).
+    ``check_every`` > 0: every that many seconds the base sends CHECK office (which ends the
+    watch) and WATCH office again.  Returns [(t, rss, reader rss)], the gaps, and what the
+    heartbeats and messages showed (``states``: heartbeat state -> count; ``messages``: the
+    other messages -> count)."""
     rss_samples: list[tuple[float, float, float]] = []
     gaps: list[float] = []
     states: collections.Counter = collections.Counter()
     messages: collections.Counter = collections.Counter()
     t0 = last_print = time.monotonic()
     beats_seen = len(sim.log)
-    last_beat = time.monotonic()
+    last_beat = last_check = time.monotonic()
     while time.monotonic() - t0 < seconds:
         sim.pump(1.0)
         now = time.monotonic()
+        if check_every > 0 and now - last_check >= check_every:
+            last_check = now
+            sim.command("check office")
+            sim.command("watch office")
         beats = []
         for e in sim.log[beats_seen:]:
             if e.name == "HEARTBEAT":
@@ -464,12 +475,29 @@ def _soak_loop(sim: BaseSim, seconds: float, rss: Callable[[], tuple[float, floa
     return rss_samples, gaps, {"states": dict(states), "messages": dict(messages)}
 
 
+def _slope(samples: list[tuple[float, float]]) -> tuple[float, float]:
+    """Least-squares slope (MB/min) of [(t s, MB)] and the residuals' standard deviation (MB):
+    the noise a slope is judged against."""
+    import numpy as np
+
+    t, mb = np.array(samples, dtype=float).T
+    a, b = np.polyfit(t / 60.0, mb, 1)
+    return float(a), float(np.std(mb - (a * t / 60.0 + b)))
+
+
 def _rss_growth(rss: list[tuple[float, float, float]], warmup: float) -> dict:
-    """RSS from the first sample at or after ``warmup`` s to the last one."""
+    """RSS from the first sample at or after ``warmup`` s to the last one; the slope of the
+    daemon's and the reader's RSS over the second half of the run (MB/min) and its noise."""
     start = next(r for r in rss if r[0] >= warmup)
     growth = 100.0 * (rss[-1][1] - start[1]) / start[1]
     reader = 100.0 * (rss[-1][2] - start[2]) / start[2] if start[2] else 0.0
-    return {"rss_start_mb": round(start[1], 1), "rss_end_mb": round(rss[-1][1], 1),
+    half = [r for r in rss if r[0] >= rss[-1][0] / 2]
+    slope, noise = _slope([(r[0], r[1]) for r in half])
+    reader_slope, _ = _slope([(r[0], r[2]) for r in half])
+    return {"rss_slope_last_half_mb_per_min": round(slope, 4),
+            "rss_residual_sd_last_half_mb": round(noise, 2),
+            "reader_rss_slope_last_half_mb_per_min": round(reader_slope, 4),
+            "rss_last_half_start_mb": round(half[0][1], 1),"rss_start_mb": round(start[1], 1), "rss_end_mb": round(rss[-1][1], 1),
             "rss_growth_pct": round(growth, 2), "rss_peak_mb": round(max(r[1] for r in rss), 1),
             "reader_rss_start_mb": round(start[2], 1), "reader_rss_end_mb": round(rss[-1][2], 1),
             "reader_rss_growth_pct": round(reader, 2)}
@@ -526,7 +554,7 @@ def _readers(pid: int) -> list[int]:
 
 
 def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni",
-                compress: bool = True) -> dict:
+                compress: bool = True, check_every: float = 0.0) -> dict:
     """``robot-change run`` as a subprocess watching the looped reference.oni at 30 fps for
     ``seconds`` (counted from WATCHING), then SIGTERM; ``camera="realsense"``: the same frames
     as a RealSense recording written by librealsense, played by it (``realsense:FILE``).  RSS
@@ -534,7 +562,7 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
     the figures as a dict (``accounted``: received == processed + dropped + queued == the
     source's delivered; ``reader_cpu_pct``: the reader's CPU time over the soak, % of one
     core).  ``compress``: the RealSense recording's depth as compressedDepth PNG (librealsense's
-    default), else raw."""
+    default), else raw.  ``check_every``: a CHECK (then WATCH again) every that many seconds."""
     warmup = max(10.0, 0.1 * seconds) if warmup is None else warmup
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -569,7 +597,7 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
 
             cpu_start = {pid: _cpu_seconds(pid) for pid in _readers(daemon.proc.pid)}
             soak_start = time.monotonic()
-            samples, gaps, seen = _soak_loop(sim, seconds, rss)
+            samples, gaps, seen = _soak_loop(sim, seconds, rss, check_every=check_every)
             soak_wall = time.monotonic() - soak_start
             reader_cpu = sum(_cpu_seconds(pid) - cpu_start.get(pid, 0.0)
                              for pid in _readers(daemon.proc.pid))
@@ -594,6 +622,8 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
             "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
             "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],
             "watch_checks": counts["counters"].get("watch_checks"),
+            "check_every_s": check_every, "counters": counts["counters"],
+            "rss_minutely_mb": [round(r[1], 1) for r in samples[::60]],
             "exit_status": code, "stop_s": round(stop_s, 2),
             "daemon_log_tail": daemon_log[-2000:]}
 
@@ -612,6 +642,8 @@ def main() -> int:
                         "frames as a RealSense recording through librealsense")
     parser.add_argument("--soak-raw", action="store_true",
                         help="with --soak-camera realsense: the recording's depth raw, not PNG")
+    parser.add_argument("--soak-check-every", type=float, default=0.0,
+                        help="soak-daemon: a CHECK (then WATCH again) every this many seconds")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)  # the service's PAUSE warnings are expected here
@@ -629,7 +661,8 @@ def main() -> int:
         result["soak"] = bench_soak(args.soak_seconds)
     if "soak-daemon" in only and args.soak_seconds > 0:
         result["soak_daemon"] = soak_daemon(args.soak_seconds, camera=args.soak_camera,
-                                            compress=not args.soak_raw)
+                                            compress=not args.soak_raw,
+                                            check_every=args.soak_check_every)
     result["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
