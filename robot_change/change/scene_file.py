@@ -1,11 +1,17 @@
 """The scene file: a :class:`robot_change.change.scene.SceneModel` as one checksummed,
 versioned .npz (robot_change.npzfile): its arrays, its header (provenance, parameters, the
 camera's noise profile, the fit record), and reading it back with every check.
+
+A reference comes from disk, where anything can happen to it: every way a file can be bad
+(damaged, crafted, of another version) ends as :class:`SceneFileError`, and the arrays' sizes
+are checked against the header's camera before any is read, so checking a file never takes
+more than :data:`robot_change.npzfile.MAX_BYTES` (~128 MiB) however large it claims to be.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,7 +21,7 @@ from hw.depth import Intrinsics
 from hw.errors import FrameError
 from robot_change import npzfile
 from robot_change.change.mount import CameraMount
-from robot_change.change.scene import FILE_FORMAT, FILE_VERSION, SceneParams
+from robot_change.change.scene import FILE_FORMAT, FILE_VERSION, MIN_SCENE_POINTS, SceneParams
 from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, clean_cloud
 from robot_change.cloud.plane import Plane
 from robot_change.errors import InputError, SceneFileError
@@ -41,6 +47,14 @@ _ARRAYS = {
     "means": ("<f8", 2),
     "covariances": ("<f8", 3),
 }
+#: The largest reference image (pixels): above every depth camera's (Azure Kinect WFOV
+#: 1024 x 1024, stereo 1280 x 720, structured light 2064 x 1544), far below what would not
+#: fit the service's memory.
+MAX_PIXELS = 2048 * 2048
+#: The most mixture components a reference may hold (a fit stops at tens).
+MAX_COMPONENTS = 4096
+#: The largest whole number a header field may hold (int64, what numpy takes).
+_MAX_WHOLE = 2**63 - 1
 
 
 def arrays_of(model: SceneModel) -> dict[str, np.ndarray]:
@@ -100,23 +114,69 @@ def header_of(model: SceneModel) -> dict[str, Any]:
 
 
 def load_model(cls, path: Path) -> SceneModel:
+    """The scene saved at ``path``, every part checked: :class:`SceneFileError` for any way
+    the file can be bad (``FileNotFoundError`` when there is none, ``OSError`` when it cannot
+    be read)."""
     redo = "build and save the reference again"
-    header, arrays = npzfile.read(path, FILE_FORMAT, FILE_VERSION, _ARRAYS, SceneFileError, redo)
+    header, arrays = npzfile.read(path, FILE_FORMAT, FILE_VERSION, _ARRAYS, SceneFileError, redo,
+                                  limits=_check_declared)
     try:
         return _model_from(cls, header, arrays)
-    except SceneFileError:
-        raise
-    except (InputError, FrameError, KeyError, TypeError, ValueError) as exc:
+    except SceneFileError as exc:
+        raise SceneFileError(f"{path}: {exc}; {redo}") from exc
+    except Exception as exc:  # anything a crafted header or array can raise deeper in
         raise SceneFileError(f"{path}: the file does not hold a valid scene "
                              f"({type(exc).__name__}: {exc}); {redo}") from exc
 
 
-def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> SceneModel:
+def _check_declared(header: dict[str, Any], declared: npzfile.Declared) -> None:
+    """Every array's dtype and shape against the header's camera and the limits, before any
+    is read (``declared``: name -> (dtype, shape) from the members' own headers)."""
+    try:
+        camera = Intrinsics(**header["intrinsics"])
+    except (KeyError, TypeError, FrameError) as exc:
+        raise SceneFileError(f"the header's intrinsics are not valid ({exc})") from None
+    if camera.width * camera.height > MAX_PIXELS:
+        raise SceneFileError(f"the camera is {camera.width}x{camera.height}, more than the "
+                             f"{MAX_PIXELS} pixels a reference may have")
     for name, (dtype, ndim) in _ARRAYS.items():
-        a = arrays[name]
-        if a.dtype != np.dtype(dtype) or a.ndim != ndim:
-            raise SceneFileError(f"array {name!r} is {a.dtype} with {a.ndim} dimensions, "
+        got, shape = declared[name]
+        if got != np.dtype(dtype) or len(shape) != ndim:
+            raise SceneFileError(f"array {name!r} is {got} with {len(shape)} dimensions, "
                                  f"expected {np.dtype(dtype)} with {ndim}")
+    image = (camera.height, camera.width)
+    m, k = declared["points"][1][0], declared["weights"][1][0]
+    expected = {"depth": image, "pixel_voxel": image, "pixel_stage": image, "points": (m, 3),
+                "keys": (m,), "counts": (m,), "plane_normal": (3,), "weights": (k,),
+                "means": (k, 3), "covariances": (k, 3, 3)}
+    for name, shape in expected.items():
+        if declared[name][1] != shape:
+            raise SceneFileError(f"array {name!r} is {declared[name][1]}, expected {shape} for "
+                                 f"a {camera.width}x{camera.height} camera with {m} points and "
+                                 f"{k} components")
+    pixels = camera.width * camera.height
+    if m > pixels or declared["plane_inliers"][1][0] > pixels:
+        raise SceneFileError(f"{m} points for {pixels} pixels")
+    if not 1 <= k <= MAX_COMPONENTS:
+        raise SceneFileError(f"{k} mixture components (1..{MAX_COMPONENTS})")
+
+
+def _whole(value: Any, what: str, lo: int = 0, hi: int = _MAX_WHOLE) -> int:
+    """``value`` if it is a whole number in lo..hi (JSON can hold Infinity, 1e999, 2.5, true)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise SceneFileError(f"{what} = {value!r} is not a whole number in {lo}..{hi}")
+    return value
+
+
+def _finite(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SceneFileError(f"{what} = {value!r} is not a finite number")
+    return float(value)
+
+
+def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> SceneModel:
+    """The scene of a file whose arrays passed :func:`_check_declared`: their contents and
+    the header's numbers checked here."""
     params = SceneParams.from_dict(header["params"])
     camera = Intrinsics(**header["intrinsics"])
     m = arrays["points"].shape[0]
@@ -131,6 +191,10 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
          "pixel_voxel points outside the cloud"),
         (arrays["pixel_stage"].max(initial=0) <= PIXEL_KEPT, "pixel_stage has unknown codes"),
         (arrays["plane_normal"].shape == (3,), "plane_normal is not a 3-vector"),
+        (m >= MIN_SCENE_POINTS or header["version"] == 1,
+         f"the scene holds {m} points (at least {MIN_SCENE_POINTS})"),
+        (bool(np.isfinite(arrays["points"]).all()), "points holds NaN or infinite coordinates"),
+        (m == 0 or arrays["counts"].min() >= 1, "counts holds voxels of no point"),
     ]
     for ok, what in checks:
         if not ok:
@@ -138,9 +202,14 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
     for a in arrays.values():
         a.setflags(write=False)
     ch = header["cloud"]
-    plane = Plane(normal=arrays["plane_normal"], offset=float(ch["plane_offset"]),
-                  inliers=arrays["plane_inliers"], n_inliers=int(ch["plane_n_inliers"]),
-                  iterations=int(ch["plane_iterations"]))
+    n_inliers = _whole(ch["plane_n_inliers"], "cloud.plane_n_inliers", 0,
+                       arrays["plane_inliers"].size)
+    offset = ch["plane_offset"]
+    if n_inliers or offset is not None and not (isinstance(offset, float) and math.isnan(offset)):
+        offset = _finite(offset, "cloud.plane_offset")  # NaN only when no plane was found
+    plane = Plane(normal=arrays["plane_normal"], offset=float("nan") if offset is None
+                  else float(offset), inliers=arrays["plane_inliers"], n_inliers=n_inliers,
+                  iterations=_whole(ch["plane_iterations"], "cloud.plane_iterations"))
     if header["version"] == 1:
         # keys in the old layout: rebuild the cloud as this version makes it
         cloud = clean_cloud(arrays["depth"], camera, params.cloud)
@@ -148,22 +217,25 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
         cloud = CleanCloud(
             points=arrays["points"], keys=arrays["keys"], counts=arrays["counts"],
             pixel_voxel=arrays["pixel_voxel"], pixel_stage=arrays["pixel_stage"], plane=plane,
-            stage_counts={k: int(v) for k, v in ch["stage_counts"].items()},
-            timings_ms={k: float(v) for k, v in ch["timings_ms"].items()}, params=params.cloud,
+            stage_counts={k: _whole(v, f"cloud.stage_counts.{k}")
+                          for k, v in ch["stage_counts"].items()},
+            timings_ms={k: _finite(v, f"cloud.timings_ms.{k}")
+                        for k, v in ch["timings_ms"].items()}, params=params.cloud,
         )
     mixture = Mixture(arrays["weights"], arrays["means"], arrays["covariances"],
                       _record_from_dict(header["fit"]))
 
-    def opt_int(key):
+    def opt_int(key, lo=0):
         v = header[key]
-        return None if v is None else int(v)
+        return None if v is None else _whole(v, key, lo)
 
     return cls(
         depth=arrays["depth"], intrinsics=camera, cloud=cloud, mixture=mixture, params=params,
-        n_frames=int(header["n_frames"]), first_timestamp_us=opt_int("first_timestamp_us"),
-        last_timestamp_us=opt_int("last_timestamp_us"), first_index=opt_int("first_index"),
-        last_index=opt_int("last_index"),
-        seconds={k: float(v) for k, v in header["seconds"].items()},
+        n_frames=_whole(header["n_frames"], "n_frames", 1),
+        first_timestamp_us=opt_int("first_timestamp_us", -_MAX_WHOLE),
+        last_timestamp_us=opt_int("last_timestamp_us", -_MAX_WHOLE),
+        first_index=opt_int("first_index"), last_index=opt_int("last_index"),
+        seconds={k: _finite(v, f"seconds.{k}") for k, v in header["seconds"].items()},
         created=str(header["created"]), version=str(header["library_version"]),
         source=str(header["source"]), mount=_mount_from(header.get("mount")),
         noise=_noise_from(header.get("noise")),
