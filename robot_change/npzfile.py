@@ -143,7 +143,7 @@ def _declared(path: Path, fmt: str, error: type[Exception], redo: str) -> Declar
                         f"{sorted(m.filename.removesuffix('.npy') for m in members)}); is this "
                         "the right file?")
         for info in members:
-            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            name = info.filename.removesuffix(".npy")
             with archive.open(info) as member:
                 major, _minor = np.lib.format.read_magic(member)
                 if major == 1:

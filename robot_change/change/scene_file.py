@@ -21,10 +21,15 @@ from hw.depth import Intrinsics
 from hw.errors import FrameError
 from robot_change import npzfile
 from robot_change.change.mount import CameraMount
-from robot_change.change.scene import FILE_FORMAT, FILE_VERSION, MIN_SCENE_POINTS, SceneParams
+from robot_change.change.scene import (
+    FILE_FORMAT,
+    FILE_VERSION,
+    MIN_SCENE_POINTS,
+    SceneParams,
+)
 from robot_change.cloud.chain import PIXEL_KEPT, CleanCloud, clean_cloud
 from robot_change.cloud.plane import Plane
-from robot_change.errors import InputError, SceneFileError
+from robot_change.errors import SceneFileError
 from robot_change.mixture.model import FitRecord, FitStep, Mixture
 from robot_change.noise.profile import DEFAULT_PROFILE, NoiseProfile, builtin_profile
 
