@@ -3,16 +3,53 @@
 The one implementation every writer in the project uses (PNG images, .oni recordings, saved
 mixtures, station references): a temp file in the same folder, fsync, permissions as a plain
 ``open()`` would give, :func:`os.replace`, then fsync of the folder so the rename survives a
-power cut.
+power cut.  What a killed writer leaves (a temp file named ``.<name>.<random>.tmp``, or a
+staged folder named alike) is removed by :func:`remove_temp_files`, which every writer's
+start-up calls for the folders it writes.
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import BinaryIO
+
+#: A temp file untouched this long is a dead writer's: a live one writes its temp file within
+#: seconds (:func:`remove_temp_files` spares younger ones when asked to).
+STALE_AFTER_S = 60.0
+
+
+def remove_temp_files(folder: str | os.PathLike, target: str | None = None,
+                      older_than_s: float = 0.0) -> list[Path]:
+    """Remove what interrupted writes left in ``folder`` (temp files, staged folders): all of
+    them, or only those of the file named ``target``; ``older_than_s`` > 0 spares those
+    modified more recently (a writer still at work).  Returns what was removed; a folder that
+    does not exist holds none.  Raises ``OSError`` when one cannot be removed."""
+    prefix = "." if target is None else f".{target}."
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    now = time.time()
+    removed = []
+    for entry in entries:
+        if not (entry.name.startswith(prefix) and entry.name.endswith(".tmp")):
+            continue
+        try:
+            if older_than_s > 0 and now - entry.stat(follow_symlinks=False).st_mtime < older_than_s:
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+        except FileNotFoundError:
+            continue
+        removed.append(Path(entry.path))
+    return removed
 
 
 def _umask() -> int:

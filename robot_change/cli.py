@@ -12,6 +12,7 @@ import importlib.util
 import json
 import logging
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 
 import robot_change
+from hw.atomic import STALE_AFTER_S, remove_temp_files
 from hw.depth import DepthFrame, Intrinsics, open_depth
 from hw.errors import HwError
 from hw.pointfile import POINT_FORMATS, write_points
@@ -945,11 +947,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _clear_dead_writes(out: str) -> None:
+    """Remove the temp files an earlier, killed writer of ``out`` left (those of ``out``
+    beside it; for a folder, the ones in it too), sparing any a live writer still updates."""
+    path = Path(out)
+    remove_temp_files(path.parent, path.name, STALE_AFTER_S)
+    if path.is_dir():
+        remove_temp_files(path, older_than_s=STALE_AFTER_S)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.command != "run":  # the daemon sets it up once its configuration is read
+    if args.command != "run":  # the daemon sets these up once its configuration is read
         _setup_logging(args.log_level or "warning")
+        # a SIGTERM is a Ctrl-C: a recording keeps its frames, any other write under way
+        # discards its temp file
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
+        if isinstance(getattr(args, "out", None), str):
+            _clear_dead_writes(args.out)
         return int(args.func(args) or 0)
     except ConfigError as exc:
         # its own exit status, which systemd does not restart (RestartPreventExitStatus)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -27,3 +28,24 @@ def depth_frames() -> list:
     from hw.oni import read_oni_frames
     path = SIM_FIXTURES / "scenes" / "office_box_added" / "reference.oni"
     return [frame.depth for frame in read_oni_frames(path)]
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """``mount(size)``: a real tmpfs of ``size`` ("64k", "2m") under tmp_path, unmounted at the
+    end: a disk that really fills up (needs root: the test is skipped where it cannot mount)."""
+    mounted: list[Path] = []
+
+    def mount(size: str) -> Path:
+        folder = tmp_path / f"tmpfs{len(mounted)}"
+        folder.mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs",
+                               str(folder)], capture_output=True, check=False)
+        if done.returncode != 0:
+            pytest.skip(f"cannot mount a small tmpfs here: {done.stderr.decode().strip()}")
+        mounted.append(folder)
+        return folder
+
+    yield mount
+    for folder in mounted:
+        subprocess.run(["umount", str(folder)], capture_output=True, check=False)

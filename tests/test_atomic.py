@@ -5,7 +5,6 @@ from __future__ import annotations
 import errno
 import os
 import stat
-import subprocess
 
 import pytest
 
@@ -64,23 +63,20 @@ def test_a_missing_folder_is_an_os_error(tmp_path):
         write_atomically(tmp_path / "nowhere" / "x.bin", b"x")
 
 
+def fill(folder):
+    """Fill the file system of ``folder`` with a file named filler."""
+    with open(folder / "filler", "wb", buffering=0) as filler:
+        with pytest.raises(OSError):
+            while True:
+                filler.write(b"x" * 4096)
+
+
 @pytest.fixture
-def full_disk(tmp_path):
+def full_disk(small_tmpfs):
     """A 64 KiB tmpfs, filled up (needs root: skipped elsewhere)."""
-    folder = tmp_path / "small"
-    folder.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(folder)],
-                             capture_output=True)
-    if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.decode().strip()}")
-    try:
-        with open(folder / "filler", "wb", buffering=0) as filler:
-            with pytest.raises(OSError):
-                while True:
-                    filler.write(b"x" * 4096)
-        yield folder
-    finally:
-        subprocess.run(["umount", str(folder)], capture_output=True)
+    folder = small_tmpfs("64k")
+    fill(folder)
+    return folder
 
 
 def test_a_full_disk_leaves_no_temp_file(full_disk):

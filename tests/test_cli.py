@@ -309,6 +309,29 @@ def test_capture_then_detect_against_the_saved_reference_on_an_unchanged_scene(t
     assert result.stdout.startswith("no change")
 
 
+def test_a_killed_capture_leaves_a_temp_file_the_next_one_removes(tmp_path):
+    """Issue 44: kill -9 cannot be caught, so a killed ``capture`` leaves its temp file beside
+    --out; the next write of the same file removes it (a minute old: no live writer's), and
+    spares a fresh one and other files' temp files."""
+    import os
+    import time
+
+    scene = SCENES / "office_no_change"
+    saved = tmp_path / "office.scene.npz"
+    dead = tmp_path / ".office.scene.npz.k3j9x.tmp"
+    live = tmp_path / ".office.scene.npz.a1b2c.tmp"
+    other = tmp_path / ".kitchen.scene.npz.d4e5f.tmp"
+    for path in (dead, live, other):
+        path.write_bytes(b"half a reference")
+    old = time.time() - 120
+    os.utime(dead, (old, old))
+    os.utime(other, (old, old))
+    result = run("capture", "--source", str(scene / "reference.oni"), "--out", str(saved))
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [saved.name, live.name, other.name])
+
+
 def test_calibrate_measures_a_still_view_and_capture_keeps_the_profile(tmp_path):
     """The office's reference recording (a still camera, independent noise per frame) is
     measured as noisy as the Kinect profile it was rendered with; the profile file it writes

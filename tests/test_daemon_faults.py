@@ -169,3 +169,32 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         # the old configuration goes on working: no INTERNAL_ERROR
         assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
         _sigterm_in(d)
+
+
+def test_a_restart_leaves_no_temp_file_anywhere_the_service_writes(tmp_path: Path) -> None:
+    """Issue 44: the daemon killed with SIGKILL while it writes a check's files, and temp files
+    as killed writes leave them in every folder the service writes (references and their
+    quarantine, the last checks, the check views, the fleet's spool): once it has started
+    again, none is left, and the reference is whole."""
+    state = tmp_path / "state"
+    fleet = '[fleet]\nbroker = "mqtt://127.0.0.1:9"\n'  # nothing listens: messages spool
+    with Daemon(tmp_path / "first", state_dir=state, config=fleet) as d:
+        d.wait_for("READY=1")
+        assert d.base("capture office\nexpect CAPTURED station=office 20") == 0, d.log()
+        d.base_in_thread("check office\nexpect CLEAR 20\n" * 40)
+        reports = state / "reports"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not list(reports.glob(".*.tmp")):
+            pass
+        d.proc.kill()
+        d.proc.wait(10)
+    folders = [state / "references", state / "references" / "quarantine", reports,
+               reports / "checks", state / "fleet-spool"]
+    for folder in folders:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / ".office.last-check.npz.k3j9x.tmp").write_bytes(b"half a file")
+    with Daemon(tmp_path / "second", state_dir=state, config=fleet) as d:
+        d.wait_for("READY=1")
+        assert d.base("check office\nexpect CLEAR station=office 20") == 0, d.log()
+        left = sorted(str(p.relative_to(state)) for p in state.rglob("*.tmp"))
+        assert left == [], left

@@ -7,15 +7,11 @@ import dataclasses
 import io
 import json
 import os
-import random
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
-from conftest import REPO, SIM_FIXTURES
+import store_faults
+from conftest import SIM_FIXTURES
 
 from hw.depth import open_depth
 from robot_change.change.scene import SceneModel, build_scene
@@ -210,73 +206,41 @@ def test_saving_over_a_bad_reference_keeps_the_good_previous(tmp_path, scenes):
 
 
 # ---------------------------------------------------------------------------------------------
-# kill -9 while writing
-
-WRITER = """
-import sys
-from robot_change.change.scene import SceneModel
-from robot_change.service.store import ReferenceStore
-root, first, second = sys.argv[1:]
-scenes = [SceneModel.load(first), SceneModel.load(second)]
-store = ReferenceStore(root)
-print("ready", flush=True)
-i = 0
-while True:
-    store.save("dock", scenes[i % 2])
-    i += 1
-"""
+# kill -9 while writing, a full disk (tests/store_faults.py; 100 kills: bench/bench_store_faults.py)
 
 
-def _temp_files(root) -> set:
-    return {p for p in root.iterdir() if p.name.endswith(".tmp")}
+def test_kill_9_in_a_save_never_loses_the_previous_reference(tmp_path, scenes):
+    """32 kills, aimed 8 at each moment of store_faults.MOMENTS: the store always holds A and
+    B, one current and one previous (before issue 44 a kill while the current was copied over
+    the previous left the previous a copy of the current).  The link's window is a few
+    microseconds, seldom hit: the state a kill there leaves is made by hand in the next test."""
+    result = store_faults.kill_saves(tmp_path, *scenes, kills=32)
+    assert result["previous_lost"] == 0, result
+    assert all(result["hits"][m] >= 4 for m in store_faults.MOMENTS[:3]), result
 
 
-def test_kill_9_in_the_middle_of_writing_leaves_a_whole_reference(tmp_path, scenes):
-    """24 kills: at random moments, and at each of the two writes of a save (the copy of the
-    current as the previous, then the new current), each hit several times."""
+def test_a_save_on_a_full_disk_changes_nothing(small_tmpfs, scenes):
+    """A real tmpfs with room for two references and half a third: every save fails with a
+    StoreError; current and previous stay, no temp file (before issue 44, 6 of 6 lost the
+    previous)."""
+    result = store_faults.full_disk_saves(small_tmpfs("2m"), *scenes, trials=6)
+    assert result == {"trials": 6, "failed": 6, "previous_lost": 0}
+
+
+def test_recover_completes_a_save_killed_between_its_renames(tmp_path, scenes):
     a, b = scenes
-    a.save(tmp_path / "a.npz")
-    b.save(tmp_path / "b.npz")
-    root = tmp_path / "refs"
-    ReferenceStore(root).save("dock", a)
-    script = tmp_path / "writer.py"
-    script.write_text(WRITER)
-    rng = random.Random(7)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    hits = {"dock.prev.scene.npz": 0, "dock.scene.npz": 0}
-    for trial in range(24):
-        child = subprocess.Popen([sys.executable, str(script), str(root), str(tmp_path / "a.npz"),
-                                  str(tmp_path / "b.npz")], stdout=subprocess.PIPE, env=env)
-        stale = _temp_files(root)  # left by earlier kills
-        target = list(hits)[(trial // 2) % 2]
-        try:
-            assert child.stdout.readline() == b"ready\n"
-            if trial % 2:
-                time.sleep(rng.uniform(0.0, 0.7))  # a random moment of the save loop
-            else:  # the moment the temp file of one of the two writes appears
-                deadline = time.monotonic() + 10
-                while time.monotonic() < deadline and not any(
-                        p.name.startswith(f".{target}.") for p in _temp_files(root) - stale):
-                    pass
-            child.send_signal(signal.SIGKILL)
-        finally:
-            child.kill()
-            child.wait(timeout=30)
-            child.stdout.close()
-        assert child.returncode == -signal.SIGKILL
-        for p in _temp_files(root) - stale:
-            for name in hits:
-                hits[name] += p.name.startswith(f".{name}.")
-        store = ReferenceStore(root)
-        current = store.load("dock")  # whole and verified, whichever it is
-        assert any(same(current, s) for s in scenes)
-        if store.previous_path("dock").exists():
-            assert any(same(store.load_previous("dock"), s) for s in scenes)
-        assert not (root / "quarantine").exists()
-    assert min(hits.values()) >= 3, f"kills in the middle of each write: {hits}"
-    removed = ReferenceStore(root).remove_stale_temp_files()
-    assert len(removed) >= 1
-    assert sorted(p.name for p in root.iterdir()) == ["dock.prev.scene.npz", "dock.scene.npz"]
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    b.save(store.next_path("dock"))
+    os.link(store.path("dock"), store.previous_path("dock"))  # the save was killed here
+    assert store.recover() == [store.next_path("dock")]
+    assert same(store.load("dock"), b) and same(store.load_previous("dock"), a)
+    b.save(store.next_path("dock"))  # killed before it kept the previous: nothing changes
+    (tmp_path / ".dock.scene.npz.x1y2.tmp").write_bytes(b"half")
+    store.recover()
+    assert same(store.load("dock"), b) and same(store.load_previous("dock"), a)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dock.prev.scene.npz",
+                                                           "dock.scene.npz"]
 
 
 def test_a_new_station_beyond_the_limit_is_refused_and_an_old_one_still_saves(tmp_path, scenes):

@@ -108,6 +108,38 @@ def test_a_check_file_that_cannot_be_written_is_a_warning_and_the_check_goes_on(
         assert "view of the check of office not written" in caplog.text
 
 
+def test_a_full_disk_is_two_lines_per_check_and_leaves_no_temp_file(
+        tmp_path: Path, scene_frames, small_tmpfs, caplog, capfd) -> None:  # noqa: F811
+    """Issue 44: on a full disk foxglove-sdk's MCAP writer logged 14 McapError lines per
+    view, and the view's own warning a traceback; now two lines: the SDK's first error and
+    the view's warning with the free space; no temp file stays."""
+    full = small_tmpfs("256k")
+    with Rig(tmp_path, scene_frames, config=Config(viz=VizConfig(keep_checks=5))) as rig:
+        rig.run("""
+            capture office
+            expect CAPTURED 5
+        """)
+        folder = tmp_path / "reports" / "checks"
+        folder.rmdir()
+        folder.symlink_to(full)
+        with open(full / "filler", "wb", buffering=0) as filler, pytest.raises(OSError):
+            while True:
+                filler.write(b"x" * 4096)
+        with caplog.at_level(logging.WARNING):
+            for n in (1, 2, 3):
+                rig.run("""
+                    check office
+                    expect CLEAR station=office 5
+                """)
+                wait_written(rig.service, n)
+        assert rig.service.counters["views_failed"] == 3
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(lines) <= 6, lines
+    assert sum("MB free in" in line for line in lines) == 3, lines
+    assert "Traceback" not in caplog.text + capfd.readouterr().err
+    assert sorted(p.name for p in full.iterdir()) == ["filler"]
+
+
 def check_without_views(tmp_path: Path, scene_frames, caplog) -> str:  # noqa: F811
     """Capture and CHECK with a service whose views could not start; returns its warnings."""
     with caplog.at_level(logging.WARNING, logger="robot_change.service.views"):

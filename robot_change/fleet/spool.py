@@ -19,7 +19,7 @@ import re
 import threading
 from pathlib import Path
 
-from hw.atomic import write_atomically
+from hw.atomic import remove_temp_files, write_atomically
 
 __all__ = ["Spool"]
 
@@ -43,8 +43,7 @@ class Spool:
         self._lock = threading.Lock()
         self._sizes: collections.OrderedDict[int, int] = collections.OrderedDict()
         self.bad = 0
-        for temp in self.folder.glob(".*.tmp"):  # an interrupted write: never a message
-            temp.unlink(missing_ok=True)
+        remove_temp_files(self.folder)  # an interrupted write: never a message
         found = []
         for path in self.folder.iterdir():
             match = _NAME.match(path.name)

@@ -76,7 +76,7 @@ from typing import Any, Callable
 import numpy as np
 
 import robot_change
-from hw.atomic import write_atomically
+from hw.atomic import remove_temp_files, write_atomically
 from hw.depth import DepthFrame, DepthSource
 from robot_change import npzfile
 from robot_change.change import detect, scene
@@ -352,9 +352,12 @@ class Service:
 
     def start(self) -> None:
         """Start the link, camera and controller threads (call :func:`warm_up` first)."""
-        removed = self.store.remove_stale_temp_files()
-        if removed:
-            log.info("removed %d temp file(s) left by an interrupted write", len(removed))
+        self.store.recover()  # references/ and quarantine/; the fleet's spool: Spool()
+        if self.options.report_dir is not None:
+            reports = Path(self.options.report_dir)
+            for folder in (reports, reports / "checks"):
+                if remove_temp_files(folder):
+                    log.info("removed temp files left by an interrupted write in %s", folder)
         self._pool = concurrent.futures.ThreadPoolExecutor(self.options.detector_threads,
                                                            thread_name_prefix="detector")
         self.views.start()

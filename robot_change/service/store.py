@@ -3,12 +3,16 @@
     root/
       dock.scene.npz                 the reference of station "dock" (SceneModel.save)
       dock.prev.scene.npz            the one it replaced
+      dock.next.scene.npz            only while a save is under way (or was killed in it)
       quarantine/
         dock.scene.npz.20250101T120000.123456Z          a file that failed verification
         dock.scene.npz.20250101T120000.123456Z.txt      why
 
-Every write is atomic (hw.atomic: temp file, fsync, rename), so a crash or a kill -9 in the
-middle of a save leaves the previous reference in place, whole.  Every load is verified
+Every write is atomic (hw.atomic: temp file, fsync, rename).  A save writes the new reference
+whole first (``dock.next.scene.npz``), then keeps the current one as the previous (a hard link:
+no copy, nothing written) and renames the new one into place: a save that fails (a full disk)
+or is killed before that last rename changes nothing, and :meth:`ReferenceStore.recover`, at
+start, completes one killed between the two renames.  Every load is verified
 (``SceneModel.load``: format, version, checksum).  A file that fails is never used and never
 deleted: it is moved to ``quarantine/`` and reported (:class:`ReferenceMissing` names it).  The
 previous version is only ever used when asked for (:meth:`ReferenceStore.load_previous`).
@@ -17,6 +21,7 @@ Station names come from the serial line: they are checked to be names, never pat
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import logging
@@ -25,7 +30,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from hw.atomic import AtomicFile, write_atomically
+from hw.atomic import AtomicFile, remove_temp_files, write_atomically
 from robot_change import validate
 from robot_change.change.scene import SceneModel
 from robot_change.errors import (
@@ -42,6 +47,8 @@ log = logging.getLogger(__name__)
 #: File name endings of the current and the previous reference.
 CURRENT = ".scene.npz"
 PREVIOUS = ".prev.scene.npz"
+#: A new reference, written whole before it replaces the current one.
+NEXT = ".next.scene.npz"
 QUARANTINE = "quarantine"
 MAX_STATION = validate.MAX_STATION
 #: Stations a store holds at most unless configured ([store] max_stations), and the ceiling.
@@ -136,6 +143,10 @@ class ReferenceStore:
         """The file of the reference it replaced."""
         return self.root / (check_station(station) + PREVIOUS)
 
+    def next_path(self, station: str) -> Path:
+        """Where a save writes the new reference before it replaces the current one."""
+        return self.root / (check_station(station) + NEXT)
+
     @property
     def quarantine_dir(self) -> Path:
         return self.root / QUARANTINE
@@ -145,31 +156,54 @@ class ReferenceStore:
     def save(self, station: str, scene: Any) -> Path:
         """Store ``scene`` as ``station``'s reference; the one it replaces becomes the previous.
 
-        The current file is verified before it is kept as the previous one (a damaged one is
-        quarantined instead, and the old previous stays).  Each step is atomic: killed at any
-        moment, the store holds the old reference or the new one, never a mix.  Raises
+        The new file is written whole first; then the current file is verified and kept as the
+        previous one (a damaged one is quarantined instead, and the old previous stays); then
+        the new file takes its place.  A save that fails or is killed before that last step
+        leaves the current and the previous references as they were.  Raises
         :class:`StoreError` when the folder cannot be written (full disk, permissions).
         """
-        current = self.path(station)
+        current, incoming = self.path(station), self.next_path(station)
         try:
             self._check_room(station, current)
             self.root.mkdir(parents=True, exist_ok=True)
+            scene.save(incoming)
             if current.exists():
                 try:
                     self.scene_type.load(current)
                 except SceneFileError as exc:
                     self._quarantine(current, exc)
                 else:
-                    with AtomicFile(self.previous_path(station)) as out, open(current, "rb") as src:
-                        shutil.copyfileobj(src, out, 1 << 20)
-            scene.save(current)
+                    self._keep_as_previous(current, self.previous_path(station))
+            os.replace(incoming, current)
+            _fsync_dir(self.root)
         except OSError as exc:
+            with contextlib.suppress(OSError):  # a folder that cannot be written holds none
+                incoming.unlink(missing_ok=True)
             raise StoreError(
                 f"station {station!r}: cannot write its reference in {self.root} "
                 f"({exc.strerror or exc}); check free space and that the service user owns "
                 "the folder") from exc
         log.info("station %s: reference saved to %s", station, current)
         return current
+
+    @staticmethod
+    def _keep_as_previous(current: Path, previous: Path) -> None:
+        """Make ``previous`` the file ``current`` is, atomically: a hard link renamed into
+        place (nothing is written: a full disk cannot stop it); a copy where the file system
+        has no hard links."""
+        link = previous.with_name(f".{previous.name}.{os.getpid()}.link.tmp")
+        link.unlink(missing_ok=True)
+        try:
+            os.link(current, link)
+        except OSError:
+            with AtomicFile(previous) as out, open(current, "rb") as src:
+                shutil.copyfileobj(src, out, 1 << 20)
+            return
+        try:
+            os.replace(link, previous)
+        except OSError:
+            link.unlink(missing_ok=True)
+            raise
 
     def _check_room(self, station: str, current: Path) -> None:
         """Refuse a new station beyond ``max_stations`` and a save that would leave less than
@@ -245,19 +279,35 @@ class ReferenceStore:
         return StationInfo(station, _file_info(self.path(station)),
                            _file_info(self.previous_path(station)), tuple(bad))
 
-    def remove_stale_temp_files(self) -> list[Path]:
-        """Delete temp files left by writes that were killed; call once at start, before any
-        save.  Returns what was removed."""
+    def recover(self) -> list[Path]:
+        """Put right what writes that were killed left; call once at start, before any save.
+
+        Temp files (here and in quarantine/) are removed.  A new reference left by a killed
+        save (``<station>.next.scene.npz``) takes its place when the save had already kept the
+        current one as the previous (the two are then one file), else it is removed: either
+        way the store holds whole references, the previous one never lost.  Returns the files
+        removed or moved into place."""
+        done = remove_temp_files(self.root) + remove_temp_files(self.quarantine_dir)
         try:
-            stale = [p for p in self.root.iterdir()
-                     if p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file()]
+            incoming = [p for p in self.root.iterdir() if p.name.endswith(NEXT)]
         except FileNotFoundError:
-            return []
-        for path in stale:
-            path.unlink(missing_ok=True)
-        if stale:
-            log.info("removed %d stale temp file(s) from %s", len(stale), self.root)
-        return stale
+            return done
+        for path in incoming:
+            station = path.name[: -len(NEXT)]
+            if not validate.is_station(station):
+                continue
+            current, previous = self.path(station), self.previous_path(station)
+            if previous.exists() and current.exists() and os.path.samefile(previous, current):
+                os.replace(path, current)
+                log.warning("station %s: a save killed before its end completed", station)
+            else:
+                path.unlink()
+            done.append(path)
+        if done:
+            _fsync_dir(self.root)
+            log.info("recovered %d file(s) left by interrupted writes in %s", len(done),
+                     self.root)
+        return done
 
     # ----------------------------------------------------------------------- internals
 

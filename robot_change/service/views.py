@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import queue
 import re
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -38,6 +39,14 @@ log = logging.getLogger(__name__)
 _CHECK_FILE = re.compile(r"\d{8}T\d{6}\.\d{6}Z-[A-Za-z0-9_-]+\.mcap\Z")
 #: Checks that may wait for the worker (beyond these, a check is not drawn).
 QUEUED_VIEWS = 2
+#: The logger foxglove-sdk's MCAP writer reports failed writes to.
+_SDK_WRITE_LOG = "foxglove.log_sink_set"
+
+
+def _after_the_first_failure(record: logging.LogRecord) -> bool:
+    """False for foxglove-sdk's lines about writes it refused after the first failed one (a
+    full disk gave 13 of them per file: the first, and the view's own warning, tell it)."""
+    return "AttemptedWriteAfterFailure" not in record.getMessage()
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -98,8 +107,8 @@ class CheckViews:
         return self._thread is not None
 
     def start(self) -> None:
-        """Check that foxglove-sdk is there, clear temp files left by an interrupted write,
-        start the live server (when asked) and the worker.  Never raises: what cannot be done
+        """Check that foxglove-sdk is there (the service's start has removed the temp files an
+        interrupted write left in the folder), start the live server (when asked) and the worker.  Never raises: what cannot be done
         is logged and left out."""
         if self.folder is None and not self.viz.live:
             return
@@ -111,10 +120,11 @@ class CheckViews:
             log.warning("check views for Foxglove skipped: %s", exc)
             return
         if self.folder is not None:
+            sdk_log = logging.getLogger(_SDK_WRITE_LOG)
+            if _after_the_first_failure not in sdk_log.filters:
+                sdk_log.addFilter(_after_the_first_failure)
             try:
                 self.folder.mkdir(parents=True, exist_ok=True)
-                for temp in self.folder.glob(".*.tmp"):
-                    temp.unlink(missing_ok=True)
             except OSError as exc:
                 log.warning("check files skipped: cannot use the folder %s (%s)", self.folder,
                             exc)
@@ -175,9 +185,20 @@ class CheckViews:
                 return
             try:
                 self._draw(view)
+            except (OSError, RuntimeError) as exc:  # a full disk, a folder gone: no traceback
+                self.counters["views_failed"] += 1
+                log.warning("view of the check of %s not written: %s%s", view.station, exc,
+                            self._free_space())
             except Exception:  # noqa: BLE001 -- a view never stops the service
                 self.counters["views_failed"] += 1
                 log.warning("view of the check of %s not written", view.station, exc_info=True)
+
+    def _free_space(self) -> str:
+        """", N MB free in FOLDER" (what a failed write most often lacks), or ""."""
+        try:
+            return f", {shutil.disk_usage(self.folder).free / 1e6:.1f} MB free in {self.folder}"
+        except (OSError, TypeError):
+            return ""
 
     def _draw(self, view: CheckView) -> None:
         from robot_change.export.foxglove import check_messages
