@@ -168,6 +168,13 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         assert not any(s == "STATUS=configuration reloaded" for s in statuses), statuses
         # the old configuration goes on working: no INTERNAL_ERROR
         assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
+        # a file cut short at a line: valid TOML, its last section ([store]) gone (issue 44)
+        d.write_config()
+        whole = d.config.read_text()
+        d.config.write_text(whole[: whole.index("[store]")])
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("has no [store] section(s), which the running configuration has")
+        assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
         _sigterm_in(d)
 
 

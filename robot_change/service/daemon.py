@@ -182,6 +182,7 @@ def _reload(service: Service, load: Callable[[], Config] | None,
             return
         try:
             config = load()
+            _check_no_section_lost(service.config, config)
         except ConfigError as exc:
             log.error("SIGHUP: the new configuration is refused, the old one stays: %s", exc)
             outcome = f"configuration refused, the old one stays: {exc}"
@@ -194,6 +195,17 @@ def _reload(service: Service, load: Callable[[], Config] | None,
     finally:
         if not stop.is_set():  # never READY after STOPPING
             systemd.ready(status=outcome[:200])
+
+
+def _check_no_section_lost(running: Config, new: Config) -> None:
+    """A reload of a file that lost a section the running configuration's file had is refused
+    (:class:`ConfigError`): most likely a file cut short (half copied, a full disk) whose rest
+    would silently become defaults.  A restart takes such a file."""
+    lost = sorted(running.sections - new.sections)
+    if lost:
+        raise ConfigError(f"{new.path}: has no [{'], ['.join(lost)}] section(s), which the "
+                          "running configuration has (a file cut short?); a reload keeps "
+                          "them, restart the service to run without them")
 
 
 def _status_line(service: Service) -> str:
