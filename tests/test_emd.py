@@ -18,7 +18,9 @@ from scipy.linalg import sqrtm
 from scipy.optimize import linprog
 from scipy.spatial.distance import cdist
 
-from robot_change.change import transport as E
+from robot_change.change import transport_greedy as G
+from robot_change.change import transport_simplex as S
+from robot_change.change import transport_tree as T
 from robot_change.change.transport import (
     STOP_REASONS,
     EmdResult,
@@ -266,7 +268,7 @@ def test_bland_rule_path_matches_linprog():
     for _ in range(40):
         a, b, cost = random_problem(rng, rng.choice(["int_all", "int_cost", "zeros"]))
         a, b = a / a.sum(), b / b.sum()
-        dist, flow, status, _ = E._emd_kernel(a, b, cost, E._REL_TOL_COST, 0)
+        dist, flow, status, _ = S._emd_kernel(a, b, cost, S._REL_TOL_COST, 0)
         assert status == 0
         assert abs(dist - lp_emd(a, b, cost)[0]) <= TOL
         np.testing.assert_allclose(flow.sum(axis=1), a, atol=1e-12)
@@ -383,7 +385,7 @@ def test_normalised_matches_numpy(w):
     with np.errstate(over="ignore", invalid="ignore"):
         total = w.sum()
         valid = bool(np.isfinite(w).all() and (w >= 0).all() and 0 < total < np.inf)
-    got = E._normalised(w)
+    got = S._normalised(w)
     if valid:
         np.testing.assert_allclose(got, w / total, rtol=1e-15, atol=0)
     else:
@@ -399,14 +401,14 @@ def test_checked_kernel_flags_exactly_what_the_python_checks_reject():
             if rng.random() < 0.3:
                 arr[rng.integers(arr.size)] = rng.choice([np.nan, np.inf, -np.inf, -0.5, 0.0])
         try:
-            E._check_weights(a, "a")
-            E._check_weights(b, "b")
-            E._check_cost(cost, len(a), len(b))
+            S._check_weights(a, "a")
+            S._check_weights(b, "b")
+            S._check_cost(cost, len(a), len(b))
             valid = True
         except InputError:
             valid = False
-        dist, _, status, _ = E._checked_emd_kernel(a, b, cost, E._REL_TOL_COST)
-        assert (status == E._BAD_INPUT) == (not valid)
+        dist, _, status, _ = S._checked_emd_kernel(a, b, cost, S._REL_TOL_COST)
+        assert (status == S._BAD_INPUT) == (not valid)
         if valid:
             assert status == 0
             assert abs(dist - lp_emd(a, b, cost)[0]) <= TOL
@@ -421,10 +423,10 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         a, b, cost = random_problem(rng)
         a, b = a / a.sum(), b / b.sum()
         m, n = cost.shape
-        ws = E._workspace(m, n)
+        ws = S._workspace(m, n)
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
-        E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
+        T._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
                             ws[0][0], ws[2])
         assert len(set(zip(bi.tolist(), bj.tolist()))) == m + n - 1
         x, _ = tree_twin(m, n, bi, bj, a, b, cost)  # full rank: lstsq solves it exactly
@@ -468,15 +470,15 @@ def check_tree_arrays(m, n, bi, bj, tree):
     twin = tree_arrays_twin(m, n, bi, bj)
     assert twin is not None, "the basic cells are not a spanning tree"
     parent, pred, size = twin
-    np.testing.assert_array_equal(tree[E._PARENT][:nn], parent)
-    np.testing.assert_array_equal(tree[E._PRED][:nn], pred)
-    np.testing.assert_array_equal(tree[E._SUCC][:nn], size)
+    np.testing.assert_array_equal(tree[T._PARENT][:nn], parent)
+    np.testing.assert_array_equal(tree[T._PRED][:nn], pred)
+    np.testing.assert_array_equal(tree[T._SUCC][:nn], size)
     seq = [0]
-    while len(seq) <= nn and tree[E._THREAD][seq[-1]] != 0:
-        seq.append(int(tree[E._THREAD][seq[-1]]))
+    while len(seq) <= nn and tree[T._THREAD][seq[-1]] != 0:
+        seq.append(int(tree[T._THREAD][seq[-1]]))
     assert sorted(seq) == list(range(nn)), "the thread is not one cycle through every node"
     for k, z in enumerate(seq):
-        assert tree[E._REV][z] == seq[k - 1]
+        assert tree[T._REV][z] == seq[k - 1]
     pos = {z: k for k, z in enumerate(seq)}
     for z in range(nn):  # preorder: a node's subtree is the segment starting at it
         segment = seq[pos[z]:pos[z] + size[z]]
@@ -485,18 +487,18 @@ def check_tree_arrays(m, n, bi, bj, tree):
             while y != z:
                 y = parent[y]
                 assert y != -1, f"{w} in the segment of {z} is not below it"
-        assert tree[E._LAST][z] == segment[-1]
+        assert tree[T._LAST][z] == segment[-1]
 
 
 def least_cost_basis(a, b, cost):
     """The solver's workspace for ``cost`` (m, n) and its least-cost start: (workspace, tree,
     link, net, pot, x, bi, bj)."""
     m, n = cost.shape
-    ws = E._workspace(m, n)
+    ws = S._workspace(m, n)
     _, link, net, pot, x = ws[:5]
     bi = np.zeros(m + n - 1, np.int64)
     bj = np.zeros(m + n - 1, np.int64)
-    E._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8], ws[0][0], net)
+    T._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8], ws[0][0], net)
     return ws, ws[9], link, net, pot, x, bi, bj
 
 
@@ -509,7 +511,7 @@ def test_build_tree_matches_numpy_twins():
         ws, tree, link, net, pot, x, bi, bj = least_cost_basis(a, b, cost)
         b2 = rng.random(n)  # other masses: any flows, negative ones included
         b2 /= b2.sum()
-        assert E._build_tree(m, n, bi, bj, a, b2, cost, tree, link, net, pot, x)
+        assert T._build_tree(m, n, bi, bj, a, b2, cost, tree, link, net, pot, x)
         check_tree_arrays(m, n, bi, bj, tree)
         x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
         np.testing.assert_allclose(x[:m + n - 1], x_ref, atol=1e-12)
@@ -518,18 +520,18 @@ def test_build_tree_matches_numpy_twins():
 
 def test_build_tree_rejects_a_non_tree():
     a = b = np.array([0.5, 0.5])
-    ws = E._workspace(2, 2)
+    ws = S._workspace(2, 2)
     _, link, net, pot, x = ws[:5]
     for bi, bj in (([0, 0, 0], [0, 1, 0]),     # cell (0, 0) twice, row 1 unreached
                    ([0, 0, 1], [0, 1, 1])):    # fine: a path
-        ok = E._build_tree(2, 2, np.array(bi), np.array(bj), a, b, np.ones((2, 2)), ws[9],
+        ok = T._build_tree(2, 2, np.array(bi), np.array(bj), a, b, np.ones((2, 2)), ws[9],
                            link, net, pot, x)
         assert ok == (tree_arrays_twin(2, 2, np.array(bi), np.array(bj)) is not None)
     m, n = 3, 3  # a cycle (0,0)-(0,1)-(1,1)-(1,0) and row 2 / column 2 cut off
-    ws = E._workspace(m, n)
+    ws = S._workspace(m, n)
     bi = np.array([0, 0, 1, 1, 2])
     bj = np.array([0, 1, 1, 0, 2])
-    assert not E._build_tree(m, n, bi, bj, np.ones(3) / 3, np.ones(3) / 3, np.ones((3, 3)),
+    assert not T._build_tree(m, n, bi, bj, np.ones(3) / 3, np.ones(3) / 3, np.ones((3, 3)),
                              ws[9], ws[1], ws[2], ws[3], ws[4])
 
 
@@ -544,7 +546,7 @@ def test_pivots_keep_tree_potentials_and_flows_exact(kind):
         a, b, cost = random_problem(rng, kind, m, n)
         a, b = a / a.sum(), b / b.sum()
         ws, tree, link, net, pot, x, bi, bj = least_cost_basis(a, b, cost)
-        assert E._build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x)
+        assert T._build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x)
         bland = bool(trial % 3 == 0)
         tol = 1e-12 * np.abs(cost).max()
         for _ in range(10 * (m + n) ** 2):
@@ -556,8 +558,8 @@ def test_pivots_keep_tree_potentials_and_flows_exact(kind):
             if not red[p, q] < -tol:
                 break
             before = float(np.sum(cost[bi, bj] * x[:m + n - 1]))
-            theta = E._pivot(m, n, p, q, red[p, q], bland, -1, bi, bj, tree, pot, x,
-                             tree[E._ORDER])
+            theta = T._pivot(m, n, p, q, red[p, q], bland, -1, bi, bj, tree, pot, x,
+                             tree[T._ORDER])
             check_tree_arrays(m, n, bi, bj, tree)
             x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b, cost)
             np.testing.assert_allclose(pot, pot_ref, atol=1e-12)
@@ -566,12 +568,12 @@ def test_pivots_keep_tree_potentials_and_flows_exact(kind):
             after = float(np.sum(cost[bi, bj] * x[:m + n - 1]))
             assert after == pytest.approx(before + theta * red[p, q], abs=1e-12)
             pot_fresh = pot.copy()
-            E._tree_potentials(m, bi, bj, cost, tree, pot_fresh)
+            T._tree_potentials(m, bi, bj, cost, tree, pot_fresh)
             np.testing.assert_allclose(pot_fresh, pot_ref, atol=1e-12)
         else:
             pytest.fail("no optimum within the pivot bound")
         x_fresh = x.copy()
-        E._tree_flows(m, n, a, b, tree, net, x_fresh, False)
+        T._tree_flows(m, n, a, b, tree, net, x_fresh, False)
         np.testing.assert_allclose(x_fresh[:m + n - 1], tree_twin(m, n, bi, bj, a, b, cost)[0],
                                    atol=1e-12)
         value = float(np.sum(cost[bi, bj] * np.maximum(x_fresh[:m + n - 1], 0.0)))
@@ -585,16 +587,16 @@ def test_dual_warm_start_matches_linprog():
         a, b, cost = random_problem(rng, None if trial % 2 else "int_all")
         a, b = a / a.sum(), b / b.sum()
         m, n = cost.shape
-        ws = E._workspace(m, n)
+        ws = S._workspace(m, n)
         bi = np.zeros(m + n - 1, np.int64)
         bj = np.zeros(m + n - 1, np.int64)
-        assert E._cold_solve(a, b, cost, 1e-12, 100, bi, bj, ws)[0] == 0
+        assert S._cold_solve(a, b, cost, 1e-12, 100, bi, bj, ws)[0] == 0
         b2 = rng.random(n) * (rng.random(n) < 0.8)
         if b2.sum() == 0:
             b2[0] = 1.0
         b2 /= b2.sum()
         bland = int(rng.integers(0, 2)) * 100
-        status, _ = E._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5], ws[9])
+        status, _ = S._dual(m, n, a, b2, cost, bi, bj, np.inf, bland, *ws[:5], ws[9])
         assert status == 0
         check_tree_arrays(m, n, bi, bj, ws[9])
         x_ref, pot_ref = tree_twin(m, n, bi, bj, a, b2, cost)
@@ -602,7 +604,7 @@ def test_dual_warm_start_matches_linprog():
         np.testing.assert_allclose(ws[3], pot_ref, atol=1e-12)
         red = cost - pot_ref[:m, None] - pot_ref[None, m:]
         assert red.min() >= -1e-12 and x_ref.min() >= -1e-12  # dual and primal feasible
-        value = E._objective(m, n, bi, bj, cost, ws[4])
+        value = S._objective(m, n, bi, bj, cost, ws[4])
         assert abs(value - lp_emd(a, b2, cost)[0]) <= TOL
 
 
@@ -611,17 +613,17 @@ def test_dual_cutoff_stops_early_and_never_above_the_optimum():
     a, b, cost = random_problem(rng, "points", 12, 12)
     a, b = a / a.sum(), b / b.sum()
     m, n = cost.shape
-    ws = E._workspace(m, n)
+    ws = S._workspace(m, n)
     bi = np.zeros(m + n - 1, np.int64)
     bj = np.zeros(m + n - 1, np.int64)
-    E._cold_solve(a, b, cost, 1e-12, 100, bi, bj, ws)
+    S._cold_solve(a, b, cost, 1e-12, 100, bi, bj, ws)
     b2 = b.copy()
     b2[np.argmax(b)] = 0.0
     b2 /= b2.sum()
     opt = lp_emd(a, b2, cost)[0]
-    status, _ = E._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5], ws[9])
-    assert status == E._CUT_OFF
-    status, _ = E._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5], ws[9])
+    status, _ = S._dual(m, n, a, b2, cost, bi.copy(), bj.copy(), opt - 1e-3, 100, *ws[:5], ws[9])
+    assert status == S._CUT_OFF
+    status, _ = S._dual(m, n, a, b2, cost, bi, bj, opt + 1e-9, 100, *ws[:5], ws[9])
     assert status == 0
 
 
@@ -713,8 +715,8 @@ def test_greedy_bland_rule_gives_the_same_trajectory():
     a, b, cost = separated_greedy_problem(rng, 12, 12, 3)
     a, b = a / a.sum(), b / b.sum()
     cand = np.ones(12, bool)
-    plain = E._greedy_kernel(a, b, cost, cand, 12, False, E._REL_TOL_COST, -1)
-    bland = E._greedy_kernel(a, b, cost, cand, 12, False, E._REL_TOL_COST, 0)
+    plain = G._greedy_kernel(a, b, cost, cand, 12, False, S._REL_TOL_COST, -1)
+    bland = G._greedy_kernel(a, b, cost, cand, 12, False, S._REL_TOL_COST, 0)
     np.testing.assert_array_equal(plain[0], bland[0])
     np.testing.assert_allclose(plain[1], bland[1], atol=1e-12)
     assert bland[6] == 0

@@ -53,7 +53,7 @@ def test_the_helpers_kernels_are_the_ones_the_whole_path_loads(tmp_path):
     ours = [name for name in compiled if name.startswith("robot_change.")]
     assert ours, "a cold cache must compile the cloud's and mixture's kernels here"
     left = [name for name in ours if name.startswith(("robot_change.change.registration.",
-                                                      "robot_change.change.transport."))]
+                                                      "robot_change.change.transport"))]
     assert left == [], f"the helper did not leave these for the whole path: {left}"
     # an array-to-slice copy in a kernel costs ~2 s of compile for its shape-error message
     slices = [name for name in compiled if "raise_with_shape_context" in name]
