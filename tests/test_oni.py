@@ -328,7 +328,7 @@ def test_write_oni_keeps_depth_frames_timestamps(tmp_path: Path, good_file: Path
 
 
 def _decode_16z_twin(data: bytes, count: int) -> list[int]:
-    """Plain-Python twin of hw.oni._decode_16z (the 16zP stream -> pixel values)."""
+    """Plain-Python twin of hw.oni_codec._decode_16z (the 16zP stream -> pixel values)."""
     out = [data[0] | (data[1] << 8)]
     last, i = out[0], 2
     while i < len(data) and len(out) < count:
@@ -371,3 +371,18 @@ def test_16z_decoder_kernel_matches_its_python_twin(seed: int) -> None:
     got = decode_frame(payload, depth.shape, "16z")
     np.testing.assert_array_equal(got.ravel(), _decode_16z_twin(payload, depth.size))
     np.testing.assert_array_equal(got, depth)
+
+
+def test_hw_oni_re_exports_the_codec_and_container_modules() -> None:
+    """hw.oni stays the one import: names from hw.oni_codec / hw.oni_format are the same objects."""
+    import hw.oni as oni
+    import hw.oni_codec as oni_codec
+    import hw.oni_format as oni_format
+
+    assert len(oni.__all__) == len(set(oni.__all__))
+    for name in oni.__all__:
+        assert hasattr(oni, name), name
+        for module in (oni_codec, oni_format):
+            if hasattr(module, name):
+                assert getattr(oni, name) is getattr(module, name), name
+    assert oni._decode_16z is oni_codec._decode_16z  # the numba kernel the twin above checks
