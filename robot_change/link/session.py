@@ -10,27 +10,26 @@ The rules (docs/protocol.md, "Session"): every sequenced message is acknowledged
 sender retries every 100 ms, 5 tries in all, then fails the message and declares the link FAULTY;
 the receiver acks duplicates again but delivers them once; urgent messages (PAUSE, RESUME) and
 their ACKs go out as bursts of URGENT_COPIES; heartbeats flow both ways whatever the state.
+
+:class:`LinkConfig`, :class:`LinkState`, the events and :class:`LinkStats` are in
+:mod:`robot_change.link.session_types`, :class:`LinkRunner` in
+:mod:`robot_change.link.runner`; all are re-exported here.
 """
 
 from __future__ import annotations
 
 import random
-import select
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from enum import Enum
 from typing import Any, Callable
 
 from robot_change.errors import LinkError
-from robot_change.link.port import BytePort
 from robot_change.link.protocol import (
     FLAG_RETRY,
     FLAG_URGENT,
     FROZEN_TYPES,
     MIN_VERSION,
-    URGENT_COPIES,
     VERSION,
     Ack,
     BaseHeartbeat,
@@ -52,135 +51,23 @@ from robot_change.link.protocol import (
     may_send,
     split_body,
 )
+from robot_change.link.runner import LinkRunner
+from robot_change.link.session_types import (
+    Delivered,
+    Event,
+    LinkConfig,
+    LinkState,
+    LinkStats,
+    PortProblem,
+    Received,
+    SendFailed,
+    StateChanged,
+)
 
-
-class LinkState(str, Enum):
-    """CONNECTING until our first HELLO is acked; FAULTY after a failed message or peer silence."""
-
-    CONNECTING = "connecting"
-    UP = "up"
-    FAULTY = "faulty"
-    INCOMPATIBLE = "incompatible"
-
-
-@dataclass(frozen=True)
-class LinkConfig:
-    """Timing and sizes of the session; the defaults are the protocol's (docs/protocol.md)."""
-
-    retry_interval: float = 0.1
-    max_tries: int = 5
-    window: int = 4
-    heartbeat_interval: float = 0.1
-    silence_timeout: float = 1.0
-    hello_interval: float = 0.5
-    urgent_copies: int = URGENT_COPIES
-    ack_holdoff: float = 0.05
-    dedup_memory: int = 128
-    max_queue: int = 256
-    #: Line speed (bytes per second = baud / 10): paces the PART carousel (version 3).
-    baud: int = 115200
-    #: Share of the line the PARTs of carried messages may take (the rest stays free for
-    #: urgent bursts, ACKs and heartbeats).
-    part_share: float = 0.75
-    #: A carried message not acknowledged this long after its first PART has failed.
-    carry_timeout: float = 10.0
-    #: The base's NEED for one message at most this often.
-    need_interval: float = 0.05
-    #: Half-joined carried messages a receiver keeps (the oldest is dropped beyond).
-    max_assemblies: int = 8
-
-    @classmethod
-    def for_baud(cls, baud: int, **overrides: Any) -> "LinkConfig":
-        """The defaults, slowed for slow lines (docs/protocol.md 7.4): a retry never comes before
-        an urgent burst and its ACK burst have crossed the line (2.5x their air time), and the
-        ACK holdoff covers a whole burst (1.5x).  At 115200 baud and above: the plain defaults.
-        """
-        byte_time = 10 / baud  # 8N1
-        burst = cls.urgent_copies * 10 * byte_time  # PAUSE / RESUME copies, 10 bytes each
-        acks = cls.urgent_copies * 9 * byte_time  # the ACK burst, 9 bytes a copy
-        values: dict[str, Any] = {"retry_interval": max(cls.retry_interval, 2.5 * (burst + acks)),
-                                  "ack_holdoff": max(cls.ack_holdoff, 1.5 * burst),
-                                  "baud": baud}
-        values.update(overrides)
-        return cls(**values)
-
-
-# events ---------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Received:
-    """A message from the peer, delivered once (heartbeats: every one)."""
-
-    message: Message
-    seq: int
-
-
-@dataclass(frozen=True)
-class Delivered:
-    """The peer acknowledged our message after ``tries`` transmissions, ``rtt`` s after the first."""
-
-    message: Message
-    seq: int
-    rtt: float
-    tries: int
-
-
-@dataclass(frozen=True)
-class SendFailed:
-    """Our message was not delivered: no ACK after every try, a NAK, or the queue overflowed."""
-
-    message: Message
-    seq: int
-    reason: str
-    nak: NakReason | None = None
-
-
-@dataclass(frozen=True)
-class StateChanged:
-    """The link changed state; ``why`` says what happened in words an operator can act on."""
-
-    old: LinkState
-    new: LinkState
-    why: str
-
-
-@dataclass(frozen=True)
-class PortProblem:
-    """The runner's port failed or came back (``up``); ``detail`` says what to do."""
-
-    up: bool
-    detail: str
-
-
-Event = Received | Delivered | SendFailed | StateChanged | PortProblem
-
-
-@dataclass
-class LinkStats:
-    """Counters since the link was made."""
-
-    bytes_in: int = 0
-    bytes_out: int = 0
-    frames_in: int = 0
-    sent: int = 0
-    retransmissions: int = 0
-    delivered: int = 0
-    failed: int = 0
-    duplicates: int = 0
-    naks_sent: int = 0
-    naks_received: int = 0
-    stray_acks: int = 0  # ACKs for nothing in flight: extra copies of an urgent ACK burst
-    heartbeats_sent: int = 0
-    heartbeats_received: int = 0
-    parts_sent: int = 0  # version 3: PART frames written
-    parts_received: int = 0
-    needs_sent: int = 0
-    needs_received: int = 0
-    carried: int = 0  # carried messages joined (each once)
-    carried_bad: int = 0  # joined bodies that did not decode (a false CRC match): started again
-    assemblies_dropped: int = 0
-    before_hello: int = 0  # sequenced messages refused because the peer had sent no HELLO
+__all__ = [
+    "Delivered", "Event", "Link", "LinkConfig", "LinkRunner", "LinkState", "LinkStats",
+    "PortProblem", "Received", "SendFailed", "StateChanged",
+]
 
 
 @dataclass
@@ -677,91 +564,3 @@ class Link:
 
     def _now(self, now: float | None) -> float:
         return self.clock() if now is None else now
-
-
-# ---------------------------------------------------------------------------------------------
-# the runner: a Link over a real port
-
-
-class LinkRunner:
-    """Pumps a :class:`Link` over a byte port: ``step()`` writes, waits (select or the port's read
-    timeout), reads, and returns the link's events.  ``send``/``set_heartbeat`` may be called from
-    another thread; the Link itself is only touched under a lock.
-
-    ``port`` is a pyserial port (``hw.serial_port.open_port``), a ``hw.serial_port.ReopeningPort``,
-    or anything with ``read(n)``, ``write(b)`` and ``in_waiting``.
-    """
-
-    def __init__(self, link: Link, port: BytePort, *, max_wait: float = 0.01) -> None:
-        self.link = link
-        self.port = port
-        self.max_wait = max_wait
-        self._lock = threading.Lock()
-        self._port_up = True
-
-    def send(self, message: Message, *, coalesce: Any = None) -> int:
-        """Thread-safe :meth:`Link.send`."""
-        with self._lock:
-            return self.link.send(message, coalesce=coalesce)
-
-    def set_heartbeat(self, message: Message) -> None:
-        """Thread-safe :meth:`Link.set_heartbeat`."""
-        with self._lock:
-            self.link.set_heartbeat(message)
-
-    def step(self, max_wait: float | None = None) -> list[Event]:
-        """One turn: timers, write, wait for bytes (at most ``max_wait`` s), read, events."""
-        max_wait = self.max_wait if max_wait is None else max_wait
-        with self._lock:
-            self.link.poll()
-            out = self.link.outgoing()
-            wait = min(max_wait, max(0.0, self.link.next_deadline() - self.link.clock()))
-        problems: list[Event] = []
-        self._io(self._write, out, problems)
-        data = self._io(self._read, wait, problems) or b""
-        with self._lock:
-            if data:
-                self.link.receive(data)
-            self.link.poll()
-            out = self.link.outgoing()
-            events: list[Event] = self.link.events()
-        self._io(self._write, out, problems)
-        return problems + events
-
-    def run(self, stop: threading.Event, handle: Callable[[Event], None]) -> None:
-        """Step until ``stop`` is set, handing every event to ``handle``."""
-        while not stop.is_set():
-            for event in self.step():
-                handle(event)
-
-    def _io(self, fn: Callable[[Any], Any], arg: Any, problems: list[Event]) -> Any:
-        try:
-            result = fn(arg)
-        except OSError as exc:  # serial.SerialException and hw.errors.PortError are OSErrors
-            self._port_state(False, str(exc), problems)
-            time.sleep(self.max_wait)
-            return None
-        connected = getattr(self.port, "connected", True)  # hw.serial_port.ReopeningPort has it
-        detail = str(getattr(self.port, "last_error", "") or "") if not connected else "port open"
-        self._port_state(bool(connected), detail, problems)
-        return result
-
-    def _port_state(self, up: bool, detail: str, problems: list[Event]) -> None:
-        if up != self._port_up:
-            self._port_up = up
-            problems.append(PortProblem(up, detail))
-
-    def _write(self, data: bytes) -> None:
-        if data:
-            self.port.write(data)
-
-    def _read(self, wait: float) -> bytes:
-        try:
-            fd = self.port.fileno()
-        except (AttributeError, OSError, ValueError):
-            fd = None
-        if fd is not None:
-            ready, _, _ = select.select([fd], [], [], wait)
-            if not ready:
-                return b""
-        return self.port.read(max(1, self.port.in_waiting))
