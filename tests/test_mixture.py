@@ -842,7 +842,7 @@ def test_refine_keeps_k_and_never_raises_the_criterion():
 def test_split_gain_separates_two_parallel_sheets():
     # two 1 m x 1 m sheets 5 cm apart: the principal-axis two-means cuts across both; the
     # refinement's split also tries the thinnest axis and keeps the better, the two sheets
-    from robot_change.mixture import model
+    from robot_change.mixture import refine
 
     rng = np.random.default_rng(60)
     sheets = [np.column_stack([rng.uniform(0, 1, 1500), rng.uniform(0, 1, 1500),
@@ -851,7 +851,7 @@ def test_split_gain_separates_two_parallel_sheets():
     x = np.vstack(sheets)
     reg = reg_covar_for_leaf(0.01)
     mean, cov = x.mean(axis=0), np.cov(x, rowvar=False, bias=True) + reg * np.eye(3)
-    gain, w, mu, cov2 = model._split_gain(x, mean, cov, reg, 1e-4, 50)
+    gain, w, mu, cov2 = refine._split_gain(x, mean, cov, reg, 1e-4, 50)
     assert gain > 0.5 * len(x)  # nats: far more than a component costs
     assert w == pytest.approx([0.5, 0.5], abs=0.02)
     assert sorted(mu[:, 2]) == pytest.approx([0.0, 0.05], abs=0.003)
