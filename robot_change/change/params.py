@@ -98,8 +98,9 @@ class ChangeParams:
     # free-space check decides point by point; the greedy trajectory is still computed and
     # reported.  Measured (docs/evaluation.md): on the table-top pairs the greedy loop stops
     # before the novelty components of objects that moved a few cm (their removal does not
-    # lower the EMD), F1 0.61 with it vs 0.94 without; on the simulated dev scenes no
-    # difference.  So off by default.
+    # lower the EMD): on the real table tops F1 0.524 with it vs 0.797 without against the
+    # geometric truth (0.575 vs 0.953 against the changed objects whole); on the simulated
+    # dev scenes no difference.  So off by default.
     greedy: bool = False
     # Acceptance rule on the greedy trajectory: a removal is accepted while its EMD drop is at
     # least accept_min_drop_m (metres: drop ~ weight x distance) AND at least
