@@ -24,8 +24,9 @@ numbers in docs/evaluation.md).  For what appeared (current points):
    claimed whole (a moved object stands partly where it stood); then, with both directions
    done, a segment that stands where a changed surface of the other epoch stood
    (:func:`robot_change.change.objects.claim_counterparts`).
-6. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys),
-   regions below ``min_region_points`` dropped.
+6. **Regions**: connected components on the voxel grid (26-neighbourhood of voxel keys), kept
+   only where they hold enough core evidence; regions below ``min_region_points`` points or
+   ``min_region_extent_m`` long dropped.
 
 The mirror (disappeared: reference points) runs the same steps with the roles swapped: the
 reference cloud against the current's mixture held fixed, the free-space check against the

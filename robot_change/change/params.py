@@ -73,7 +73,7 @@ class ChangeParams:
     # The current's own mixture for the mirror (reference cloud fitted with it held fixed),
     # when the current comes as a depth image without one: "fit" (split-EM from K = 1, as a
     # reference is built) or "from_reference" (EM from the reference mixture, all components
-    # free, no splits: a removed object's component moves away or dies; ~5x faster: 15-25 ms
+    # free, no splits: a removed object's component moves away or dies; ~5x faster: 10-16 ms
     # instead of 80-110 ms, same F1 to 0.001 on the dev scenes).
     current_mixture: str = "from_reference"
     # Most points the "from_reference" EM of the current's mixture runs on: above it, a fixed

@@ -5,8 +5,9 @@ ICP of the current depth image against the reference's fused depth image, as Kin
 a camera (Newcombe et al. 2011), coarse to fine on depth pyramids, with
 
 * **vertex maps by block averaging of 3-D points** (not of depths): a cell of a level is the
-  mean of the back-projected readings of its ``f x f`` block that lie within a depth band of the
-  block's nearest reading (a depth edge does not blend fore- and background).  Averaging over a
+  mean of the back-projected readings of its ``f x f`` block that lie within a depth band about
+  the mean reading of the block's central 2 x 2 pixels (a depth edge does not blend fore- and
+  background).  Averaging over a
   block also smooths out the Kinect's disparity quantisation terraces, the trap of
   ALGORITHM.md section 4 (two clouds' terraces line up better than their surfaces);
 * **normals** from central differences of the vertex map, refused across depth edges;
