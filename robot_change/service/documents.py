@@ -13,15 +13,14 @@ does.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 from robot_change.change.mount import CameraMount
 from robot_change.change.results import ChangeSet
+from robot_change.link.session import Link
 
-if TYPE_CHECKING:
-    from robot_change.service.core import Service
-
-__all__ = ["check_report", "status_document"]
+__all__ = ["StatusSource", "check_report", "status_document"]
 
 #: Counters of the service a status names.
 STATUS_COUNTERS = ("checks", "pauses", "not_at_station", "stalls", "commands_refused",
@@ -35,7 +34,27 @@ def check_report(station: str, changes: ChangeSet, mount: CameraMount) -> dict[s
     return report
 
 
-def status_document(service: Service) -> dict[str, Any]:
+class StatusSource(Protocol):
+    """What a status is made of: :class:`robot_change.service.core.Service` is one (this
+    module does not import it: the service imports this one)."""
+
+    link: Link
+    stalled: str
+    counters: Mapping[str, int]
+
+    @property
+    def camera_ok(self) -> bool: ...
+
+    @property
+    def camera_error(self) -> str: ...
+
+    @property
+    def camera_losses(self) -> int: ...
+
+    def state_fields(self) -> dict[str, Any]: ...
+
+
+def status_document(service: StatusSource) -> dict[str, Any]:
     """The service's status for the fleet (module docstring); quick, any thread."""
     body = service.state_fields()
     body.update({

@@ -1,0 +1,118 @@
+"""What the command implementations share: the bundled fixtures, depth frames read from a URI
+(fused, with their intrinsics and the camera model they name), the noise profile and the cloud
+parameters a command's options ask for, and one-line JSON output."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hw.depth import DepthFrame, Intrinsics, open_depth
+from robot_change.errors import InputError
+
+log = logging.getLogger("robot_change.cli")  # the CLI's log lines keep their logger's name
+
+
+def _fixtures_folder() -> Path:
+    """The bundled fixtures: the ``sim_fixtures`` package (installed with the demo's and the
+    bench's recordings as package data, or the checkout's), found without importing it."""
+    spec = importlib.util.find_spec("sim_fixtures")
+    if spec is not None and spec.origin:
+        return Path(spec.origin).resolve().parent
+    return Path(__file__).resolve().parents[2] / "sim_fixtures"
+
+
+#: The bundled fixtures (the recordings ``demo`` and ``bench`` use).
+SIM_FIXTURES = _fixtures_folder()
+#: The VGA frame of a furnished room (Kinect noise model) used by ``demo`` and ``bench``.
+DEMO_FRAME = SIM_FIXTURES / "frames" / "room_vga.png"
+#: The bundled scene ``bench`` times change detection on (a box appears in an office).
+DETECT_SCENE = "office_box_added"
+
+
+def _bundled(path: Path) -> str:
+    if not path.exists():
+        raise InputError(
+            f"the bundled fixture {path} is missing (it ships with robot-change: reinstall "
+            "it), or pass --source URI to use your own depth"
+        )
+    return str(path)
+
+
+def _read_depth(uri: str, frames: int, intrinsics: str | None
+                ) -> tuple[np.ndarray, Intrinsics, int]:
+    """Read up to ``frames`` frames from ``uri``; several are fused by per-pixel median.
+
+    Returns ((H, W) uint16 mm, intrinsics, number of frames read).
+    """
+    from robot_change.change.scene import SceneParams
+    from robot_change.cloud.fusion import fuse_depth
+
+    read = _read_frames(uri, frames)
+    camera = _camera(read, intrinsics)
+    if len(read) == 1:
+        return read[0].depth, camera, 1
+    # as a scene is fused: a pixel needs readings in enough frames, so edge flicker stays out
+    stack = np.stack([frame.depth for frame in read])
+    return fuse_depth(stack, min_valid=SceneParams().min_valid(len(read))), camera, len(read)
+
+
+def _camera(frames: list[DepthFrame], intrinsics: str | None) -> Intrinsics:
+    """The frames' intrinsics, or ``--intrinsics fx,fy,cx,cy`` for their image size."""
+    camera = frames[0].intrinsics
+    if intrinsics:
+        camera = Intrinsics.parse(intrinsics, camera.width, camera.height)
+    return camera
+
+
+def _cloud_params(args: argparse.Namespace):
+    from robot_change.cloud.chain import CloudParams
+
+    overrides = {}
+    if getattr(args, "leaf", None) is not None:
+        overrides["leaf_m"] = args.leaf
+    return CloudParams(**overrides)
+
+
+def _print_json(payload: dict[str, Any]) -> None:
+    print(json.dumps(payload, indent=None, sort_keys=False))
+
+
+def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
+    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter).  The
+    camera's model, when the source names one, is kept in ``_CAMERA_MODEL[uri]`` (the
+    ``auto`` noise profile)."""
+    read: list[DepthFrame] = []
+    with open_depth(uri) as source:
+        _CAMERA_MODEL[uri] = (getattr(source, "info", None) or {}).get("name") or None
+        for frame in source:
+            read.append(frame)
+            if len(read) == frames:
+                break
+    if not read:
+        raise InputError(f"{uri}: the source delivered no frame")
+    if len(read) < frames:
+        log.warning("%s ended after %d of the %d frames asked for (--frames); using %d", uri,
+                    len(read), frames, len(read))
+    return read
+
+
+#: depth URI -> the camera model its source named (the ``auto`` profile of the frames read)
+_CAMERA_MODEL: dict[str, str | None] = {}
+
+
+def _profile(args: argparse.Namespace, uri: str | None = None):
+    """``--profile``: a built-in profile's name, ``auto`` (that of the camera model the source
+    ``uri`` named) or a profile file (robot_change.noise)."""
+    from robot_change.noise.profile import resolve_profile
+
+    name = args.profile
+    if name.lower().endswith(".json") or "/" in name:
+        return resolve_profile(path=name)
+    return resolve_profile(name, camera=_CAMERA_MODEL.get(uri or ""))
