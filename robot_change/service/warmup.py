@@ -26,6 +26,7 @@ from robot_change.arrays import readonly_view
 from robot_change.change.detect import detect_changes
 from robot_change.change.scene import build_scene
 from robot_change.errors import EmptySceneError, InputError
+from robot_change.kernel_cache import clear_stale_kernels
 from robot_change.service.config import Config
 from robot_change.service.params import change_params
 
@@ -176,6 +177,7 @@ def warm_up(config: Config | None = None, helper: bool = True) -> float:
     helper process (see the module's docstring)."""
     config = config or Config()
     t0 = time.perf_counter()
+    clear_stale_kernels()  # before any kernel is loaded: a callee's change numba cannot see
     lock = threading.Lock()
     procs: list[subprocess.Popen] = []
     own_done = False
