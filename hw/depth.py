@@ -1,9 +1,9 @@
 """Depth frames, the DepthSource interface, and ``open_depth(uri)``.
 
 Every depth backend (a live OpenNI2 or RealSense camera, an ``.oni`` or RealSense recording, a
-folder of 16-bit images, a ROS bag's depth topic, organized PCD clouds) delivers the same thing: :class:`DepthFrame`
-objects through the :class:`DepthSource` interface.  The rest of the project never knows which
-backend it is reading from.
+folder of 16-bit images, a ROS bag's depth topic, organized PCD clouds) delivers the same thing:
+:class:`DepthFrame` objects through the :class:`DepthSource` interface.  The rest of the project
+never knows which backend it is reading from.
 
 URIs (python-can / pyserial style; the backend module is imported only when used)::
 
@@ -36,8 +36,9 @@ import dataclasses
 import importlib
 import math
 import urllib.parse
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -87,12 +88,12 @@ class Intrinsics:
                 )
 
     @classmethod
-    def openni_default(cls, width: int = 640, height: int = 480) -> "Intrinsics":
+    def openni_default(cls, width: int = 640, height: int = 480) -> Intrinsics:
         """OpenNI's nominal VGA intrinsics (fx = fy = 525, centre 319.5, 239.5), scaled to the
         given resolution (e.g. 320x240 QVGA)."""
         return cls(640, 480, 525.0, 525.0, 319.5, 239.5).scaled(width, height)
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution (same field of view)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
@@ -105,7 +106,7 @@ class Intrinsics:
         )
 
     @classmethod
-    def parse(cls, text: str, width: int = 640, height: int = 480) -> "Intrinsics":
+    def parse(cls, text: str, width: int = 640, height: int = 480) -> Intrinsics:
         """``"fx,fy,cx,cy"`` (pixels) for an image of ``width`` x ``height``."""
         try:
             fx, fy, cx, cy = (float(part) for part in text.split(","))
@@ -213,7 +214,7 @@ class DepthSource(abc.ABC):
         """The next frame, waiting at most ``timeout`` seconds (``None``: as long as it takes);
         ``None`` at the end of a recording."""
 
-    def __enter__(self) -> "DepthSource":
+    def __enter__(self) -> DepthSource:
         self.open()
         return self
 

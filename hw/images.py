@@ -105,7 +105,7 @@ def stem_timestamp_us(stem: str) -> int | None:
             moment = datetime.datetime.strptime(match.group(1), "%Y%m%dT%H%M%S")
         except ValueError:
             return None
-        moment = moment.replace(tzinfo=datetime.timezone.utc)
+        moment = moment.replace(tzinfo=datetime.UTC)
         fraction = match.group(2) or ".0"
         micros = int(fraction[1:].ljust(6, "0"))
         return int(moment.timestamp()) * 1_000_000 + micros

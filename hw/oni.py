@@ -42,8 +42,9 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import BinaryIO, Callable, Iterable
+from typing import BinaryIO
 
 import numpy as np
 
@@ -150,7 +151,8 @@ class OniWriter:
                 "player takes at most 1600x1200"
             )
         if not isinstance(fps, (int, np.integer)) or not 0 < fps <= 1000:
-            raise FrameError(f"fps={fps!r}: expected a whole number of frames per second in 1..1000")
+            raise FrameError(f"fps={fps!r}: expected a whole number of frames per second in "
+                             "1..1000")
         if codec not in CODECS:
             raise FrameError(f"codec {codec!r}: choose one of {sorted(CODECS)}")
         if intrinsics is None:
@@ -175,7 +177,7 @@ class OniWriter:
         self._open()
 
     # context manager ------------------------------------------------------------------------
-    def __enter__(self) -> "OniWriter":
+    def __enter__(self) -> OniWriter:
         return self
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
@@ -193,8 +195,8 @@ class OniWriter:
             raise FrameError(f"{self.path}: the writer is closed")
         shape = (self.height, self.width)
         if not isinstance(depth, np.ndarray) or depth.dtype != np.uint16 or depth.shape != shape:
-            described = (f"{depth.dtype} array of shape {depth.shape}" if isinstance(depth, np.ndarray)
-                         else type(depth).__name__)
+            described = (f"{depth.dtype} array of shape {depth.shape}"
+                         if isinstance(depth, np.ndarray) else type(depth).__name__)
             raise FrameError(
                 f"expected a ({self.height}, {self.width}) uint16 depth image in mm for "
                 f"{self.path.name}, got a {described}"
@@ -202,7 +204,8 @@ class OniWriter:
         if timestamp_us is None:
             timestamp_us = round(self.frames * 1_000_000 / self.fps)
         timestamp_us = int(timestamp_us)
-        if timestamp_us < 0 or (self._last_timestamp is not None and timestamp_us < self._last_timestamp):
+        if timestamp_us < 0 or (self._last_timestamp is not None
+                                and timestamp_us < self._last_timestamp):
             raise FrameError(
                 f"timestamp {timestamp_us} us after {self._last_timestamp} us: timestamps of a "
                 "recording must be >= 0 and must not decrease"
@@ -239,11 +242,13 @@ class OniWriter:
             raise FrameError(f"{self.path}: the writer was aborted")
         if self.frames == 0:
             self.abort()
-            raise FrameError(f"{self.path}: no frames were written; an .oni file needs at least one")
+            raise FrameError(f"{self.path}: no frames were written; "
+                             "an .oni file needs at least one")
         f = self._file
         max_ts = int(self._last_timestamp or 0)
         seek_pos = f.tell()
-        table = [_SEEK_ENTRY.pack(0, 0, 0)] + [_SEEK_ENTRY.pack(ts, 0, pos) for ts, pos in self._index]
+        table = [_SEEK_ENTRY.pack(0, 0, 0)] + [_SEEK_ENTRY.pack(ts, 0, pos)
+                                               for ts, pos in self._index]
         self._write_record(REC_SEEK_TABLE, b"", b"".join(table))
         self._write_record(REC_END, b"", b"")
         end = f.tell()
@@ -251,8 +256,9 @@ class OniWriter:
         f.seek(0)
         f.write(_FILE_HEADER.pack(FILE_MAGIC, *FORMAT_VERSION, max_ts, DEPTH_NODE_ID))
         f.seek(self._node_added_pos)
-        self._write_record(REC_NODE_ADDED, self._node_added_fields(self.frames, self._first_timestamp,
-                                                                   max_ts, seek_pos), b"")
+        self._write_record(REC_NODE_ADDED,
+                           self._node_added_fields(self.frames, self._first_timestamp, max_ts,
+                                                   seek_pos), b"")
         f.seek(self._data_begin_pos)
         self._write_record(REC_NODE_DATA_BEGIN, struct.pack("<IQ", self.frames, max_ts), b"")
         f.seek(end)
@@ -293,7 +299,8 @@ class OniWriter:
             (REC_GENERAL_PROPERTY, "xnSupportedMapOutputModes", struct.pack("<III", w, h, fps)),
             (REC_GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", w, h, fps)),
             (REC_GENERAL_PROPERTY, "xnSupportedPixelFormats", struct.pack("<I", 1 << 3)),
-            (REC_INT_PROPERTY, "xnPixelFormat", struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16_BIT)),
+            (REC_INT_PROPERTY, "xnPixelFormat",
+             struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16_BIT)),
             (REC_INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", ONI_PIXEL_FORMAT_DEPTH_1_MM)),
             (REC_GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov)),
             (REC_INT_PROPERTY, "Cropping", struct.pack("<Q", 1)),

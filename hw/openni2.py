@@ -16,8 +16,9 @@ Recordings (``oni:file.oni``) play frame by frame in lockstep (playback speed -1
 no frame is dropped however slow the consumer, and :meth:`OpenNI2Source.read` returns ``None``
 after the last one.  ``oni:file.oni?loop=1&rate=auto`` plays one like a camera instead: again
 from the start after the last frame (indices and timestamps keep increasing) and paced at the
-recording's fps (``rate=30`` for a given rate).  The file is checked with :func:`hw.oni.read_oni_header` first, so a missing
-or corrupt file raises :class:`DepthFileError` before the native player sees it.
+recording's fps (``rate=30`` for a given rate).  The file is checked with
+:func:`hw.oni.read_oni_header` first, so a missing or corrupt file raises
+:class:`DepthFileError` before the native player sees it.
 
 Debian's ``libopenni2-0`` ships drivers for PrimeSense / Asus Xtion (PS1080) cameras.  A
 Kinect v1 needs libfreenect's OpenNI2 driver (``libFreenectDriver.so``), built from source and
@@ -76,8 +77,8 @@ def library_dir() -> str:
     Uses ``$ROBOT_CHANGE_OPENNI2_DIR`` when set; otherwise the system library (Debian's
     ``libopenni2-0`` installs only the versioned ``libOpenNI2.so.0``), exposed through a private
     folder of two symlinks in ``$XDG_CACHE_HOME/robot-change/openni2`` (``~/.cache`` by default;
-    a per-user folder in the temp directory when that cannot be written).  Raises :class:`BackendUnavailable` naming the
-    package to install when the library is missing.
+    a per-user folder in the temp directory when that cannot be written).  Raises
+    :class:`BackendUnavailable` naming the package to install when the library is missing.
     """
     explicit = os.environ.get(LIBRARY_ENV)
     if explicit:
@@ -113,8 +114,10 @@ def _symlink_folder(lib: Path, drivers_parent: Path) -> str:
         folder = Path(tempfile.gettempdir()) / f"robot-change-openni2-{os.getuid()}"
         folder.mkdir(mode=0o700, exist_ok=True)
     status = os.lstat(folder)
-    if status.st_uid != os.getuid() or status.st_mode & 0o022 or not folder.is_dir() or folder.is_symlink():
-        folder = Path(tempfile.mkdtemp(prefix="robot-change-openni2-"))  # someone else's: don't trust it
+    if (status.st_uid != os.getuid() or status.st_mode & 0o022 or not folder.is_dir()
+            or folder.is_symlink()):
+        # someone else's: don't trust it
+        folder = Path(tempfile.mkdtemp(prefix="robot-change-openni2-"))
     for name, target in (("libOpenNI2.so", lib), ("OpenNI2", drivers_parent)):
         link = folder / name
         if link.is_symlink() and os.readlink(link) == str(target):
@@ -185,7 +188,8 @@ class _OpenNI2Feed(FrameFeed):
                                "not millimetres (DEPTH_1_MM)")
         return {
             "width": mode.resolutionX, "height": mode.resolutionY, "fps": mode.fps,
-            "pixel_format": int(mode.pixelFormat), "frames": int(self.stream.get_number_of_frames()),
+            "pixel_format": int(mode.pixelFormat),
+            "frames": int(self.stream.get_number_of_frames()),
             **self._fov(), "uri": path, "vendor": "", "name": "recording", "serial": None,
             "mode_note": "",
         }
@@ -245,13 +249,15 @@ class _OpenNI2Feed(FrameFeed):
         note = ""
         got = (mode.resolutionX, mode.resolutionY, mode.fps)
         if got != _WANTED_MODE or int(mode.pixelFormat) != _PIXEL_FORMAT_1_MM:
-            unit = "1 mm" if int(mode.pixelFormat) == _PIXEL_FORMAT_1_MM else "100 um (converted to mm)"
+            unit = ("1 mm" if int(mode.pixelFormat) == _PIXEL_FORMAT_1_MM
+                    else "100 um (converted to mm)")
             note = (f"camera {target!r} does not offer 640x480 @ 30 fps in 1 mm; using the nearest "
                     f"mode {mode.resolutionX}x{mode.resolutionY} @ {mode.fps} fps, {unit}")
         return {
             "width": mode.resolutionX, "height": mode.resolutionY, "fps": mode.fps,
             "pixel_format": int(mode.pixelFormat), **self._fov(),
-            "uri": info.uri.decode(errors="replace"), "vendor": info.vendor.decode(errors="replace"),
+            "uri": info.uri.decode(errors="replace"),
+            "vendor": info.vendor.decode(errors="replace"),
             "name": info.name.decode(errors="replace"), "serial": _serial_of(device, self.c_api),
             "mode_note": note,
         }
@@ -390,7 +396,8 @@ def open_device(target: str = "", **options: Any) -> OpenNI2Source:
 def open_recording(target: str, **options: Any) -> OpenNI2Source:
     """An ``.oni`` recording, played frame by frame.  Raises :class:`DepthFileError` at once for
     a missing or corrupt file.  Returned unopened."""
-    return OpenNI2Source("file", str(Path(target).expanduser()), **source_options("OpenNI2", options))
+    return OpenNI2Source("file", str(Path(target).expanduser()),
+                         **source_options("OpenNI2", options))
 
 
 def list_devices(timeout: float = 10.0) -> list[dict[str, Any]]:

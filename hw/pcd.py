@@ -124,7 +124,7 @@ class PcdSource(ImageFolderSource):
     def _make_intrinsics(self, width: int, height: int) -> Intrinsics:
         nominal = Intrinsics.openni_default(width, height)
         values = dict(zip(_CAMERA, self._fitted or (nominal.fx, nominal.fy, nominal.cx,
-                                                    nominal.cy)))
+                                                    nominal.cy), strict=True))
         values.update(self._camera)
         if self._fitted is None and len(self._camera) < 4:
             log.info("%s: intrinsics not given and not fitted to the points; using OpenNI's "

@@ -171,7 +171,7 @@ def _ply_bytes(points: np.ndarray, frame: str, viewpoint: tuple[float, ...],
     for axis, name in enumerate("xyz"):
         vertices[name] = points[:, axis]
     if color is not None:
-        for channel, name in zip(color, ("red", "green", "blue")):
+        for channel, name in zip(color, ("red", "green", "blue"), strict=True):
             vertices[name] = channel
     data = PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<",
                    comments=_header_comments(frame, viewpoint))

@@ -20,8 +20,8 @@ import contextlib
 import itertools
 import os
 import tempfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 

@@ -20,7 +20,7 @@ import os
 import signal
 import threading
 import time
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 from hw.depth import DepthFrame, DepthSource
 from hw.errors import ArgumentError, DepthFileError, DeviceError

@@ -6,7 +6,8 @@ every failure into :class:`hw.errors.PortError` (or :class:`hw.errors.UriError` 
 scheme) whose message says what to do.  :class:`ReopeningPort` keeps a port usable across the
 device vanishing (a USB serial adapter unplugged): reads return nothing and writes are dropped
 while it is gone, and it is reopened with backoff.  Framing and sessions live elsewhere
-(robot_change.link.protocol, robot_change.link.session); this module imports nothing from robot_change.
+(robot_change.link.protocol, robot_change.link.session); this module imports nothing from
+robot_change.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from __future__ import annotations
 import errno
 import os
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import serial
 
@@ -186,7 +188,7 @@ class ReopeningPort:
         if port is not None:
             port.close()
 
-    def __enter__(self) -> "ReopeningPort":
+    def __enter__(self) -> ReopeningPort:
         return self
 
     def __exit__(self, *exc: object) -> None:

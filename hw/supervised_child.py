@@ -17,7 +17,8 @@ import multiprocessing.connection
 import os
 import signal
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -53,9 +54,11 @@ class FrameFeed(abc.ABC):
         """The next frame within ``timeout`` s: ((H, W) uint16 mm, valid until the next call;
         frame index; timestamp µs), or ``None``."""
 
+    @abc.abstractmethod
     def simulate_loss(self) -> None:
         """Test hook: stop the stream as an unplugged camera would."""
 
+    @abc.abstractmethod
     def shutdown(self) -> None:
         """Release the camera (a recording may be left to the OS)."""
 

@@ -47,8 +47,9 @@ _API = {
     "register_depth": "robot_change.change.registration",
 }
 
-__all__ = sorted([*_API, "ConfigError", "InputError", "ProtocolError", "RobotChangeError",
-                  "__version__"])
+# a list display (not sorted(...)) so that linters see the re-exported names; sorted in place
+__all__ = [*_API, "ConfigError", "InputError", "ProtocolError", "RobotChangeError", "__version__"]
+__all__.sort()
 
 
 def __getattr__(name: str) -> Any:

@@ -52,8 +52,12 @@ def _plain_direction(base_mix: Mixture, other: Epoch, other_mix: Mixture, params
     return cand, other_mix, post, trace
 
 
-def detect_plain(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
-        novelty=False, free_space=False), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
+#: detect_plain's default parameters (frozen, built once)
+_PLAIN_PARAMS = ChangeParams(novelty=False, free_space=False)
+
+
+def detect_plain(reference: Reference, current: Current, params: ChangeParams = _PLAIN_PARAMS,
+                 *, intrinsics: Intrinsics | None = None) -> ChangeSet:
     """The plain method (the paper's): independent fits of both clouds, greedy EMD over all
     components both ways deciding what changed (``params.greedy`` is forced on: without it
     every component would count as changed), posterior segmentation; the free-space / NN
@@ -92,9 +96,14 @@ def detect_plain(reference: Reference, current: Current, params: ChangeParams = 
                    cur_mix.n_components, timings, t_start)
 
 
-def detect_nn_threshold(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
-        free_space=False, nn_check_m=0.05), *, intrinsics: Intrinsics | None = None,
-        initial_pose: np.ndarray | None = None) -> ChangeSet:
+#: detect_nn_threshold's default parameters (frozen, built once)
+_NN_THRESHOLD_PARAMS = ChangeParams(free_space=False, nn_check_m=0.05)
+
+
+def detect_nn_threshold(reference: Reference, current: Current,
+                        params: ChangeParams = _NN_THRESHOLD_PARAMS, *,
+                        intrinsics: Intrinsics | None = None,
+                        initial_pose: np.ndarray | None = None) -> ChangeSet:
     """Baseline: a current point is appeared when no reference point is within
     ``params.nn_check_m`` (a reference point disappeared likewise); no mixture, and the
     free-space check only when ``params.free_space``.  Same registration and region grouping
@@ -134,8 +143,13 @@ def detect_nn_threshold(reference: Reference, current: Current, params: ChangePa
                    timings, t_start)
 
 
-def detect_geometric(reference: Reference, current: Current, params: ChangeParams = ChangeParams(
-        nn_check_m=0.05), *, intrinsics: Intrinsics | None = None) -> ChangeSet:
+#: detect_geometric's default parameters (frozen, built once)
+_GEOMETRIC_PARAMS = ChangeParams(nn_check_m=0.05)
+
+
+def detect_geometric(reference: Reference, current: Current,
+                     params: ChangeParams = _GEOMETRIC_PARAMS, *,
+                     intrinsics: Intrinsics | None = None) -> ChangeSet:
     """Baseline without a mixture: the 5 cm nearest-reference-point check plus the free-space
     check on every point (ALGORITHM.md section 3's bar for the mixture method)."""
     return detect_nn_threshold(reference, current, params.replace(free_space=True),

@@ -111,9 +111,9 @@ def fit_own(ep: Epoch, params: ChangeParams) -> Mixture:
     return fit_mixture(ep.points, leaf=ep.leaf_m, seed=params.seed)
 
 
-def align(reference: Reference, current: Current, params: ChangeParams, intrinsics: Intrinsics | None,
-           timings: dict, initial_pose: np.ndarray | None = None, free_space: bool = True
-           ) -> Aligned:
+def align(reference: Reference, current: Current, params: ChangeParams,
+           intrinsics: Intrinsics | None, timings: dict, initial_pose: np.ndarray | None = None,
+           free_space: bool = True) -> Aligned:
     """Checks, the current's clean cloud, registration and whether this is the station at all,
     the reference moved into the current camera frame, and (``free_space``) the free-space
     checks both ways (:func:`direction_free`; a caller that runs the two directions on two

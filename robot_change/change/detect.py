@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -141,7 +141,7 @@ def _novelty_seeds(other: Epoch, novel: np.ndarray, params: ChangeParams
     if not groups:
         return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))
     reg = other.leaf_m ** 2 / 12.0
-    means, covs = zip(*(component_of(other.points[g], reg) for g in groups))
+    means, covs = zip(*(component_of(other.points[g], reg) for g in groups), strict=True)
     return np.array([len(g) / other.n_points for g in groups]), np.array(means), np.array(covs)
 
 
@@ -258,7 +258,12 @@ def _counterparts(aligned: Aligned, app: Direction, dis: Direction, params: Chan
             dataclasses.replace(dis, changed=dis_changed))
 
 
-def detect_changes(reference: Reference, current: Current, params: ChangeParams = ChangeParams(), *,
+#: the default parameters (frozen, built once)
+_DEFAULT_PARAMS = ChangeParams()
+
+
+def detect_changes(reference: Reference, current: Current,
+                   params: ChangeParams = _DEFAULT_PARAMS, *,
                    intrinsics: Intrinsics | None = None,
                    initial_pose: np.ndarray | None = None) -> ChangeSet:
     """What appeared and what disappeared between the station's reference and now.

@@ -86,8 +86,12 @@ def pair_sigma_table(a: Epoch, b: Epoch) -> np.ndarray:
     return table
 
 
+#: the default cloud parameters (frozen, built once)
+_DEFAULT_CLOUD_PARAMS = CloudParams()
+
+
 def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
-                     cloud_params: CloudParams = CloudParams(),
+                     cloud_params: CloudParams = _DEFAULT_CLOUD_PARAMS,
                      mixture: Mixture | None = None, noise: NoiseProfile | None = None
                      ) -> Epoch:
     """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an
@@ -118,8 +122,8 @@ def as_epoch(obj: Any, name: str) -> Epoch:
         derived = obj.derived if isinstance(obj, SceneModel) else {}
         noise = getattr(obj, "noise", None)
     except AttributeError as exc:
-        raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, got "
-                         f"{type(obj).__name__} ({exc})") from None
+        raise InputError(f"{name} must be a SceneModel (robot_change.change.scene) or an Epoch, "
+                         f"got {type(obj).__name__} ({exc})") from None
     return Epoch(np.asarray(depth), intrinsics, np.asarray(points, dtype=np.float32),
                  np.asarray(keys, dtype=np.int64), np.asarray(pixel_voxel, dtype=np.int32),
                  leaf, mixture, cloud_params if isinstance(cloud_params, CloudParams) else None,

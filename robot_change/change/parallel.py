@@ -7,7 +7,8 @@ started per call (about 0.1 ms), so the numeric layers hold no global state.
 from __future__ import annotations
 
 import threading
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 __all__ = [
     "both",

@@ -98,6 +98,10 @@ class GreedyTrace:
                 "change": self.change.tolist()}
 
 
+#: the default camera mount of ChangeSet.summary (frozen, built once)
+_DEFAULT_MOUNT = CameraMount()
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class ChangeSet:
     """The result of :func:`detect_changes` (and of the baselines).
@@ -162,7 +166,7 @@ class ChangeSet:
         """Appeared then disappeared regions."""
         return self.appeared + self.disappeared
 
-    def summary(self, mount: CameraMount = CameraMount()) -> dict:
+    def summary(self, mount: CameraMount = _DEFAULT_MOUNT) -> dict:
         """JSON-ready summary: outcome, registration (camera frames, and as the robot's offset
         from its station pose in base_link given the camera's ``mount``), regions (camera
         frame and base_link), K of both mixtures, greedy traces, timings."""

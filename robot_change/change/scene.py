@@ -218,7 +218,8 @@ class SceneModel:
         if not isinstance(self.mixture, Mixture) or not isinstance(self.params, SceneParams):
             raise InputError("SceneModel.mixture must be a Mixture and params a SceneParams")
         if self.mount is not None and not isinstance(self.mount, CameraMount):
-            raise InputError("SceneModel.mount must be a robot_change.change.mount.CameraMount or None")
+            raise InputError("SceneModel.mount must be a robot_change.change.mount.CameraMount "
+                             "or None")
         if not isinstance(self.noise, NoiseProfile):
             raise InputError("SceneModel.noise must be a NoiseProfile (robot_change.noise)")
         if d.flags.writeable:
@@ -473,7 +474,7 @@ def build_scene(
         depth=fused, intrinsics=camera, cloud=cloud, mixture=mixture, params=params,
         n_frames=n_frames, first_timestamp_us=ts0, last_timestamp_us=ts1, first_index=i0,
         last_index=i1, seconds=seconds,
-        created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds"),
+        created=datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
         version=robot_change.__version__, source=source, mount=mount, noise=profile,
     )
 

@@ -1,9 +1,10 @@
 """Depth image straight to a voxel grid (ALGORITHM.md section 1, first two steps in one pass).
 
-:func:`depth_voxel_grid` gives what :func:`robot_change.cloud.geometry.depth_to_points` followed by
-:func:`robot_change.cloud.voxels.voxel_grid` gives (the same float32 points in the same voxels, summed
-in float64 in point order), without writing the (N, 3) points out and reading them back: each
-image row is back-projected into row buffers and goes straight into the voxel hash.  The one
+:func:`depth_voxel_grid` gives what :func:`robot_change.cloud.geometry.depth_to_points`
+followed by :func:`robot_change.cloud.voxels.voxel_grid` gives (the same float32 points in the
+same voxels, summed in float64 in point order), without writing the (N, 3) points out and
+reading them back: each image row is back-projected into row buffers and goes straight into the
+voxel hash.  The one
 difference is where the hash bands end (at image rows here, at chunks of points there), which
 can move a centroid by one float32 rounding step.  On a dense VGA frame this saves about a fifth
 of the two steps' time (docs/benchmarks.md).

@@ -256,8 +256,10 @@ def statistical_outliers(
         Distance cap in leaf sizes, > 0.
     """
     leaf = validate.positive("statistical_outliers", "leaf_m", leaf_m, 1e6, unit=" metres")
-    a = validate.number("statistical_outliers", "alpha", alpha, 0.0, math.inf, unit=" standard deviations")
-    cap = validate.positive("statistical_outliers", "cap_leaves", cap_leaves, unit=" leaf sizes") * leaf
+    a = validate.number("statistical_outliers", "alpha", alpha, 0.0, math.inf,
+                        unit=" standard deviations")
+    cap = validate.positive("statistical_outliers", "cap_leaves", cap_leaves,
+                            unit=" leaf sizes") * leaf
     stat = knn_mean_distance(points, keys, k, cap)
     if stat.shape[0] == 0:
         return np.zeros(0, dtype=bool)

@@ -56,7 +56,7 @@ class Plane:
         return self.n_inliers > 0
 
     @classmethod
-    def none(cls, n_points: int, iterations: int = 0) -> "Plane":
+    def none(cls, n_points: int, iterations: int = 0) -> Plane:
         """The result when no plane qualifies."""
         return cls(np.full(3, np.nan), math.nan, np.zeros(n_points, dtype=bool), 0, iterations)
 
@@ -290,7 +290,8 @@ def _check_up(up: object, max_tilt_deg: object) -> tuple[np.ndarray, float]:
             f"up={up!r}: must be a non-zero finite 3-vector in the camera frame, e.g. (0, -1, 0) "
             "for a level camera (y points down)"
         )
-    tilt = validate.number("fit_plane_ransac", "max_tilt_deg", max_tilt_deg, 0.0, 90.0, unit=" degrees")
+    tilt = validate.number("fit_plane_ransac", "max_tilt_deg", max_tilt_deg, 0.0, 90.0,
+                           unit=" degrees")
     return vec / norm, math.cos(math.radians(tilt))
 
 

@@ -179,7 +179,7 @@ def _cloud(m: Any, stamp: Any, frame: str, points: np.ndarray, rgb: tuple[float,
     packed = np.empty(len(pts), POINT_DTYPE)
     for axis, name in enumerate("xyz"):
         packed[name] = pts[:, axis]
-    for value, name in zip(rgb, ("red", "green", "blue")):
+    for value, name in zip(rgb, ("red", "green", "blue"), strict=True):
         packed[name] = round(255 * value)
     packed["alpha"] = 255
     kinds = m.PackedElementFieldNumericType
@@ -200,7 +200,7 @@ def _ellipsoids(m: Any, stamp: Any, frame: str, mixture: Mixture, rows: Any, pre
     """One SceneEntity (a SpherePrimitive scaled and turned by the covariance, SIGMAS out)
     per component ``rows`` of ``mixture``, each in its (rgb, alpha)."""
     out = []
-    for k, (rgb, alpha) in zip(rows, colors):
+    for k, (rgb, alpha) in zip(rows, colors, strict=False):
         size, rotation = ellipsoid_axes(mixture.covariances[k])
         sphere = m.SpherePrimitive(pose=_pose(m, mixture.means[k], rotation),
                                    size=_vector(m, size), color=_color(m, rgb, alpha))
@@ -282,8 +282,12 @@ def _log_text(changes: ChangeSet, report: dict) -> str:
 # the messages of a check
 
 
+#: the default camera mount (frozen, built once)
+_DEFAULT_MOUNT = CameraMount()
+
+
 def check_messages(reference: Any, current_depth: np.ndarray, changes: ChangeSet,
-                   mount: CameraMount = CameraMount(), *, report: dict | None = None,
+                   mount: CameraMount = _DEFAULT_MOUNT, *, report: dict | None = None,
                    stamp_ns: int | None = None) -> list[tuple[str, Any]]:
     """The check as (topic, message) pairs, one per topic of :data:`TOPICS`, transforms first.
 

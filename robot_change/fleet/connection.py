@@ -147,7 +147,7 @@ def open_connection(client: mqtt.Client, settings: BrokerSettings) -> None:
     except socket.gaierror as exc:
         raise FleetError(f"{where}: cannot resolve the host name ({exc.strerror})",
                          transient=True) from None
-    except (TimeoutError, socket.timeout):
+    except TimeoutError:
         raise FleetError(f"{where}: no answer within {settings.connect_timeout_s:g} s; is the "
                          "address right and the network up?", transient=True) from None
     except OSError as exc:

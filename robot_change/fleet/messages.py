@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 __all__ = ["READ_ONLY_REQUESTS", "Topics", "change_message", "check_message", "decode",
            "encode", "envelope", "parse_request", "utc_text"]
@@ -88,7 +89,8 @@ class Topics:
 def utc_text(t: float) -> str:
     """Unix time -> ISO 8601 UTC with milliseconds, e.g. ``2026-12-02T10:31:07.123Z``."""
     seconds = int(t)
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(seconds)) + f".{int((t - seconds) * 1000):03d}Z"
+    return (time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(seconds))
+            + f".{int((t - seconds) * 1000):03d}Z")
 
 
 def envelope(robot: str, boot_id: str, seq: int, station: str, origin: str,

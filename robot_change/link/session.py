@@ -21,8 +21,9 @@ from __future__ import annotations
 import random
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from robot_change.errors import LinkError
 from robot_change.link.protocol import (
@@ -185,7 +186,8 @@ class Link:
         return pending.seq
 
     def set_heartbeat(self, message: Message, now: float | None = None) -> None:
-        """Install the heartbeat repeated every heartbeat_interval; a changed one goes out at once."""
+        """Install the heartbeat repeated every heartbeat_interval; a changed one goes out at
+        once."""
         expected = _HEARTBEAT_OF[self.role]
         if type(message) is not expected:
             raise LinkError(f"the {self.role.name.lower()} sends {expected.TYPE.name}, "
@@ -262,8 +264,10 @@ class Link:
             self.stats.heartbeats_sent += 1
             self._next_heartbeat = now + cfg.heartbeat_interval
         if self.state == LinkState.UP and now - self._last_rx > cfg.silence_timeout:
-            self._set_state(LinkState.FAULTY, f"nothing heard from the {self.peer_role.name.lower()} "
-                            f"for {now - self._last_rx:.2f} s: check the cable and that it is powered", now)
+            self._set_state(LinkState.FAULTY,
+                            f"nothing heard from the {self.peer_role.name.lower()} "
+                            f"for {now - self._last_rx:.2f} s: check the cable and that it is "
+                            "powered", now)
 
     # -- bytes in ------------------------------------------------------------------------------
 
@@ -419,7 +423,8 @@ class Link:
             return
         if seq == self._hello_seq:
             self._hello_seq = None
-            self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} refused our "
+            self._set_state(LinkState.INCOMPATIBLE,
+                            f"the {self.peer_role.name.lower()} refused our "
                             f"HELLO ({nak.reason.name}): update the older side")
             return
         self._fail(pending, f"NAK {nak.reason.name}", nak.reason)
@@ -548,7 +553,8 @@ class Link:
             return
         self._fail(pending, why)
         if self.state != LinkState.INCOMPATIBLE:
-            self._set_state(LinkState.FAULTY, f"{pending.message.TYPE.name} seq {pending.seq}: {why}; "
+            self._set_state(LinkState.FAULTY,
+                            f"{pending.message.TYPE.name} seq {pending.seq}: {why}; "
                             "check the cable, the baud rate and that the base is running", now)
 
     def _fail(self, pending: _Pending, reason: str, nak: NakReason | None = None) -> None:

@@ -192,7 +192,7 @@ def profile_from_frames(frames, base: NoiseProfile, source: str) -> tuple[NoiseP
         raise InputError(f"{source}: no depth between {MIN_BIN_M} and {MAX_BIN_M} m was read in "
                          f"every frame over {MIN_BIN_PIXELS} pixels; point the camera at a "
                          "still scene within its range")
-    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    when = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     said = f"{noise.n_frames} frames of {source} at {when}"
     profile = base.replaced_by(
         noise.bins, f"measured: {said} (the built-in {base.name} gives the principle, the "

@@ -130,7 +130,7 @@ class NoiseProfile:
         if self.measured_use and not self.measured:
             raise BadValue("NoiseProfile", "measured", self.measured,
                            f"at least one bin when measured_use is {self.measured_use!r}")
-        for zb, sb, nb in self.measured:
+        for zb, sb, _nb in self.measured:
             _num("measured depth", zb, 0.0, 100.0, low_open=True, unit=" metres")
             _num("measured sigma", sb, 0.0, 10.0, low_open=True, unit=" metres")
         z = np.linspace(0.1, TABLE_END_M, 240)

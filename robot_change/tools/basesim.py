@@ -1,8 +1,9 @@
 """A simulated base controller: the other end of the serial link, for tests, demos and bring-up.
 
-It speaks the protocol through the same codec and session as the module (robot_change.link.protocol,
-robot_change.link.session), follows the base's pause rules (docs/protocol.md 7.6) and prints every message
-it receives in a readable form.  Interactive: commands typed on stdin.  Scripted (``--script``):
+It speaks the protocol through the same codec and session as the module
+(robot_change.link.protocol, robot_change.link.session), follows the base's pause rules
+(docs/protocol.md 7.6) and prints every message it receives in a readable form.  Interactive:
+commands typed on stdin.  Scripted (``--script``):
 one command per line, plus ``wait``, ``expect`` and ``expect-none`` lines; a failed expectation
 ends the run with exit status 1.
 
@@ -35,10 +36,11 @@ import shlex
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, TextIO
 
 from hw.serial_port import open_port
 from robot_change.errors import InputError, ProtocolError
@@ -166,13 +168,15 @@ def parse_command(line: str) -> tuple[str, list[str], Message | None]:
     except ProtocolError as exc:  # a value the protocol refuses (station name, parameter bounds)
         raise InputError(str(exc)) from None
     if verb == "motion":
-        if len(args) != 1 or args[0].upper() not in Motion.__members__ or args[0].upper() == "PAUSED":
+        if (len(args) != 1 or args[0].upper() not in Motion.__members__
+                or args[0].upper() == "PAUSED"):
             raise InputError("`motion` takes parked, moving or unknown")
     elif verb == "raw":
         try:
             bytes.fromhex(" ".join(args))
         except ValueError:
-            raise InputError("`raw` takes hex bytes, e.g. `raw 04 01 02 05 01 03 bd c5 00`") from None
+            raise InputError("`raw` takes hex bytes, e.g. "
+                             "`raw 04 01 02 05 01 03 bd c5 00`") from None
     elif verb == "garbage":
         if len(args) != 1 or not 0 < _int(args[0], "byte count") <= 100_000:
             raise InputError("`garbage` takes a byte count, 1..100000")
@@ -205,7 +209,8 @@ def _parse_expect(verb: str, args: list[str]) -> tuple[str, dict[str, str], floa
             raise InputError(f"`{verb}`: unexpected {arg!r} (filters are field=value)")
     if timeout is None:
         if verb == "expect-none":
-            raise InputError("`expect-none` needs the seconds to watch, e.g. `expect-none PAUSE 1.0`")
+            raise InputError("`expect-none` needs the seconds to watch, e.g. "
+                             "`expect-none PAUSE 1.0`")
         timeout = DEFAULT_EXPECT_TIMEOUT
     return what, filters, timeout
 
@@ -295,7 +300,8 @@ class BaseSim:
                 self._resume_acked = True
             if self.verbose or not isinstance(event.message, StatusQuery):
                 self.say(f"ok {event.message.TYPE.name} seq {event.seq} "
-                         f"({event.rtt * 1000:.1f} ms, {event.tries} tr{'y' if event.tries == 1 else 'ies'})")
+                         f"({event.rtt * 1000:.1f} ms, "
+                         f"{event.tries} tr{'y' if event.tries == 1 else 'ies'})")
         elif isinstance(event, SendFailed):
             self.failed.append(event)
             self._record("FAILED", event)
@@ -493,7 +499,8 @@ class BaseSim:
                 while True:
                     text = lines.get_nowait()
                     if text is None:
-                        self.pump(0.5, until=lambda: self.link.in_flight == 0 and self.link.queued == 0)
+                        self.pump(0.5, until=lambda: (self.link.in_flight == 0
+                                                      and self.link.queued == 0))
                         return 0
                     try:
                         if not self.command(text):

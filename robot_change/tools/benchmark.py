@@ -10,7 +10,8 @@ import os
 import platform
 import statistics
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -23,10 +24,11 @@ from robot_change.cloud.geometry import depth_to_points
 from robot_change.mixture import em
 from robot_change.mixture.model import fit_mixture
 
-#: Per-stage timings of :func:`robot_change.cloud.chain.clean_cloud` (milliseconds).  Back-projection
-#: runs inside the voxel pass there, so ``voxel_ms`` includes it; ``points_ms`` in the bench
-#: output is back-projection on its own (:func:`robot_change.cloud.geometry.depth_to_points`), timed
-#: separately for comparison, and is not part of ``preprocess_ms``.
+#: Per-stage timings of :func:`robot_change.cloud.chain.clean_cloud` (milliseconds).
+#: Back-projection runs inside the voxel pass there, so ``voxel_ms`` includes it; ``points_ms`` in
+#: the bench output is back-projection on its own
+#: (:func:`robot_change.cloud.geometry.depth_to_points`), timed separately for comparison, and is
+#: not part of ``preprocess_ms``.
 PREPROCESS_STAGES = ("voxel_ms", "outlier_ms", "plane_ms", "preprocess_ms")
 
 
@@ -88,7 +90,8 @@ def benchmark_em(points, n_components: int = 8, runs: int = 7, warmup: int = 2,
         K of the single-iteration timing (components seeded from an 8-way split of the data
         along x, deterministic).
     iter_points : int
-        The single-iteration timing uses at most this many points (evenly spaced in the input order).
+        The single-iteration timing uses at most this many points (evenly spaced in the input
+        order).
 
     Returns
     -------
@@ -182,15 +185,18 @@ def bench_emd(runs: int = 200, warmup: int = 20, n_scenes: int = 5) -> dict[str,
         s = emd_scene(0, k, n_changed=2 if k == 10 else 5)
         cost = ground_distance(s["mu_ref"], s["mu_cur"])
         out[f"emd_{k}x{k}_us"] = round(
-            1e3 * median_ms(lambda: emd(s["w_ref"], s["w_cur"], cost), runs, warmup), 2)
+            1e3 * median_ms(lambda s=s, cost=cost: emd(s["w_ref"], s["w_cur"], cost), runs,
+                            warmup), 2)
     all_ms, five_ms, removals, solves = [], [], [], []
     for seed in range(n_scenes):
         s = emd_scene(seed)
         cost = np.ascontiguousarray(ground_distance(s["mu_ref"], s["mu_cur"]))
         every = np.ones(30, bool)
-        all_ms.append(median_ms(lambda: _both_ways(s, cost, every, every), runs // 4, warmup))
+        all_ms.append(median_ms(
+            lambda s=s, cost=cost, every=every: _both_ways(s, cost, every, every),
+            runs // 4, warmup))
         # 5 novelty candidates a side: the changed components (what the novelty step proposes)
-        five_ms.append(median_ms(lambda: _both_ways(s, cost, s["new"], s["gone"]),
+        five_ms.append(median_ms(lambda s=s, cost=cost: _both_ways(s, cost, s["new"], s["gone"]),
                                  runs // 4, warmup))
         for r in _both_ways(s, cost, every, every):
             removals.append(len(r.order))

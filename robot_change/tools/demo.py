@@ -124,7 +124,7 @@ def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
 
             def reopened() -> bool:  # the new recording counts its frames from 1 again
                 beats = [e.obj.frame_index for e in sim.log[start:] if e.name == "HEARTBEAT"]
-                return any(b < a for a, b in zip(beats, beats[1:]))
+                return any(b < a for a, b in zip(beats, beats[1:], strict=False))
 
             sim.pump(10.0, until=reopened)
             sim.cursor = len(sim.log)

@@ -53,7 +53,7 @@ def _change(robot: str, station: str, p: dict[str, Any]) -> str:
              f"{p.get('report_id')})"]
     if offset.get("translation_m"):
         lines[0] += ("; robot offset " + " ".join(
-            f"{a} {v * 100:+.1f} cm" for a, v in zip("xyz", offset["translation_m"]))
+            f"{a} {v * 100:+.1f} cm" for a, v in zip("xyz", offset["translation_m"], strict=False))
             + " yaw " + f"{offset.get('rpy_deg', [0, 0, 0])[2]:+.1f} deg")
     for region in regions:
         base = region.get("base") or {}

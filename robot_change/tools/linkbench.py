@@ -333,7 +333,7 @@ class _Bench:
             heard: list[float] = []
             result: list[Any] = []
 
-            def done() -> bool:
+            def done(seq=seq, heard=heard, started=started, result=result) -> bool:
                 for e in self.base_events:
                     if isinstance(e, Received) and isinstance(e.message, Pause) and e.seq == seq \
                             and not heard:
@@ -363,7 +363,8 @@ class _Bench:
                    report_timeout: float) -> dict[str, Any]:
         self.connect(corrupt)
         rng = random.Random(count)
-        wire_regions = [Region(RegionKind.APPEARED, (rng.randrange(-3000, 3000), rng.randrange(-3000, 3000),
+        wire_regions = [Region(RegionKind.APPEARED, (rng.randrange(-3000, 3000),
+                                                     rng.randrange(-3000, 3000),
                                                      rng.randrange(0, 2000)),
                                (rng.randrange(10, 2000),) * 3, rng.randrange(12, 50000))
                         for _ in range(regions)]
@@ -379,9 +380,10 @@ class _Bench:
                 self.module.send(part, started)
             state = {"pause": False, "report": None}
 
-            def joined() -> bool:
+            def joined(pause_seq=pause_seq, state=state, k=k, started=started) -> bool:
                 for e in self.base_events:
-                    if isinstance(e, Received) and isinstance(e.message, Pause) and e.seq == pause_seq:
+                    if isinstance(e, Received) and isinstance(e.message, Pause) \
+                            and e.seq == pause_seq:
                         state["pause"] = True
                     elif isinstance(e, Received) and isinstance(e.message, ChangeReport) \
                             and e.message.report_id == k:
@@ -400,7 +402,7 @@ class _Bench:
             seq = self.base.send(Resume())
             result: list[Any] = []
 
-            def resumed() -> bool:
+            def resumed(seq=seq, result=result) -> bool:
                 result.extend(e for e in self.base_events
                               if isinstance(e, (Delivered, SendFailed)) and e.seq == seq)
                 self.base_events.clear()
@@ -428,7 +430,7 @@ class _Bench:
             self.base.send(StatusQuery(), started)
             got: list[float] = []
 
-            def answer() -> bool:
+            def answer(got=got, started=started) -> bool:
                 if any(isinstance(e, Received) and isinstance(e.message, Status)
                        for e in self.base_events):
                     got.append(time.monotonic() - started)

@@ -56,7 +56,8 @@ def mixture_ellipses(
     outlines = []
     angles = np.linspace(0.0, 2.0 * np.pi, n_vertices)
     circle = np.stack([np.cos(angles), np.sin(angles)])  # (2, V)
-    for mean, covariance in zip(np.asarray(means, float), np.asarray(covariances, float)):
+    for mean, covariance in zip(np.asarray(means, float), np.asarray(covariances, float),
+                                strict=False):
         x, y, z = mean
         if not z > 1e-6:
             outlines.append(np.zeros((0, 2)))

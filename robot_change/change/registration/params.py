@@ -232,7 +232,7 @@ class RegistrationParams:
                                  f"as levels (>= 1), got {value!r}")
         for f in self.levels:
             _int("levels", f, 1, 64)
-        if any(a != 2 * b for a, b in zip(self.levels, self.levels[1:])):
+        if any(a != 2 * b for a, b in zip(self.levels, self.levels[1:], strict=False)):
             raise InputError(f"RegistrationParams.levels={self.levels!r}: each factor must be "
                              f"twice the next (coarse to fine), e.g. (16, 8, 4)")
         for it in self.iterations:

@@ -66,8 +66,12 @@ class _Pass(NamedTuple):
     planes: tuple[TablePlane, TablePlane] | None
 
 
+#: the default parameters (frozen, built once)
+_DEFAULT_PARAMS = RegistrationParams()
+
+
 def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intrinsics,
-                   params: RegistrationParams = RegistrationParams(), *,
+                   params: RegistrationParams = _DEFAULT_PARAMS, *,
                    initial: np.ndarray | None = None, keep: dict | None = None,
                    keep_current: dict | None = None, noise: NoiseProfile | None = None
                    ) -> Registration:
@@ -179,7 +183,7 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
     vec = np.eye(6)
     tracks: list[np.ndarray] = []  # estimates from the table-plane starts, to search_level
     planes: tuple[TablePlane, TablePlane] | None = None  # a table top's, when it is one
-    for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels)):
+    for li, (rl, cl) in enumerate(zip(ref_levels, cur_levels, strict=True)):
         pairs = Pairs(cl)
         start = T
         T, n_it, converged, lam_n, vec, A = icp_level(rl, cl, start, params, li, min_cos, pairs)
