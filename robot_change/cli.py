@@ -168,10 +168,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     commands = _Commands()
 
-    cloud = commands.add_parser("cloud", help="depth -> clean point cloud, with a summary and a picture")
-    cloud.add_argument("--source", required=True, help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
-    cloud.add_argument("--frames", type=_count, default=1, help="frames to fuse by per-pixel median (default 1)")
-    cloud.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
+    cloud = commands.add_parser("cloud", help="depth -> clean point cloud, with a summary and a "
+                                "picture")
+    cloud.add_argument("--source", required=True,
+                       help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
+    cloud.add_argument("--frames", type=_count, default=1,
+                       help="frames to fuse by per-pixel median (default 1)")
+    cloud.add_argument("--intrinsics",
+                       help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
     cloud.add_argument("--leaf", type=float, help="voxel size in metres (default from CloudParams)")
     cloud.add_argument("--out", help="folder for cloud.npy ((M,3) float32, metres; or .pcd / .ply, "
                        "--format) and cloud.png")
@@ -198,7 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
-    bench.add_argument("--runs", type=_count, default=30, help="timed runs after warm-up (default 30)")
+    bench.add_argument("--runs", type=_count, default=30,
+                       help="timed runs after warm-up (default 30)")
     bench.add_argument("--source", help="depth URI to benchmark instead of the bundled frame")
     bench.set_defaults(func=cmd_bench)
 
@@ -282,7 +287,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "realsense: written by librealsense's own recorder (needs the realsense "
                         "extra), plays in librealsense and the RealSense Viewer (default: by "
                         "--out's ending, .oni, .db3, else rosbag2)")
-    record.add_argument("--frames", type=_count, help="stop after N frames (default: to the end, or Ctrl-C)")
+    record.add_argument("--frames", type=_count,
+                        help="stop after N frames (default: to the end, or Ctrl-C)")
     record.add_argument("--codec", choices=("16zt", "16z", "png", "none"),
                         help=".oni: 16zt: lossless, ~4x smaller than raw on Kinect depth "
                         "(default); 16z: lossless, for unquantised depth; none: raw uint16. "

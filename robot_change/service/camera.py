@@ -22,7 +22,8 @@ import collections
 import logging
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from hw.backoff import Backoff
 from hw.depth import DepthFrame, DepthSource
@@ -74,7 +75,8 @@ class FrameQueue:
             self._on_put()
 
     def get(self, timeout: float = 0.0) -> tuple[DepthFrame, float, int] | None:
-        """The oldest (frame, arrival time, sequence number), waiting at most ``timeout`` s; None if none."""
+        """The oldest (frame, arrival time, sequence number), waiting at most ``timeout`` s;
+        None if none."""
         end = time.monotonic() + max(0.0, timeout)
         with self._cond:
             while not self._frames:

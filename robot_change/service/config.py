@@ -26,8 +26,9 @@ import re
 import socket
 import tomllib
 import types
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
 
 from robot_change import validate
 from robot_change.change.mount import CameraMount
@@ -182,22 +183,27 @@ class CloudConfig(_Section):
 
     NAME: ClassVar[str] = "cloud"
     leaf_m: float = _key(_CLOUD.leaf_m, _cloud("leaf_m"), "voxel size in metres")
-    min_depth_mm: int = _key(round(_CLOUD.min_depth_m * 1000), _int(0, 10_000, " mm"), "nearer depth is not used")
+    min_depth_mm: int = _key(round(_CLOUD.min_depth_m * 1000), _int(0, 10_000, " mm"),
+                             "nearer depth is not used")
     max_depth_mm: int = _key(PARAM_BY_NAME["max_depth_mm"].default, _param("max_depth_mm"),
                              "depth beyond this is not used")
     remove_outliers: bool = _key(_CLOUD.remove_outliers, _cloud("remove_outliers"),
                                  "statistical outlier removal on the voxel cloud")
-    outlier_k: int = _key(_CLOUD.outlier_k, _cloud("outlier_k"), "neighbours per voxel in outlier removal")
+    outlier_k: int = _key(_CLOUD.outlier_k, _cloud("outlier_k"),
+                          "neighbours per voxel in outlier removal")
     outlier_alpha: float = _key(_CLOUD.outlier_alpha, _cloud("outlier_alpha"),
                                 "a voxel is an outlier beyond mean + alpha * std of the "
                                 "neighbour distances")
     outlier_cap_leaves: float = _key(_CLOUD.outlier_cap_leaves, _cloud("outlier_cap_leaves"),
                                      "... and within this many leaves it never is")
-    remove_plane: bool = _key(_CLOUD.remove_plane, _cloud("remove_plane"), "remove the dominant plane (floor)")
+    remove_plane: bool = _key(_CLOUD.remove_plane, _cloud("remove_plane"),
+                              "remove the dominant plane (floor)")
     plane_distance_m: float = _key(_CLOUD.plane_distance_m, _cloud("plane_distance_m"),
                                    "plane inlier distance in metres")
-    plane_iterations: int = _key(_CLOUD.plane_iterations, _cloud("plane_iterations"), "most RANSAC triples")
-    plane_seed: int = _key(_CLOUD.plane_seed, _cloud("plane_seed"), "RANSAC seed (same seed, same plane)")
+    plane_iterations: int = _key(_CLOUD.plane_iterations, _cloud("plane_iterations"),
+                                 "most RANSAC triples")
+    plane_seed: int = _key(_CLOUD.plane_seed, _cloud("plane_seed"),
+                           "RANSAC seed (same seed, same plane)")
     plane_min_inliers: int = _key(_CLOUD.plane_min_inliers, _cloud("plane_min_inliers"),
                                   "a plane needs this many voxels")
     plane_up: tuple[float, float, float] | None = _key(
@@ -232,11 +238,13 @@ class MixtureConfig(_Section):
     NAME: ClassVar[str] = "mixture"
     criterion: str = _key(_SCENE.criterion, _scene("criterion"),
                           "model-selection criterion that picks the number of components")
-    max_components: int = _key(_SCENE.max_components, _scene("max_components"), "most components of one mixture")
+    max_components: int = _key(_SCENE.max_components, _scene("max_components"),
+                               "most components of one mixture")
     tol: float = _key(_SCENE.tol, _scene("tol"), "EM stops when the mean log-likelihood per point "
                       "changes by less")
     max_iter: int = _key(_SCENE.max_iter, _scene("max_iter"), "most iterations of one EM run")
-    seed: int = _key(_SCENE.seed, _scene("seed"), "seed of the random subsets (same seed, same fit)")
+    seed: int = _key(_SCENE.seed, _scene("seed"),
+                     "seed of the random subsets (same seed, same fit)")
     search_points: int = _key(_SCENE.search_points, _scene("search_points"),
                               "the split search runs on a random subset of this many points")
 
@@ -265,7 +273,8 @@ class ChangeConfig(_Section):
                                  "true: a change raises PAUSE; false: report only")
     extra: Mapping[str, float | int | bool] = dataclasses.field(
         default_factory=lambda: types.MappingProxyType({}),
-        metadata={"check": lambda _section, _key, value: value, "doc": "further thresholds of the change step"})
+        metadata={"check": lambda _section, _key, value: value,
+                  "doc": "further thresholds of the change step"})
 
     def _cross_check(self) -> None:
         known = [f.name for f in dataclasses.fields(self) if f.name != "extra"]
@@ -521,7 +530,8 @@ def _read(path: Path) -> dict[str, Any]:
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}")  # "... (at line L, column C)" from None
+        # "... (at line L, column C)"
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
 
 
 def config_from_dict(data: Mapping[str, Any], source: str = "<config>",

@@ -9,7 +9,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import ipaddress
-from typing import Any, Callable, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 from hw.depth import parse_uri
 from hw.errors import UriError
@@ -53,7 +54,8 @@ def _depth_uri(owner: str, name: str, value: Any) -> str:
         parse_uri(text)
     except UriError as exc:
         raise BadValue(owner, name, value, f"a depth URI such as 'openni2://', "
-                       f"'openni2://SERIAL', 'oni:FILE.oni', 'images:DIR/' or 'rosbag:BAG' ({exc})") from None
+                       f"'openni2://SERIAL', 'oni:FILE.oni', 'images:DIR/' or 'rosbag:BAG' "
+                       f"({exc})") from None
     return text
 
 

@@ -72,8 +72,9 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import robot_change
 from hw.atomic import remove_temp_files
@@ -291,7 +292,7 @@ class Service(Dispatch, Sending, Control):
             log.warning("threads still running at exit: %s", ", ".join(stuck))
         return stuck
 
-    def __enter__(self) -> "Service":
+    def __enter__(self) -> Service:
         self.start()
         return self
 
@@ -359,7 +360,8 @@ class Service(Dispatch, Sending, Control):
             if locked:
                 self._lock.release()
 
-    def reload(self, config: Config, camera: DepthSource | Callable[[], DepthSource] | None = None) -> None:
+    def reload(self, config: Config,
+               camera: DepthSource | Callable[[], DepthSource] | None = None) -> None:
         """Take a new configuration (SIGHUP): the parameter table is reseeded from it, and a new
         ``camera`` (when given) replaces the old one: it is closed and the new one opened."""
         with self._lock:

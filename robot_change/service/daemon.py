@@ -19,7 +19,8 @@ import logging
 import signal
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from robot_change.errors import ConfigError
 from robot_change.service import systemd

@@ -98,9 +98,10 @@ def _check_state_dir(where: str, path: Path) -> None:
 
 
 def change_params(config: Config, params: dict[str, int]):
-    """The :class:`robot_change.change.params.ChangeParams` of a check: the configuration's free-form
-    ``[change]`` keys that name ChangeParams fields, and the wire's ``min_region_points`` and
-    ``min_region_extent_mm`` (whose defaults are ChangeParams' own: one set of defaults)."""
+    """The :class:`robot_change.change.params.ChangeParams` of a check: the configuration's
+    free-form ``[change]`` keys that name ChangeParams fields, and the wire's
+    ``min_region_points`` and ``min_region_extent_mm`` (whose defaults are ChangeParams' own:
+    one set of defaults)."""
     fields = {f.name for f in dataclasses.fields(ChangeParams)}
     for name in dict(config.change.extra):
         if name not in fields:

@@ -94,7 +94,7 @@ def _file_info(path: Path) -> FileInfo | None:
         st = path.stat()
     except FileNotFoundError:
         return None
-    modified = datetime.datetime.fromtimestamp(st.st_mtime, datetime.timezone.utc)
+    modified = datetime.datetime.fromtimestamp(st.st_mtime, datetime.UTC)
     return FileInfo(path, st.st_size, modified)
 
 
@@ -114,10 +114,11 @@ class ReferenceStore:
     """The station references under ``root`` (created on the first save).
 
     ``scene_type`` is the class whose ``save(path)`` / ``load(path)`` (raising
-    :class:`SceneFileError`) read and write one reference: :class:`robot_change.change.scene.SceneModel`
-    unless given.  ``max_stations``: a new station beyond this many is refused (names come from
-    the serial line: noise or a confused base must not fill the disk); ``min_free_mb``: a save
-    is refused when less than this much would be left free on the store's file system.
+    :class:`SceneFileError`) read and write one reference:
+    :class:`robot_change.change.scene.SceneModel` unless given.  ``max_stations``: a new
+    station beyond this many is refused (names come from the serial line: noise or a confused
+    base must not fill the disk); ``min_free_mb``: a save is refused when less than this much
+    would be left free on the store's file system.
     """
 
     def __init__(self, root: str | os.PathLike, scene_type: type | None = None, *,
@@ -342,7 +343,7 @@ class ReferenceStore:
         """Move a file that failed verification to quarantine/ with a timestamp and a note."""
         folder = self.quarantine_dir
         folder.mkdir(exist_ok=True)
-        stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         target = folder / f"{path.name}.{stamp}"
         n = 1
         while target.exists():

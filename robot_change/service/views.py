@@ -108,8 +108,8 @@ class CheckViews:
 
     def start(self) -> None:
         """Check that foxglove-sdk is there (the service's start has removed the temp files an
-        interrupted write left in the folder), start the live server (when asked) and the worker.  Never raises: what cannot be done
-        is logged and left out."""
+        interrupted write left in the folder), start the live server (when asked) and the
+        worker.  Never raises: what cannot be done is logged and left out."""
         if self.folder is None and not self.viz.live:
             return
         try:

@@ -143,7 +143,7 @@ def _own_share(config: Config) -> None:
 
     cam, rooms = _tiny_scene()
     params = config.scene_params()
-    for before, after in (rooms, rooms[::-1]):
+    for before, _after in (rooms, rooms[::-1]):
         try:
             reference = build_scene(np.stack([before] * 2), params, intrinsics=cam)
         except (EmptySceneError, InputError):

@@ -30,7 +30,8 @@ import concurrent.futures
 import dataclasses
 import logging
 import time
-from typing import Callable, Mapping, Protocol
+from collections.abc import Callable, Mapping
+from typing import Protocol
 
 import numpy as np
 
