@@ -21,7 +21,7 @@ from hw.depth import Intrinsics
 from hw.errors import FrameError
 from robot_change import npzfile
 from robot_change.change.mount import CameraMount
-from robot_change.change.scene import (
+from robot_change.change.scene_params import (
     FILE_FORMAT,
     FILE_VERSION,
     MIN_SCENE_POINTS,
