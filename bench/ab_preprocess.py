@@ -103,7 +103,7 @@ def plot(summary: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7.5, 3.0))
     for row, name in enumerate(("other", "this")):
         left = 0.0
-        for stage, colour in zip(stages, ("#9ecae1", "#3182bd", "#fd8d3c", "#74c476")):
+        for stage, colour in zip(stages, ("#9ecae1", "#3182bd", "#fd8d3c", "#74c476"), strict=True):
             width = summary[name].get(stage, 0.0)
             if width:
                 label = {"points_ms": "back-projection", "voxel_ms": "voxel grid (now with "

@@ -27,11 +27,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from test_rosbag import CAMERA, write_bag  # noqa: E402
+
 from hw.compressed_depth import encode_compressed_depth  # noqa: E402
 from hw.depth import DepthFrame, open_depth  # noqa: E402
 from hw.errors import BackendUnavailable  # noqa: E402
 from hw.imagefile import read_image  # noqa: E402
-from test_rosbag import CAMERA, write_bag  # noqa: E402
 
 SUN3D = Path(__file__).resolve().parents[2] / "shared" / "data" / \
     "sun3d-studyroom-xtion-50f-pose" / "frames"

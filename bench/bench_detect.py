@@ -19,7 +19,8 @@ printed side by side, so they share the machine's load.  Each worker is a subpro
 this file with ``--worker`` on its checkout.
 
 ``--threads N``: ChangeParams(threads=N) (2: registration beside cleaning, the two
-directions on two threads) where the checkout has the field (before it, one thread only).  OMP / BLAS threads are pinned to 1.  A benchmark, never a test.
+directions on two threads) where the checkout has the field (before it, one thread only).
+OMP / BLAS threads are pinned to 1.  A benchmark, never a test.
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ def worker(scenes: list[str], threads: int) -> None:
     for line in sys.stdin:
         runs = int(line.split()[1])
         samples, stages = [], {}
-        for name, ref, frame, intr in cases:
+        for _name, ref, frame, intr in cases:
             detect_changes(ref, frame, params, intrinsics=intr)  # warm-up: the kept results
             for _ in range(runs):
                 t0 = time.perf_counter()

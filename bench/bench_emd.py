@@ -1,13 +1,14 @@
-"""Benchmark of robot_change.change.transport: exact EMD at 10x10 and 30x30, greedy EMD both ways at K = 30.
+"""Benchmark of robot_change.change.transport: exact EMD at 10x10 and 30x30, greedy EMD both
+ways at K = 30.
 
     .venv/bin/python bench/bench_emd.py [--runs 200] [--json]
 
 Prints, as medians after warm-up (one thread):
 
-- ``emd_10x10_us`` / ``emd_30x30_us``: one call of :func:`robot_change.change.transport.emd` (validation
-  included) on mixtures of a room (means spread over 3 m, Euclidean ground distance);
-- ``greedy_both_ways_k30_ms``: :func:`robot_change.change.transport.greedy_emd` reference -> current plus
-  current -> reference at K = 30 vs 30, every component a candidate (target <= 2 ms);
+- ``emd_10x10_us`` / ``emd_30x30_us``: one call of :func:`robot_change.change.transport.emd`
+  (validation included) on mixtures of a room (means spread over 3 m, Euclidean ground distance);
+- ``greedy_both_ways_k30_ms``: :func:`robot_change.change.transport.greedy_emd` reference ->
+  current plus current -> reference at K = 30 vs 30, every component a candidate (target <= 2 ms);
   ``greedy_both_ways_k30_5cand_ms``: the same with 5 novelty candidates per side;
   ``..._worst_ms``: the slowest of the scenes;
 - ``ground_w2_30x30_ms``: the 2-Wasserstein ground distance matrix at 30x30.
@@ -31,7 +32,7 @@ from robot_change.tools.benchmark import bench_emd  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=200)
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--json", action="store_true")

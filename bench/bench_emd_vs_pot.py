@@ -119,7 +119,7 @@ def plot(rows, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    for kind, style in zip(KINDS, ("-", "--")):
+    for kind, style in zip(KINDS, ("-", "--"), strict=True):
         square = [r for r in rows if r["kind"] == kind and r["m"] == r["n"]]
         k = [r["m"] for r in square]
         ax.plot(k, [r["ours"] for r in square], "o" + style, color="C0",

@@ -209,13 +209,14 @@ def bench_pause(rounds: int) -> dict:
                                 timeout), f"{name}: {line}: no {answer}\n{daemons[name].log()}"
 
             assert pump_all(lambda: all(s.link.state == LinkState.UP for s in sims.values()),
-                            10), {n: (s.link.state, daemons[n].log()[-600:]) for n, s in sims.items()}
+                            10), {n: (s.link.state, daemons[n].log()[-600:])
+                                  for n, s in sims.items()}
             for name, d in daemons.items():
                 ask(name, "capture office", "CAPTURED")
                 ask(name, "set fuse_frames 1", "PARAM_VALUE")
                 d.write_config(epoch="current")
                 d.proc.send_signal(signal.SIGHUP)
-                assert pump_all(lambda: "reopening the camera" in d.log(), 10)
+                assert pump_all(lambda d=d: "reopening the camera" in d.log(), 10)
             pump_all(lambda: False, 1.0)
             names = list(conditions)
             for r in range(rounds):
@@ -226,13 +227,14 @@ def bench_pause(rounds: int) -> dict:
                     t0 = sim.clock()
                     sim.command("check office")
 
-                    def paused() -> bool:
+                    def paused(sim=sim, start=start) -> bool:
                         return any(e.name == "PAUSE" for e in sim.log[start:])
 
                     assert pump_all(paused, 10), f"{name}: no PAUSE"
                     pause = next(e for e in sim.log[start:] if e.name == "PAUSE")
                     times[name].append(pause.t - t0)
-                    pump_all(lambda: any(e.name == "REPORT" for e in sim.log[start:]), 5)
+                    pump_all(lambda sim=sim, start=start:
+                             any(e.name == "REPORT" for e in sim.log[start:]), 5)
                     ask(name, "resume", "HEARTBEAT")
                     pump_all(lambda: False, 0.2)
             logs = {name: d.log() for name, d in daemons.items()}

@@ -127,7 +127,7 @@ def plot(result: dict, path: Path) -> None:
                "Growth with the cloud's size (K bound 16)"),
               ("bound", "bound", "K bound (max_components; leaf 3 cm)",
                "Growth with the mixture's K bound"))
-    for ax, (sweep, key, xlabel, title) in zip(axes, panels):
+    for ax, (sweep, key, xlabel, title) in zip(axes, panels, strict=True):
         for name, rows in result[sweep].items():
             x = [r[key] for r in rows]
             ax.plot(x, [r["fit_ms"] for r in rows], "o-", label=f"fit, {name}")

@@ -24,7 +24,8 @@ def main() -> None:
              ("report", 3, 0.01, 30 // n), ("report", 2, 0.01, 30 // n),
              ("report", 3, 0.10, 20 // n, 11), ("status", 3, 0.10, 60 // n),
              ("status", 2, 0.10, 60 // n), ("status", 3, 0.01, 60 // n),
-             ("pause", 3, 0.10, 100 // n), ("flood", 3, 0.0, 5000 // n), ("flood", 2, 0.0, 5000 // n)]
+             ("pause", 3, 0.10, 100 // n), ("flood", 3, 0.0, 5000 // n),
+             ("flood", 2, 0.0, 5000 // n)]
     print(f"# load average at start: {os.getloadavg()}")
     for mode, proto, corrupt, count, *rest in cases:
         regions = rest[0] if rest else 3

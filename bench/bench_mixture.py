@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     per = {}
     for crit in CRITERIA:
         fit = fit_mixture(room, crit)
-        ms = median_ms(lambda: fit_mixture(room, crit), args.runs, warmup=1)
+        ms = median_ms(lambda crit=crit: fit_mixture(room, crit), args.runs, warmup=1)
         per[crit] = {"k": fit.n_components, "ms": ms, "em_runs": len(fit.record.steps),
                      "em_iter": fit.record.n_iter, "stop": fit.record.stop_reason}
     out["per_criterion"] = per

@@ -27,7 +27,8 @@ at our K.  Both are scored by the mean log-likelihood per point on the cloud the
 to (``Mixture.score`` / ``GaussianMixture.score``, nats/point); ``gap`` = ours - sklearn
 (>= 0: ours is at least as good).  The last line is our ``fit_ms`` on ``dense_lounge_f0`` (JSON
 ``ours_ms_dense_lounge_f0``; ``--clouds dense_lounge_f0 --no-sklearn --runs 15`` times it
-alone).  Times are wall-clock medians of ``--runs`` fits after one warm-up fit (``--sk-runs`` for scikit-learn, default 1, no warm-up beyond the first cloud).
+alone).  Times are wall-clock medians of ``--runs`` fits after one warm-up fit (``--sk-runs``
+for scikit-learn, default 1, no warm-up beyond the first cloud).
 Run with OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1; on a shared machine the times are only
 indicative.  ``--sk-cache FILE`` keeps scikit-learn's results (keyed by cloud, K and a hash of
 the points) so reruns only refit ours.  A benchmark, never a test: nothing is asserted.

@@ -74,7 +74,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--live-seconds", type=float, default=3.0)
     args = parser.parse_args()
-    print(f"machine: {os.cpu_count()} cpus; {args.frames} VGA frames, {args.repeats} repeats, medians")
+    print(f"machine: {os.cpu_count()} cpus; {args.frames} VGA frames, {args.repeats} repeats, "
+          "medians")
     frames = vga_frames(args.frames)
     with tempfile.TemporaryDirectory() as tmp:
         for codec in ("none", "16z"):
@@ -83,14 +84,15 @@ def main() -> None:
             write_oni(path, frames, codec=codec)
             write_s = time.perf_counter() - t
             runs = [replay(path) for _ in range(args.repeats)]
-            starts, rates, counts = zip(*runs)
+            starts, rates, counts = zip(*runs, strict=True)
             assert set(counts) == {args.frames}, counts
             print(f"replay 640x480 codec={codec:4s}: {statistics.median(rates):7.1f} fps "
                   f"(min {min(rates):.1f}, max {max(rates):.1f}); reader start-up "
-                  f"{statistics.median(starts) * 1000:.0f} ms; file {path.stat().st_size / args.frames / 1024:.0f} KB/frame; "
+                  f"{statistics.median(starts) * 1000:.0f} ms; "
+                  f"file {path.stat().st_size / args.frames / 1024:.0f} KB/frame; "
                   f"write {args.frames / write_s:.0f} frames/s")
     runs = [live(args.live_seconds) for _ in range(max(1, args.repeats // 2))]
-    rates, counts, dropped = zip(*runs)
+    rates, counts, dropped = zip(*runs, strict=True)
     print(f"live DummyDevice 320x240: {statistics.median(rates):5.1f} fps delivered "
           f"(nominal 30), dropped per run {list(dropped)}")
 

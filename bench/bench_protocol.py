@@ -20,12 +20,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from robot_change.link import protocol as p  # noqa: E402
 
-REGIONS = [p.Region(p.RegionKind.APPEARED, (i, -i, 2000), (300, 200, 100), 1000 + i) for i in range(11)]
+REGIONS = [p.Region(p.RegionKind.APPEARED, (i, -i, 2000), (300, 200, 100), 1000 + i)
+           for i in range(11)]
 KINDS = {
     "ACK (9 B)": [(p.Ack(), 5, 0)],
     "PAUSE (10 B)": [(p.Pause(p.PauseCause.CHANGE_WATCH), 6, p.FLAG_URGENT)],
-    "HEARTBEAT (17 B)": [(p.Heartbeat(p.ModuleState.WATCHING, True, True, False, 299, 123456), 0, 0)],
-    "CHANGE_REPORT 11 regions (~210 B)": [(p.ChangeReport(3, 0, 1, "kitchen", tuple(REGIONS)), 9, 0)],
+    "HEARTBEAT (17 B)": [(p.Heartbeat(p.ModuleState.WATCHING, True, True, False, 299, 123456),
+                          0, 0)],
+    "CHANGE_REPORT 11 regions (~210 B)": [(p.ChangeReport(3, 0, 1, "kitchen", tuple(REGIONS)),
+                                           9, 0)],
     # what the module's receiver mostly sees: base heartbeats, ACKs, a few commands
     "mix": [(p.BaseHeartbeat(p.Motion.PARKED), 0, 0)] * 6 + [(p.Ack(), 7, 0)] * 3
            + [(p.Check("kitchen"), 8, 0), (p.SetParam(1, 3), 9, 0)],
@@ -74,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
             "encode_frames_per_s": round(encode_rate(kind, args.frames, args.repeat)),
             "bytes_per_frame": round(len(data) / args.frames, 1),
         }
-    machine = f"{platform.python_implementation()} {platform.python_version()} on {platform.machine()}"
+    machine = (f"{platform.python_implementation()} {platform.python_version()} "
+               f"on {platform.machine()}")
     if args.json:
         print(json.dumps({"machine": machine, "frames": args.frames, "results": results}))
         return 0

@@ -57,8 +57,8 @@ import tempfile
 import threading
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -66,10 +66,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from hw.depth import DepthFrame, DepthSource, Intrinsics, open_depth  # noqa: E402
-from hw.serial_port import (
-    FdPort,  # noqa: E402
-    open_port,  # noqa: E402
-)
+from hw.serial_port import FdPort, open_port  # noqa: E402
 from robot_change.service.config import Config  # noqa: E402
 from robot_change.service.core import Service, ServiceOptions  # noqa: E402
 from robot_change.service.store import ReferenceStore  # noqa: E402
@@ -144,7 +141,7 @@ class InProcess:
         self.log = open(tmp / "base.log", "w")
         self.sim = BaseSim(FdPort(master), out=self.log)
 
-    def __enter__(self) -> "InProcess":
+    def __enter__(self) -> InProcess:
         self.service.start()
         assert self.sim.pump(10.0, until=lambda: self.sim.link.state.value == "up"), "no link"
         return self
@@ -316,7 +313,7 @@ class Daemon:
         while not self._done.is_set():
             try:
                 data = self.notify.recv(4096).decode()
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             if "READY=1" in data.splitlines() and not self.ready.is_set():
                 self.ready_at = time.monotonic()
@@ -461,7 +458,7 @@ def _soak_loop(sim: BaseSim, seconds: float, rss: Callable[[], tuple[float, floa
             elif e.name not in ("BASE_HEARTBEAT", "LINK"):
                 messages[e.name] += 1
         stamps = [last_beat] + beats
-        gaps.append(max(b - a for a, b in zip(stamps, stamps[1:] + [now])))
+        gaps.append(max(b - a for a, b in zip(stamps, stamps[1:] + [now], strict=True)))
         if beats:
             last_beat = beats[-1]
         del sim.log[:]  # the base's log would grow for ever
@@ -497,7 +494,8 @@ def _rss_growth(rss: list[tuple[float, float, float]], warmup: float) -> dict:
     return {"rss_slope_last_half_mb_per_min": round(slope, 4),
             "rss_residual_sd_last_half_mb": round(noise, 2),
             "reader_rss_slope_last_half_mb_per_min": round(reader_slope, 4),
-            "rss_last_half_start_mb": round(half[0][1], 1),"rss_start_mb": round(start[1], 1), "rss_end_mb": round(rss[-1][1], 1),
+            "rss_last_half_start_mb": round(half[0][1], 1),"rss_start_mb": round(start[1], 1),
+            "rss_end_mb": round(rss[-1][1], 1),
             "rss_growth_pct": round(growth, 2), "rss_peak_mb": round(max(r[1] for r in rss), 1),
             "reader_rss_start_mb": round(start[2], 1), "reader_rss_end_mb": round(rss[-1][2], 1),
             "reader_rss_growth_pct": round(reader, 2)}
@@ -617,7 +615,8 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
             **_rss_growth(samples, warmup), "reader_pids": len(readers),
             "longest_heartbeat_gap_s": round(max(gaps), 3),
             "heartbeat_states": seen["states"], "messages": seen["messages"],
-            "camera": camera, "compressed": compress, "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
+            "camera": camera, "compressed": compress,
+            "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
             "frames": frames, "source_delivered": delivered,
             "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
             "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],

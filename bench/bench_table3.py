@@ -35,13 +35,13 @@ bound (``build_scene``, independent fits, the same leaf), then
 Truth: a current point is on the box when at least half of its pixels (``pixel_voxel``) are in
 ``load_scene(name).truth_appeared`` (as bench/eval_change.py).  ~5 s.
 
-Part 2, the K sweep: K chosen and fit time against the bound ``max_components`` (8, 16, 32,
-64, 128) and the voxel leaf (2, 3, 5 cm; the default is 3 cm), for each criterion, on ``office_box_added``'s
-reference (Kinect noise) and on the three paper references.  Each row also says why the fit
-stopped (``bound``: K reached max_components; ``crit``: no split lowered the criterion;
-``pts``: no component had enough points of the 2000-point search subsample to split) and, for
-the last accepted split, how much it raised log L compared with what one more component costs
-under the criterion (``gain/pen``; >> 1 means the criterion was nowhere near stopping).
+Part 2, the K sweep: K chosen and fit time against the bound ``max_components`` (8, 16, 32, 64, 128)
+and the voxel leaf (2, 3, 5 cm; the default is 3 cm), for each criterion, on ``office_box_added``'s
+reference (Kinect noise) and on the three paper references.  Each row also says why the fit stopped
+(``bound``: K reached max_components; ``crit``: no split lowered the criterion; ``pts``: no
+component had enough points of the 2000-point search subsample to split) and, for the last accepted
+split, how much it raised log L compared with what one more component costs under the criterion
+(``gain/pen``; >> 1 means the criterion was nowhere near stopping).
 ``--quick`` runs a smaller sweep (2 and 5 cm, bounds 16 and 64).
 
 Part 3 (not with ``--quick``), where the criteria stop by themselves: the same reference clouds
@@ -202,7 +202,7 @@ def table4(leaf: float, max_components: int, fuse: bool, search_points: int | No
                    if (label == k).sum() >= plain_params.min_region_points
                    and truth[label == k].mean() > 0.5]
 
-            def marked(comps):
+            def marked(comps, post=post, box=box, truth=truth):
                 comps = np.asarray(comps, dtype=np.int64)
                 seg = post[:, comps].sum(axis=1) > plain_params.posterior_threshold
                 return {"n": int(comps.size), "on_box": int(np.isin(comps, box).sum()),

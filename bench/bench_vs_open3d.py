@@ -92,12 +92,12 @@ def main(argv=None) -> int:
             ref, f, ChangeParams(threads=2), intrinsics=intr),
     }
     times: dict[str, list[float]] = {m: [] for m in methods}
-    for name, ref, pre, frame, intr in cases:  # warm-up: compiles, the reference's kept results
+    for _name, ref, pre, frame, intr in cases:  # warm-up: compiles, the reference's kept results
         for fn in methods.values():
             fn(ref, pre, frame, intr)
     load_before = os.getloadavg()
     for _ in range(args.rounds):
-        for name, ref, pre, frame, intr in cases:
+        for _name, ref, pre, frame, intr in cases:
             for _ in range(args.runs):
                 for m, fn in methods.items():
                     t0 = time.perf_counter()

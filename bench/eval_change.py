@@ -410,7 +410,7 @@ def main(argv=None):
     if args.as_daemon:
         if "open3d_nn" in fns:
             raise SystemExit("--as-daemon: open3d_nn needs the current SceneModel")
-        fns = {m: (lambda f: lambda r, c: f(r, np.array(c.depth)))(f) for m, f in fns.items()}
+        fns = {m: (lambda fn: lambda r, c: fn(r, np.array(c.depth)))(f) for m, f in fns.items()}
     report = {"machine": {"python": platform.python_version(), "cpu": platform.processor()
                           or platform.machine(), "platform": platform.platform()},
               "params": dataclasses.asdict(params), "single_frame": args.single_frame,
@@ -498,8 +498,8 @@ def main(argv=None):
                                                       args.station_tag, (level,))}
             group = f"station {level}cm"
             print(f"== {group} ({len(checks)} checks)", flush=True)
-            per, cache = run(list(checks), lambda n: load_station(checks[n], sp), fns,
-                             not args.quiet)
+            per, cache = run(list(checks), lambda n, checks=checks: load_station(checks[n], sp),
+                             fns, not args.quiet)
             caches[group] = cache
             report["results"][group] = {m: {"total": summarise(rows), "scenes": rows}
                                         for m, rows in per.items()}
@@ -617,7 +617,7 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
         vals = [report["results"][g][m]["total"]["f1"] for g in groups]
         xs = np.arange(len(groups)) + i * width
         ax.bar(xs, vals, width, label=m)
-        for x, v in zip(xs, vals):
+        for x, v in zip(xs, vals, strict=True):
             ax.text(x, v + 0.01, f"{v:.2f}", ha="center", va="bottom", fontsize=6, rotation=90)
     ax.axhline(0.85, color="k", lw=0.8, ls="--")
     ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2,

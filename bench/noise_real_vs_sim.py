@@ -184,7 +184,7 @@ def sim_pairs(views: SimViews, noise, seed: int = 0) -> dict[str, list[tuple]]:
     out = {"static": [], "pose1.5": [], "pose7.5": []}
     frames = []
     epoch1 = noise.for_epoch(1) if hasattr(noise, "for_epoch") else noise
-    for v, (r, K) in enumerate(zip(views.base, views.intrinsics)):
+    for v, (r, K) in enumerate(zip(views.base, views.intrinsics, strict=True)):
         k = (K.fx, K.fy, K.cx, K.cy)
         a = noise.apply(r, np.random.default_rng([seed, v, 0, 0]))
         b = noise.apply(r, np.random.default_rng([seed, v, 0, 1]))

@@ -36,8 +36,8 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -199,7 +199,7 @@ def write_scene(spec: SceneSpec, root: Path = SCENES_DIR, formats: Sequence[str]
     meta = scene_metadata(spec, ref, cur)
     files: dict[str, object] = {}
     recordings: dict[str, dict] = {}
-    for epoch, (name, r) in enumerate(zip(EPOCHS, (ref, cur))):
+    for epoch, (name, r) in enumerate(zip(EPOCHS, (ref, cur), strict=True)):
         if epoch == 0 and spec.reference_from is not None:
             shared = root / spec.reference_from / "reference.oni"
             files[name] = f"../{spec.reference_from}/reference.oni"

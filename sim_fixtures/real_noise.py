@@ -319,7 +319,8 @@ def _box_mean(values: np.ndarray, weights: np.ndarray, radius: int) -> tuple[np.
 def _one_pair(depth_a, depth_b, T, intrinsics, bins, margin, lowfreq_px, outlier_m):
     """Per-pair pieces pooled by :func:`pair_stats`."""
     h, w = depth_b.shape
-    border_b = tuple(max(x, y) for x, y in zip(zero_border(depth_a), zero_border(depth_b)))
+    border_b = tuple(max(x, y) for x, y in zip(zero_border(depth_a), zero_border(depth_b),
+                                               strict=True))
     foot = _footprint((h, w), border_b, margin).ravel()
     out = {}
     # a -> b differences

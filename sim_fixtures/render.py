@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -98,7 +98,7 @@ class Pose:
     def moved(
         self, dx: float = 0.0, dy: float = 0.0, dz: float = 0.0,
         dyaw_deg: float = 0.0, dpitch_deg: float = 0.0, droll_deg: float = 0.0,
-    ) -> "Pose":
+    ) -> Pose:
         """The pose shifted by world offsets (metres) and angle offsets (degrees)."""
         x, y, z = self.position
         return Pose(
@@ -122,7 +122,7 @@ class Pose:
         }
 
     @classmethod
-    def from_json(cls, data: dict) -> "Pose":
+    def from_json(cls, data: dict) -> Pose:
         return cls(tuple(data["position_m"]), data["yaw_deg"], data["pitch_deg"], data["roll_deg"])
 
 
@@ -139,7 +139,7 @@ class Plane:
     def corners(self) -> np.ndarray | None:
         return None  # unbounded: never culled
 
-    def transformed(self, rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray) -> "Plane":
+    def transformed(self, rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray) -> Plane:
         p = rotation @ (np.asarray(self.point) - pivot) + pivot + shift
         return Plane(tuple(p), tuple(rotation @ np.asarray(self.normal)))
 
@@ -166,7 +166,7 @@ class Box:
 
     @classmethod
     def on_floor(cls, x: float, y: float, size: Sequence[float], yaw_deg: float = 0.0,
-                 z0: float = 0.0) -> "Box":
+                 z0: float = 0.0) -> Box:
         """A box whose bottom face is at height ``z0``, centred on (x, y), turned by yaw."""
         rot = rot_z(math.radians(yaw_deg))
         return cls((x, y, z0 + size[2] / 2), tuple(size), tuple(map(tuple, rot)))
@@ -180,7 +180,7 @@ class Box:
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
         return (signs * h) @ self._rot().T + np.asarray(self.center)
 
-    def transformed(self, rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray) -> "Box":
+    def transformed(self, rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray) -> Box:
         c = rotation @ (np.asarray(self.center) - pivot) + pivot + shift
         return Box(tuple(c), self.size, tuple(map(tuple, rotation @ self._rot())))
 
@@ -224,7 +224,7 @@ class Cylinder:
         )
 
     def transformed(self, rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray
-                    ) -> "Cylinder":
+                    ) -> Cylinder:
         b = rotation @ (np.asarray(self.base) - pivot) + pivot + shift
         return Cylinder(tuple(b), self.radius, self.height)
 
@@ -275,7 +275,7 @@ class Obj:
     pivot: tuple[float, float] = (0.0, 0.0)
     kind: str = "object"
 
-    def moved(self, dx: float = 0.0, dy: float = 0.0, dyaw_deg: float = 0.0) -> "Obj":
+    def moved(self, dx: float = 0.0, dy: float = 0.0, dyaw_deg: float = 0.0) -> Obj:
         """The same object turned by ``dyaw_deg`` about its pivot, then shifted by (dx, dy) m."""
         rotation = rot_z(math.radians(dyaw_deg))
         pivot = np.array([self.pivot[0], self.pivot[1], 0.0])
@@ -325,7 +325,7 @@ def cast_rays(
     b = dirs_view[:, 1] / dirs_view[:, 2]
     order = np.argsort(b, kind="stable")  # rays by image row: culling is then a slice
     b_sorted = b[order]
-    parts = [(oid, part) for obj, oid in zip(objects, ids) for part in obj.parts]
+    parts = [(oid, part) for obj, oid in zip(objects, ids, strict=False) for part in obj.parts]
     t_best = np.full(n, np.inf)
     part_best = np.full(n, -1, dtype=np.int32)
     for k, (_, part) in enumerate(parts):

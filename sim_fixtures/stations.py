@@ -25,9 +25,9 @@ import zlib
 
 import numpy as np
 
+from hw.depth import Intrinsics
 from sim_fixtures.noise import KinectNoise
 from sim_fixtures.render import Cylinder, Obj, Pose
-from hw.depth import Intrinsics
 from sim_fixtures.scenes import (
     SceneSpec,
     box,

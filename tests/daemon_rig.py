@@ -92,7 +92,7 @@ class Daemon:
                                f"[store]\nstate_dir = {json.dumps(str(self.state_dir))}\n"
                                + self.extra_config + extra)
 
-    def __enter__(self) -> "Daemon":
+    def __enter__(self) -> Daemon:
         return self
 
     def __exit__(self, *exc: object) -> None:

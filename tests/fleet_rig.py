@@ -17,8 +17,9 @@ import ssl
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import paho.mqtt.client as mqtt
 import pytest
@@ -108,9 +109,10 @@ class Broker:
 
     @property
     def url(self) -> str:
-        return f"{'mqtts' if self.tls else 'mqtt'}://{'localhost' if self.tls else '127.0.0.1'}:{self.port}"
+        return (f"{'mqtts' if self.tls else 'mqtt'}://"
+                f"{'localhost' if self.tls else '127.0.0.1'}:{self.port}")
 
-    def start(self) -> "Broker":
+    def start(self) -> Broker:
         out = open(self.folder / "mosquitto.out", "a")
         self.proc = subprocess.Popen([self.binary, "-c", str(self.config)], stdout=out,
                                      stderr=subprocess.STDOUT)
@@ -143,7 +145,7 @@ class Broker:
                 text += (self.folder / name).read_text(errors="replace")[-4000:]
         return text
 
-    def __enter__(self) -> "Broker":
+    def __enter__(self) -> Broker:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -197,7 +199,7 @@ class Collector:
         with self.lock:
             return [m for m in self.messages if part in m[0]]
 
-    def wait(self, test: Callable[["Collector"], bool], timeout: float, what: str) -> None:
+    def wait(self, test: Callable[[Collector], bool], timeout: float, what: str) -> None:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if test(self):

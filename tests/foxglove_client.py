@@ -51,7 +51,7 @@ class FoxgloveClient:
     def close(self) -> None:
         self._connection.__exit__(None, None, None)
 
-    def __enter__(self) -> "FoxgloveClient":
+    def __enter__(self) -> FoxgloveClient:
         return self
 
     def __exit__(self, *exc: object) -> None:

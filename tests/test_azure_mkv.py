@@ -71,7 +71,7 @@ def test_a_recording_s_depth_blocks_are_read_big_endian_with_their_times(tmp_pat
     assert [t.name for t in read_tracks(path)] == ["DEPTH", "IR"]
     blocks = read_depth_blocks(path)
     assert [b.timestamp_us for b in blocks] == [15_000, 50_000]
-    for block, frame in zip(blocks, FRAMES):
+    for block, frame in zip(blocks, FRAMES, strict=True):
         assert block.depth.dtype == np.uint16 and block.depth.shape == (2, 3)
         np.testing.assert_array_equal(block.depth, frame)
     np.testing.assert_array_equal(read_depth_blocks(path, "IR")[0].depth, 7)

@@ -1,4 +1,5 @@
-"""robot_change.tools.basesim: scripted and interactive runs against a fake module over a pty pair."""
+"""robot_change.tools.basesim: scripted and interactive runs against a fake module over a pty
+pair."""
 
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ class FakeModule:
         self.params = {q.id: q.default for q in p.PARAMS}
         self.stop = threading.Event()
         self.beat()
-        self.thread = threading.Thread(target=self.runner.run, args=(self.stop, self.handle), daemon=True)
+        self.thread = threading.Thread(target=self.runner.run, args=(self.stop, self.handle),
+                                       daemon=True)
 
     def beat(self) -> None:
         self.runner.set_heartbeat(p.Heartbeat(p.ModuleState.IDLE, paused=self.latch, armed=True,
@@ -63,7 +65,7 @@ class FakeModule:
         elif isinstance(m, p.GetParam):
             send(p.ParamValue(m.param, self.params[m.param]))
 
-    def __enter__(self) -> "FakeModule":
+    def __enter__(self) -> FakeModule:
         self.thread.start()
         return self
 
@@ -115,7 +117,8 @@ def test_scripted_capture_check_pause_report_resume(tmp_path, pty_line):
     assert code == 0, text
     assert "<- PAUSE cause=CHANGE_CHECK" in text
     assert "report 7 for kitchen: 13 region(s)" in text
-    assert "appeared    at (12, 0, 2000) mm (forward, left, up), 100 x 100 x 100 mm, 512 points" in text
+    assert ("appeared    at (12, 0, 2000) mm (forward, left, up), 100 x 100 x 100 mm, 512 points"
+            in text)
     assert "** base PAUSED: the module's pause latch is set" in text
 
 

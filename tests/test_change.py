@@ -1,5 +1,5 @@
-"""robot_change.change.detect: change detection on simulated scenes, the switches, bad input, and the
-numba kernels against NumPy twins.  Kept fast: four scenes, each built once per module."""
+"""robot_change.change.detect: change detection on simulated scenes, the switches, bad input, and
+the numba kernels against NumPy twins.  Kept fast: four scenes, each built once per module."""
 
 from __future__ import annotations
 
@@ -117,7 +117,9 @@ def test_a_removed_objects_component_leaves_the_current_mixture():
     ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
     cur = build_scene(sc.current_frames(), intrinsics=sc.intrinsics)
 
-    def removed_points(current, params=ChangeParams()):
+    def removed_points(current, params=None):
+        if params is None:
+            params = ChangeParams()
         cs = detect_changes(ref, current, params,
                             intrinsics=None if current is cur else sc.intrinsics)
         return max(r.n_points for r in cs.disappeared if _near(r, (0.52, -0.12, 2.27), 0.3))
@@ -473,7 +475,7 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_mi
     want = _free_space_twin(pv, own, other, n, 3.0, 0.01, pose_r, hole_r, free_zero,
                             shadow_bf=baseline * 525, sensor_min_m=sensor_min,
                             far_edge=far_edge)
-    for a, b in zip(got, want):
+    for a, b in zip(got, want, strict=True):
         np.testing.assert_array_equal(a, b)
     if sensor_min:  # points too near for the other camera on its holes: not observed
         assert got[2].any()
@@ -490,7 +492,7 @@ def test_free_space_matches_numpy(pose_r, hole_r, free_zero, baseline, sensor_mi
                 np.empty(flat.size, np.uint16), np.empty(flat.size, np.int32)]
         for r in range(h):
             free_space._fill_row(flat, w, r, *rows)
-        for got_a, want_a in zip(rows, _row_neighbours_twin(other)):
+        for got_a, want_a in zip(rows, _row_neighbours_twin(other), strict=True):
             np.testing.assert_array_equal(got_a, want_a.ravel())
         plain = free_space_votes(pv, own, other, n, NOISE, 3.0, 0.01, pose_r, hole_r, free_zero)
         assert plain[0].sum() > got[0].sum()
@@ -673,7 +675,7 @@ def test_free_space_through_a_transform_matches_numpy(shift):
     want = _free_space_twin(pv, own, other, n, 3.0, 0.01, 2, 3, True, want_t, want_z,
                             shadow_bf=0.075 * intr.fx, sensor_min_m=1.2, far_edge=True,
                             back=np.linalg.inv(T), intr=intr)
-    for a, b in zip(got, want):
+    for a, b in zip(got, want, strict=True):
         np.testing.assert_array_equal(a, b)
     assert got[2].sum() > 0  # the depth range and the image border leave some unseen
 
@@ -709,7 +711,7 @@ def test_voxel_components_match_ndimage_label(radius):
             ref_lab[tuple(p)] = find(i) + 1
     want = ref_lab[tuple((idx + 5).T)][perm]
     # same partition: a bijection between label sets
-    pairs = set(zip(labels.tolist(), want.tolist()))
+    pairs = set(zip(labels.tolist(), want.tolist(), strict=True))
     assert len(pairs) == len(set(labels.tolist())) == len(set(want.tolist()))
 
 

@@ -188,7 +188,7 @@ def test_compressed_depth_topics_are_found_and_read_exactly(tmp_path, depth_fram
         assert source.topic == TOPIC and source.info_topic == "/camera/depth/camera_info"
         assert source.intrinsics == CAMERA
     assert len(frames) == len(depth_frames)
-    for frame, depth in zip(frames, depth_frames):
+    for frame, depth in zip(frames, depth_frames, strict=True):
         assert np.array_equal(frame.depth, depth)
 
 
@@ -222,7 +222,8 @@ def test_a_corrupt_message_names_the_bag_topic_and_index_and_reading_goes_on(tmp
     assert f"{bag} {TOPIC} message 2" in str(caught.value)
     assert "truncated or corrupt PNG" in str(caught.value)
     assert [f.index for f in got] == [0, 1, 2, 3, 4]
-    assert all(np.array_equal(f.depth, frames[k]) for f, k in zip(got, (0, 1, 3, 4, 5)))
+    assert all(np.array_equal(f.depth, frames[k])
+               for f, k in zip(got, (0, 1, 3, 4, 5), strict=True))
 
 
 def test_the_listing_names_compressed_depth_as_depth(tmp_path, depth_frames):

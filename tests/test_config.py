@@ -1,4 +1,5 @@
-"""robot_change.service.config: TOML -> frozen dataclasses; every error names file, key, value, rule."""
+"""robot_change.service.config: TOML -> frozen dataclasses; every error names file, key, value,
+rule."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ def test_the_example_file_is_accepted_and_holds_every_default():
 
 def test_the_example_file_documents_every_key():
     text = EXAMPLE.read_text()
-    for section, table in Config.default().as_dict().items():
+    for section in Config.default().as_dict():
         assert f"[{section}]" in text
         for field in dataclasses.fields(getattr(Config.default(), section)):
             if field.name == "extra":

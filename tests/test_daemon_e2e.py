@@ -1,6 +1,6 @@
 """``robot-change run`` as a real subprocess: a .oni fixture as the camera, the scripted base
-(robot_change.tools.basesim) on the other end of a pty pair, systemd's notify socket played by a test
-socket.  Plus the configuration errors (exit 78) and ``robot-change demo``.
+(robot_change.tools.basesim) on the other end of a pty pair, systemd's notify socket played by a
+test socket.  Plus the configuration errors (exit 78) and ``robot-change demo``.
 
 Every wait is bounded: basesim's expect timeouts, ``subprocess`` timeouts, socket timeouts.
 """
@@ -56,7 +56,7 @@ class Notes:
         while not self.done.is_set():
             try:
                 lines = self.sock.recv(4096).decode().splitlines()
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             now = time.monotonic()
             self.stamped += [(now, line) for line in lines]
@@ -90,7 +90,8 @@ def test_daemon_end_to_end_over_a_pty_with_systemd_notify(tmp_path: Path) -> Non
     log = open(tmp_path / "daemon.log", "w+")
     started = time.monotonic()
     daemon = subprocess.Popen([sys.executable, "-m", "robot_change.cli", "run", "--config",
-                               str(config)], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+                               str(config)], cwd=REPO, env=env, stdout=log,
+                              stderr=subprocess.STDOUT)
     out = io.StringIO()
     try:
         # READY=1 comes once the kernels are loaded and the threads run
@@ -188,7 +189,8 @@ def test_bad_config_exits_78_with_a_clear_message(tmp_path: Path, content: str |
                                                   message: str) -> None:
     path = tmp_path / "robot-change.toml"
     if content is not None:
-        path.write_text(content + f"[serial]\nport = 'loop://'\n[store]\nstate_dir = '{tmp_path}'\n")
+        path.write_text(content
+                        + f"[serial]\nport = 'loop://'\n[store]\nstate_dir = '{tmp_path}'\n")
     result = run("run", "--config", str(path))
     assert result.returncode == 78, result.stderr
     assert "configuration error" in result.stderr and message in result.stderr, result.stderr

@@ -66,7 +66,8 @@ def test_frame_checks_dtype_shape_and_intrinsics():
         ("openni2://1d27/0601@3/4", "openni2", "1d27/0601@3/4", {}),
         ("oni:rec/a.oni", "oni", "rec/a.oni", {}),
         ("rec/a.ONI", "oni", "rec/a.ONI", {}),
-        ("images:tum/depth?scale=5000&rate=30", "images", "tum/depth", {"scale": "5000", "rate": "30"}),
+        ("images:tum/depth?scale=5000&rate=30", "images", "tum/depth",
+         {"scale": "5000", "rate": "30"}),
         ("frames/x.png", "images", "frames/x.png", {}),
         ("frames/x.tiff", "images", "frames/x.tiff", {}),
     ],
@@ -83,7 +84,8 @@ def test_a_folder_means_images(tmp_path):
 def test_bad_uris_name_the_known_schemes(uri):
     with pytest.raises(errors.UriError) as info:
         open_depth(uri)
-    assert "openni2" in str(info.value) or "needs a path" in str(info.value) or "expected" in str(info.value)
+    assert ("openni2" in str(info.value) or "needs a path" in str(info.value)
+            or "expected" in str(info.value))
 
 
 def test_an_existing_file_with_an_unknown_ending_is_refused(tmp_path):

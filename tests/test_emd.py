@@ -1,4 +1,5 @@
-"""robot_change.change.transport: exact EMD, ground distances, greedy EMD, and their NumPy/SciPy twins.
+"""robot_change.change.transport: exact EMD, ground distances, greedy EMD, and their NumPy/SciPy
+twins.
 
 References: scipy.optimize.linprog (HiGHS) for every EMD value, POT's ``ot.emd2`` when
 installed, ``scipy.linalg.sqrtm`` for the 2-Wasserstein ground distance, and plain NumPy
@@ -428,7 +429,7 @@ def test_least_cost_start_is_a_feasible_spanning_tree():
         bj = np.zeros(m + n - 1, np.int64)
         T._least_cost_start(m, n, a, b, cost, bi, bj, ws[5], ws[6], ws[7], ws[8],
                             ws[0][0], ws[2])
-        assert len(set(zip(bi.tolist(), bj.tolist()))) == m + n - 1
+        assert len(set(zip(bi.tolist(), bj.tolist(), strict=True))) == m + n - 1
         x, _ = tree_twin(m, n, bi, bj, a, b, cost)  # full rank: lstsq solves it exactly
         bal = np.zeros((m, n))
         np.add.at(bal, (bi, bj), x)
@@ -444,7 +445,7 @@ def tree_arrays_twin(m, n, bi, bj):
     (breadth-first in plain Python); None when the cells are not a spanning tree."""
     nn = m + n
     adj = [[] for _ in range(nn)]
-    for e, (i, j) in enumerate(zip(bi.tolist(), bj.tolist())):
+    for e, (i, j) in enumerate(zip(bi.tolist(), bj.tolist(), strict=True)):
         adj[i].append((m + j, e))
         adj[m + j].append((i, e))
     parent = np.full(nn, -2)

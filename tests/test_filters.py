@@ -49,7 +49,7 @@ def twin_bands(keys, rows, limit):
     length`` distinct keys.  ``keys`` (N,) int64, -1 = dropped (not counted)."""
     band_of = np.empty(len(keys), dtype=np.int64)
     band, seen = 0, set()
-    for a, b in zip(rows[:-1], rows[1:]):
+    for a, b in zip(rows[:-1], rows[1:], strict=True):
         if len(seen) > limit - (b - a):
             band, seen = band + 1, set()
         seen.update(keys[a:b][keys[a:b] >= 0].tolist())

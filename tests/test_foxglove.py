@@ -136,7 +136,8 @@ def test_frame_ids_and_stamps_let_foxglove_place_everything(written):
         # a new check replaces what the previous one showed
         assert [d.type for d in update.deletions] == [1]  # SceneEntityDeletion.ALL
     tree = got["/tf"][0][3].transforms
-    assert [(t.parent_frame_id, t.child_frame_id) for t in tree] == list(zip(FRAMES, FRAMES[1:]))
+    assert [(t.parent_frame_id, t.child_frame_id) for t in tree] == list(zip(FRAMES, FRAMES[1:],
+                                                                             strict=False))
     stamped = [t.timestamp for t in tree] + [got["/current/cloud"][0][3].timestamp]
     assert {(s.seconds, s.nanos) for s in stamped} == {divmod(STAMP, 1_000_000_000)}
 
@@ -240,7 +241,7 @@ def test_region_boxes_with_labels(check, written):
     _reference, _depth, changes = check
     entities = written[4]["/change/regions"][0][3].entities
     assert len(entities) == len(changes.regions)
-    for number, (entity, region) in enumerate(zip(entities, changes.regions), 1):
+    for number, (entity, region) in enumerate(zip(entities, changes.regions, strict=True), 1):
         [cube], [text] = entity.cubes, entity.texts
         np.testing.assert_allclose(matrix(cube.pose)[:3, 3],
                                    (region.bbox_min + region.bbox_max) / 2, atol=1e-6)

@@ -93,12 +93,12 @@ def test_harsh_scene_is_the_stored_scene_with_harsh_noise(checks):
     np.testing.assert_allclose(sc.T_ref_from_cur, stored.T_ref_from_cur, atol=1e-9)
     assert [c["object"] for c in sc.changes] == [c["object"] for c in stored.changes]
     again = harsh_scene("meeting_two_changes_pose_5cm")
-    for a, b in zip(sc.reference + sc.current, again.reference + again.current):
+    for a, b in zip(sc.reference + sc.current, again.reference + again.current, strict=True):
         assert a.dtype == np.uint16 and a.shape == (480, 640)
         np.testing.assert_array_equal(a, b)
     # a revisit shares its reference with the scene it revisits, its current is its own
     base = harsh_scene("meeting_two_changes")
-    for a, b in zip(sc.reference, base.reference):
+    for a, b in zip(sc.reference, base.reference, strict=True):
         np.testing.assert_array_equal(a, b)
     assert not np.array_equal(sc.current[0], base.current[0])
     assert not np.array_equal(sc.reference[0], harsh_scene("meeting_two_changes", 1).reference[0])

@@ -70,7 +70,7 @@ def hand_png(array: np.ndarray, kinds: list[int], *, colour_type: int = 0,
     compressed = zlib.compress(hand_filter(rows, channels * bit_depth // 8, kinds), 9)
     header = struct.pack(">IIBBBBB", width, height, bit_depth, colour_type, 0, 0, interlace)
     cut = np.linspace(0, len(compressed), idat_pieces + 1).astype(int)
-    idats = [chunk(b"IDAT", compressed[a:b]) for a, b in zip(cut[:-1], cut[1:])]
+    idats = [chunk(b"IDAT", compressed[a:b]) for a, b in zip(cut[:-1], cut[1:], strict=True)]
     text = chunk(b"tEXt", b"Comment\x00made by hand")
     return PNG_SIGNATURE + chunk(b"IHDR", header) + text + b"".join(idats) + chunk(b"IEND", b"")
 

@@ -131,7 +131,7 @@ def test_folder_delivers_frames_in_natural_order(tmp_path):
         assert source.stats.delivered == 3
     assert [f.index for f in frames] == [0, 1, 2]
     assert [f.timestamp_us for f in frames] == [0, 33333, 66666]
-    for frame, name in zip(frames, ["frame_1.png", "frame_2.png", "frame_10.png"]):
+    for frame, name in zip(frames, ["frame_1.png", "frame_2.png", "frame_10.png"], strict=True):
         np.testing.assert_array_equal(frame.depth, arrays[name])
         assert frame.intrinsics == Intrinsics.openni_default(8, 6)
 
@@ -310,7 +310,7 @@ def test_real_pcl_grabber_folder(shared_data):
         frames = list(source)
     paths = sorted(folder.glob("*_depth.tiff"))
     assert len(frames) == 3
-    for frame, path in zip(frames, paths):
+    for frame, path in zip(frames, paths, strict=True):
         np.testing.assert_array_equal(frame.depth, np.array(Image.open(path)))
     gaps = np.diff([f.timestamp_us for f in frames])
     assert np.all((gaps > 200_000) & (gaps < 300_000))  # frames ~0.25 s apart

@@ -78,7 +78,7 @@ class Wire:
         for _ in range(round(seconds / dt)):
             self.step(dt)
 
-    def connect(self) -> "Wire":
+    def connect(self) -> Wire:
         self.step()
         assert self.module.state == self.base.state == LinkState.UP
         self.module_events.clear()
@@ -99,7 +99,8 @@ def test_hello_exchange_brings_both_ends_up():
     wire.step()
     assert wire.module.state == wire.base.state == LinkState.UP
     (hello,) = received(wire.base_events, p.Hello)
-    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == (p.Role.MODULE, 0xAAAA, 1, p.VERSION)
+    assert (hello.role, hello.boot_id, hello.proto_min, hello.proto_max) == \
+        (p.Role.MODULE, 0xAAAA, 1, p.VERSION)
     assert wire.module.version == wire.base.version == p.VERSION
     assert wire.module.peer.boot_id == 0xBBBB
     assert any(isinstance(e, StateChanged) and e.new == LinkState.UP for e in wire.module_events)
@@ -151,7 +152,8 @@ def test_five_unanswered_tries_100ms_apart_then_faulty():
     tries = []
     for _ in range(70):
         wire.module.poll()
-        if any(f.seq == seq and f.message.TYPE == p.MsgType.CLEAR for f in frames(wire.module.outgoing())):
+        if any(f.seq == seq and f.message.TYPE == p.MsgType.CLEAR
+               for f in frames(wire.module.outgoing())):
             tries.append(round(wire.clock.t - 100.0, 2))
         wire.clock.t += 0.01
     events = wire.module.events()
@@ -169,7 +171,8 @@ def test_retransmissions_carry_the_retry_flag_and_recovery_goes_back_up():
     flags = []
     for _ in range(6):
         wire.module.poll()
-        flags += [f.flags for f in frames(wire.module.outgoing()) if f.message.TYPE == p.MsgType.CLEAR]
+        flags += [f.flags for f in frames(wire.module.outgoing())
+                  if f.message.TYPE == p.MsgType.CLEAR]
         wire.clock.t += 0.1
     assert flags == [0] + [p.FLAG_RETRY] * 4
     assert wire.module.state == LinkState.FAULTY
@@ -203,7 +206,8 @@ def test_window_limits_messages_in_flight():
     assert wire.module.in_flight == 4 and wire.module.queued == 6
     wire.cut = False
     wire.run(0.6)
-    assert sorted(m.station for m in received(wire.base_events, p.Clear)) == [f"s{i}" for i in range(10)]
+    assert sorted(m.station for m in received(wire.base_events, p.Clear)) == \
+        [f"s{i}" for i in range(10)]
 
 
 def test_queue_is_bounded():
@@ -275,7 +279,8 @@ def test_urgent_messages_skip_the_window():
 @pytest.mark.parametrize("bad,reason", [
     (raw_frame(1, 0x7F, 33), p.NakReason.UNKNOWN_TYPE),
     (raw_frame(1, p.MsgType.CHECK, 33, payload=b"\x03../"), p.NakReason.BAD_PAYLOAD),
-    (raw_frame(1, p.MsgType.SET_PARAM, 33, payload=b"\x01" + (99).to_bytes(4, "little")), p.NakReason.OUT_OF_RANGE),
+    (raw_frame(1, p.MsgType.SET_PARAM, 33, payload=b"\x01" + (99).to_bytes(4, "little")),
+     p.NakReason.OUT_OF_RANGE),
     (raw_frame(1, p.MsgType.GET_PARAM, 33, payload=b"\xee"), p.NakReason.UNKNOWN_PARAM),
     (raw_frame(p.VERSION + 1, p.MsgType.CHECK, 33, payload=b"\x01k"), p.NakReason.BAD_VERSION),
     (p.encode(p.Pause(p.PauseCause.CHANGE_CHECK), 33), p.NakReason.WRONG_DIRECTION),
@@ -289,7 +294,8 @@ def test_refused_frames_get_a_nak_with_reason_seq_and_type(bad, reason):
     (nak,) = frames(module.outgoing())
     assert nak.message.TYPE == p.MsgType.NAK and nak.seq == 33
     assert nak.message.reason == reason
-    assert nak.message.refused_type == p.cobs_decode(bad[:-1])[1]  # the type byte of the refused frame
+    # the type byte of the refused frame
+    assert nak.message.refused_type == p.cobs_decode(bad[:-1])[1]
     assert not received(module.events(), p.Check)
 
 
@@ -428,7 +434,8 @@ def test_pause_gets_through_10_percent_byte_corruption_by_retries():
         seq = wire.module.send(p.Pause(p.PauseCause.CHANGE_WATCH))
         for _ in range(60):
             wire.step(0.01)
-            if any(isinstance(e, (Delivered, SendFailed)) and e.seq == seq for e in wire.module_events):
+            if any(isinstance(e, (Delivered, SendFailed)) and e.seq == seq
+                   for e in wire.module_events):
                 break
         delivered += any(isinstance(e, Delivered) and e.seq == seq for e in wire.module_events)
     assert delivered == sent
@@ -482,7 +489,8 @@ def test_link_bench_small_run_reports_every_figure():
     result = run_link_bench(0.05, 5, 115200, json=True, seed=3, out=out)
     assert json.loads(out.getvalue()) == result
     assert result["sent"] == result["delivered"] == result["received_by_base"] == 5
-    assert result["corrupted_bytes"] > 0 and result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
+    assert result["corrupted_bytes"] > 0 and \
+        result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
     with pytest.raises(Exception, match="--corrupt"):
         run_link_bench(1.5, 5)
 
@@ -605,7 +613,8 @@ def test_reports_get_through_byte_corruption_in_parts(noise):
     wire.run(10.0, dt=0.005)  # simulated seconds: 10 reports of 1..10 regions, 4 at a time
     got = received(wire.base_events, p.ChangeReport)
     assert sorted(r.report_id for r in got) == list(range(1, 11))  # each once, all complete
-    assert wire.base.decoder.errors > 0 and not [e for e in wire.module_events if isinstance(e, SendFailed)]
+    assert wire.base.decoder.errors > 0 and \
+        not [e for e in wire.module_events if isinstance(e, SendFailed)]
 
 
 def test_admit_refuses_with_a_nak_and_the_message_is_not_remembered():

@@ -46,7 +46,8 @@ def random_params(rng, k, n=500):
 
 def draw(rng, weights, means, covs, n):
     counts = rng.multinomial(n, weights)
-    parts = [rng.multivariate_normal(m, c, size=c_n) for m, c, c_n in zip(means, covs, counts)]
+    parts = [rng.multivariate_normal(m, c, size=c_n)
+             for m, c, c_n in zip(means, covs, counts, strict=True)]
     return np.vstack(parts)
 
 
@@ -384,7 +385,7 @@ def test_known_mixture_recovered(name, criterion):
     fit = fit_mixture(x, criterion, reg_covar=1e-6)
     assert fit.n_components == len(w), fit.record.steps
     row, col = linear_sum_assignment(((mu[:, None] - fit.means[None]) ** 2).sum(axis=2))
-    for k, j in zip(row, col):
+    for k, j in zip(row, col, strict=True):
         nk = n * w[k]
         assert abs(fit.weights[j] - w[k]) <= 5 * math.sqrt(w[k] * (1 - w[k]) / n)
         assert np.all(np.abs(fit.means[j] - mu[k]) <= 5 * np.sqrt(np.diag(cov[k]) / nk))

@@ -1,6 +1,6 @@
-"""The camera's mounting on the base (robot_change.change.mount): optical frame -> base_link (REP 103),
-the robot's offset from its station pose, weak directions named in the base frame, and the
-mounting recorded with a reference (SceneModel, ``capture --mount``, ``detect``)."""
+"""The camera's mounting on the base (robot_change.change.mount): optical frame -> base_link
+(REP 103), the robot's offset from its station pose, weak directions named in the base frame,
+and the mounting recorded with a reference (SceneModel, ``capture --mount``, ``detect``)."""
 
 from __future__ import annotations
 

@@ -71,7 +71,9 @@ def test_old_kinect_noise_reproduces_the_stored_fixture_bit_for_bit(office_rende
 
 def test_old_models_give_the_hashes_taken_before_the_new_models(office_render):
     # computed with the unmodified noise.py (before RealisticKinectNoise / StereoNoise)
-    rng = lambda: np.random.default_rng([102, 0, 0])
+    def rng():
+        return np.random.default_rng([102, 0, 0])
+
     assert sha(KinectNoise().apply(office_render, rng())) == \
         "ad24e64e4bde6964fde636645a7485e4cbaae1cd57d1c1dc8a16513b1d3c1bba"
     assert sha(KinectNoise(lateral_sigma_px=0.8).apply(office_render, rng())) == \
@@ -206,7 +208,9 @@ def test_true_intrinsics_and_distortion_move_the_image():
     shifted = dataclasses.replace(ideal, true_cx_offset_px=6.0)
     a = ideal.apply(r, np.random.default_rng(0))
     b = shifted.apply(r, np.random.default_rng(0))
-    cols = lambda f: np.flatnonzero((f[240] > 0) & (f[240] < 4000))
+    def cols(f):
+        return np.flatnonzero((f[240] > 0) & (f[240] < 4000))
+
     # the principal point 6 px to the right: the box shows 6 px to the right
     assert cols(b).min() - cols(a).min() == pytest.approx(6, abs=1)
     assert cols(b).max() - cols(a).max() == pytest.approx(6, abs=1)
@@ -294,7 +298,9 @@ def test_landing_and_refine_pose_follow_a_known_motion():
     spec = SCENES["office_no_change"]
     pose = spec.reference_pose
     moved = pose.moved(dx=0.02, dy=-0.01, dyaw_deg=0.5)
-    mm = lambda r: np.rint(r.depth * 1000).astype(np.uint16)
+    def mm(r):
+        return np.rint(r.depth * 1000).astype(np.uint16)
+
     a = mm(render(spec.reference, pose, INTR))
     b = mm(render(spec.reference, moved, INTR))
     T = np.linalg.inv(moved.matrix()) @ pose.matrix()
@@ -358,7 +364,7 @@ def test_harsh_pairs_are_deterministic_no_change_pairs_with_the_true_transform()
     p = harsh_pair("storage", seed=2, offset_m=0.03)
     q = harsh_pair("storage", seed=2, offset_m=0.03)
     assert len(p.reference) == 3 and len(p.current) == 3
-    for x, y in zip(p.reference + p.current, q.reference + q.current):
+    for x, y in zip(p.reference + p.current, q.reference + q.current, strict=True):
         assert x.dtype == np.uint16 and x.shape == (480, 640)
         np.testing.assert_array_equal(x, y)
     assert np.linalg.norm(p.T_ref_from_cur[:3, 3]) == pytest.approx(0.03, abs=1e-9)

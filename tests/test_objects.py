@@ -91,7 +91,7 @@ def _segments_twin(vertex, normal, cos_fold, max_step, max_off, span):
     # rim cells: the first neighbour (left, up, right, down) of the first pass on whose
     # tangent plane they lie
     rim = out.copy()
-    for i, j in zip(*np.nonzero((out < 0) & ~fold & (v[..., 2] > 0))):
+    for i, j in zip(*np.nonzero((out < 0) & ~fold & (v[..., 2] > 0)), strict=True):
         for di, dj in ((0, -1), (-1, 0), (0, 1), (1, 0)):
             a, b = i + di, j + dj
             if not (0 <= a < h and 0 <= b < w) or out[a, b] < 0:
@@ -143,7 +143,7 @@ def _pixels_twin(depth, pixel_voxel, cells, vertex, normal, f, fx, fy, cx, cy, m
                                              | (np.abs(off) <= max_off * z))
     got = np.where(keep, own, -1)
     near = {}
-    for r, c in zip(*np.nonzero(placed & ~keep)):
+    for r, c in zip(*np.nonzero(placed & ~keep), strict=True):
         a0, b0 = int(i[r, c]), int(j[r, c])
         if (a0, b0) not in near:
             near[a0, b0] = _near_twin(cells, normal, a0, b0, radius)
@@ -178,7 +178,9 @@ def _largest_in_cloud(seg, pixel_voxel):
     return np.bincount(seg[(seg >= 0) & (pixel_voxel >= 0)]).argmax()
 
 
-def _cells(model, params=ChangeParams()):
+def _cells(model, params=None):
+    if params is None:
+        params = ChangeParams()
     level = surface_level(model.depth, model.intrinsics, params.object_cell_px,
                           params.registration)
     return level.vertex, level.normal
@@ -568,7 +570,7 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
     got = _counterparts_kernel(*args, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
                                intr.cx, intr.cy, window, 0.4, 8.0, *common)
     want = _counterparts_twin(*args, T, intr, window, (0.4, 8.0), *common)
-    for g, x in zip(got, want):
+    for g, x in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, x)
     same, found, hidden, hidden_pairs = got
     assert (found <= same).all() and same.sum() > 10 * found.sum() and hidden.sum() > 0

@@ -64,7 +64,7 @@ def play(path: Path, timeout: float = 5.0) -> list:
         assert source.read(0.1) is None  # stays ended
     ours = read_oni_frames(path)
     assert len(ours) == len(frames)
-    for mine, theirs in zip(ours, frames):
+    for mine, theirs in zip(ours, frames, strict=True):
         np.testing.assert_array_equal(mine.depth, theirs.depth)
         assert (mine.timestamp_us, mine.index) == (theirs.timestamp_us, theirs.index)
     return frames
@@ -77,11 +77,11 @@ def test_write_then_play_back_exact_pixels_timestamps_and_count(tmp_path: Path, 
     stamps = [0, 33_000, 70_123, 100_000]
     path = tmp_path / f"room-{codec}.oni"
     with OniWriter(path, 640, 480, codec=codec) as writer:
-        for image, stamp in zip(images, stamps):
+        for image, stamp in zip(images, stamps, strict=True):
             writer.write(image, stamp)
     frames = play(path)
     assert len(frames) == 4
-    for image, stamp, frame, index in zip(images, stamps, frames, range(1, 5)):
+    for image, stamp, frame, index in zip(images, stamps, frames, range(1, 5), strict=True):
         assert frame.depth.dtype == np.uint16 and frame.shape == (480, 640)
         np.testing.assert_array_equal(frame.depth, image)
         assert frame.timestamp_us == stamp
@@ -267,7 +267,8 @@ def good_file(tmp_path: Path) -> Path:
 
 def test_header_check_describes_a_good_file(good_file: Path) -> None:
     info = read_oni_header(good_file)
-    assert (info.width, info.height, info.fps, info.frames, info.version) == (64, 48, 30, 3, (1, 0, 1, 0))
+    assert (info.width, info.height, info.fps, info.frames, info.version) == \
+        (64, 48, 30, 3, (1, 0, 1, 0))
 
 
 def test_header_check_rejects_missing_empty_and_foreign_files(tmp_path: Path) -> None:
@@ -299,7 +300,8 @@ def test_header_check_rejects_a_newer_format_version(good_file: Path, tmp_path: 
 @pytest.mark.parametrize("keep", [30, 200, 0.5, -10, -1])
 def test_header_check_rejects_truncated_files(good_file: Path, tmp_path: Path, keep: float) -> None:
     data = good_file.read_bytes()
-    cut = int(len(data) * keep) if isinstance(keep, float) else (keep if keep > 0 else len(data) + keep)
+    cut = int(len(data) * keep) if isinstance(keep, float) else \
+        (keep if keep > 0 else len(data) + keep)
     bad = tmp_path / "cut.oni"
     bad.write_bytes(data[:cut])
     with pytest.raises(DepthFileError, match="truncated|not an .oni|corrupt|no depth"):
@@ -317,12 +319,13 @@ def test_header_check_rejects_a_corrupted_record(good_file: Path, tmp_path: Path
 
 def test_write_oni_keeps_depth_frames_timestamps(tmp_path: Path, good_file: Path) -> None:
     originals = play(good_file)
-    shifted = [type(f)(f.depth, f.timestamp_us + 5_000_000, f.index, f.intrinsics) for f in originals]
+    shifted = [type(f)(f.depth, f.timestamp_us + 5_000_000, f.index, f.intrinsics)
+               for f in originals]
     copy = tmp_path / "copy.oni"
     assert write_oni(copy, shifted) == 3
     again = play(copy)
     assert [f.timestamp_us for f in again] == [f.timestamp_us for f in originals]  # rebased to 0
-    for a, b in zip(again, originals):
+    for a, b in zip(again, originals, strict=True):
         np.testing.assert_array_equal(a.depth, b.depth)
     assert os.path.getsize(copy) > os.path.getsize(good_file)  # "none" is the default codec
 

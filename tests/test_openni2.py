@@ -75,7 +75,7 @@ def test_playback_delivers_every_frame_then_ends(recording: tuple[Path, list[np.
         assert source.stats.delivered == 12 and source.stats.dropped == 0
     assert [f.index for f in frames] == list(range(1, 13))
     assert [f.timestamp_us for f in frames] == [round(i * 1e6 / 30) for i in range(12)]
-    for frame, original in zip(frames, originals):
+    for frame, original in zip(frames, originals, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
 
 
@@ -96,11 +96,13 @@ def test_slow_consumer_loses_no_frame(recording: tuple[Path, list[np.ndarray]]) 
 
 
 @pytest.mark.parametrize("content", ["missing", "garbage", "truncated", "empty"])
-def test_bad_recordings_raise_depth_file_error(tmp_path: Path, recording: tuple[Path, list[np.ndarray]],
+def test_bad_recordings_raise_depth_file_error(tmp_path: Path,
+                                               recording: tuple[Path, list[np.ndarray]],
                                                content: str) -> None:
     path = tmp_path / f"{content}.oni"
     if content == "garbage":
-        path.write_bytes(np.random.default_rng(1).integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+        path.write_bytes(np.random.default_rng(1).integers(0, 256, 100_000, dtype=np.uint8)
+                         .tobytes())
     elif content == "truncated":
         data = recording[0].read_bytes()
         path.write_bytes(data[: len(data) * 2 // 3])
@@ -110,7 +112,8 @@ def test_bad_recordings_raise_depth_file_error(tmp_path: Path, recording: tuple[
         open_depth(f"oni:{path}")
 
 
-def test_recording_damaged_after_opening_is_caught_on_open(recording: tuple[Path, list[np.ndarray]]) -> None:
+def test_recording_damaged_after_opening_is_caught_on_open(
+        recording: tuple[Path, list[np.ndarray]]) -> None:
     path, _ = recording
     source = open_recording(str(path))
     path.write_bytes(path.read_bytes()[:500])
@@ -130,7 +133,7 @@ def test_reader_killed_mid_recording_is_restarted_without_losing_frames(
         assert source.pid != first_pid
         assert source.stats.restarts == 1
     assert [f.index for f in frames] == list(range(1, 13))  # none lost, none twice
-    for frame, original in zip(frames, originals):
+    for frame, original in zip(frames, originals, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
 
 
@@ -144,7 +147,8 @@ def test_a_reader_that_keeps_crashing_means_a_corrupt_recording(
             read_all(source)
 
 
-def test_hung_reader_gives_frame_timeout_then_is_replaced(recording: tuple[Path, list[np.ndarray]]) -> None:
+def test_hung_reader_gives_frame_timeout_then_is_replaced(
+        recording: tuple[Path, list[np.ndarray]]) -> None:
     path, originals = recording
     with open_recording(str(path), slots=1, stall_timeout=1.0) as source:
         first = source.read(5.0)
@@ -171,7 +175,8 @@ def test_hung_reader_gives_frame_timeout_then_is_replaced(recording: tuple[Path,
     np.testing.assert_array_equal(rest[-1].depth, originals[-1])
 
 
-def test_unbounded_read_replaces_a_hung_reader_in_place(recording: tuple[Path, list[np.ndarray]]) -> None:
+def test_unbounded_read_replaces_a_hung_reader_in_place(
+        recording: tuple[Path, list[np.ndarray]]) -> None:
     path, originals = recording
     with open_recording(str(path), slots=1, stall_timeout=0.8) as source:
         first = source.read(5.0)
@@ -181,7 +186,7 @@ def test_unbounded_read_replaces_a_hung_reader_in_place(recording: tuple[Path, l
         assert time.monotonic() - start < 8.0
         assert source.stats.restarts == 1
     assert [first.index] + [f.index for f in rest] == list(range(1, 13))
-    for frame, original in zip([first] + rest, originals):
+    for frame, original in zip([first] + rest, originals, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
 
 
@@ -219,7 +224,7 @@ def test_dummy_device_streams_frames_with_increasing_indices_and_timestamps() ->
     indices = [f.index for f in frames]
     stamps = [f.timestamp_us for f in frames]
     assert indices == sorted(indices) and len(set(indices)) == 6
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
     # DummyDevice runs at 30 fps: 33 ms per frame index
     assert (stamps[-1] - stamps[0]) == pytest.approx(33_000 * (indices[-1] - indices[0]), rel=0.05)
 
@@ -229,7 +234,7 @@ def test_dropped_frames_are_counted_from_index_gaps() -> None:
         first = source.read(2.0)
         time.sleep(0.4)  # ~12 frames pass while nobody reads; the single slot holds one
         frames = [source.read(2.0) for _ in range(3)]
-        gaps = sum(b.index - a.index - 1 for a, b in zip([first] + frames, frames))
+        gaps = sum(b.index - a.index - 1 for a, b in zip([first] + frames, frames, strict=False))
         assert gaps > 0 and source.stats.dropped == gaps
 
 
@@ -286,7 +291,8 @@ def test_list_devices_returns_dicts() -> None:
 
 
 # --- recording ---------------------------------------------------------------------------------
-def test_record_copies_a_recording_exactly(tmp_path: Path, recording: tuple[Path, list[np.ndarray]]) -> None:
+def test_record_copies_a_recording_exactly(tmp_path: Path,
+                                           recording: tuple[Path, list[np.ndarray]]) -> None:
     path, originals = recording
     out = tmp_path / "copy.oni"
     with open_recording(str(path)) as source:
@@ -294,7 +300,7 @@ def test_record_copies_a_recording_exactly(tmp_path: Path, recording: tuple[Path
     with open_recording(str(out)) as copy:
         frames = read_all(copy)
     assert [f.timestamp_us for f in frames] == [round(i * 1e6 / 30) for i in range(12)]
-    for frame, original in zip(frames, originals):
+    for frame, original in zip(frames, originals, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
 
 
@@ -308,13 +314,14 @@ def test_record_a_live_camera_for_n_frames(tmp_path: Path) -> None:
 
 
 # --- loop and rate: a recording played like a camera (the daemon's demo and tests) -----------
-def test_looped_recording_keeps_counting_indices_and_time(recording: tuple[Path, list[np.ndarray]]) -> None:
+def test_looped_recording_keeps_counting_indices_and_time(
+        recording: tuple[Path, list[np.ndarray]]) -> None:
     path, originals = recording
     with open_depth(f"oni:{path}?loop=1") as source:
         frames = [source.read(5.0) for _ in range(30)]  # two and a half laps, never None
     assert [f.index for f in frames] == list(range(1, 31))
     stamps = [f.timestamp_us for f in frames]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
     assert stamps[12] == round(12 * 1e6 / 30)  # the second lap follows one frame period on
     for i, frame in enumerate(frames):
         np.testing.assert_array_equal(frame.depth, originals[i % 12])

@@ -55,7 +55,7 @@ def parse_pcd(path: Path) -> tuple[dict[str, list[str]], list[str], np.ndarray]:
     assert header["DATA"] == ["binary"]
     kinds = {("F", "4"): "<f4", ("U", "1"): "u1", ("U", "4"): "<u4"}
     dtype = np.dtype([(name, kinds[(kind, size)]) for name, kind, size in
-                      zip(header["FIELDS"], header["TYPE"], header["SIZE"])])
+                      zip(header["FIELDS"], header["TYPE"], header["SIZE"], strict=True)])
     count = int(header["POINTS"][0])
     return header, comments, np.frombuffer(data, dtype, count=count, offset=offset)
 
@@ -259,7 +259,7 @@ def test_an_unorganized_pcd_is_refused_as_a_depth_source(tmp_path, points):
 
 def test_a_folder_of_pcds_plays_in_order_with_grabber_timestamps(tmp_path, frames):
     names = ["frame_20121214T142256.068683.pcd", "frame_20121214T142255.814212.pcd"]
-    for name, frame in zip(names, frames):
+    for name, frame in zip(names, frames, strict=False):
         save_pcd(tmp_path / name, organized_cloud(frame.depth, CAMERA), 640, 480)
     (tmp_path / "notes.txt").write_text("not a cloud")
     with open_depth(f"pcd:{tmp_path}?loop=1") as source:

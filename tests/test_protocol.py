@@ -1,4 +1,5 @@
-"""robot_change.link.protocol: COBS, CRC, every message's layout, the decoder under abuse, the doc."""
+"""robot_change.link.protocol: COBS, CRC, every message's layout, the decoder under abuse, the
+doc."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from robot_change.link import protocol as p
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 
 
-def raw_frame(version: int, mtype: int, seq: int = 1, flags: int = 0, payload: bytes = b"") -> bytes:
+def raw_frame(version: int, mtype: int, seq: int = 1, flags: int = 0,
+              payload: bytes = b"") -> bytes:
     """A frame with a good CRC whatever the header says (to make receivers refuse it)."""
     body = bytes((version, mtype)) + seq.to_bytes(2, "little") + bytes((flags,)) + payload
     return p.cobs_encode(body + p.crc16(body).to_bytes(2, "big")) + b"\x00"
@@ -57,13 +59,14 @@ STRATEGIES = {
         p.Part, st.integers(0, n - 1), st.just(n), st.binary(min_size=1, max_size=p.PART_DATA))),
     p.Need: st.builds(p.Need, st.lists(st.integers(0, p.MAX_PARTS - 1), min_size=1).map(tuple)),
     p.Nak: st.builds(p.Nak, st.sampled_from(p.NakReason), u8),
-    p.Heartbeat: st.builds(p.Heartbeat, st.sampled_from(p.ModuleState), bools, bools, bools, u16, u32),
+    p.Heartbeat: st.builds(p.Heartbeat, st.sampled_from(p.ModuleState), bools, bools, bools, u16,
+                           u32),
     p.Pause: st.builds(p.Pause, st.sampled_from(p.PauseCause)),
     p.ChangeReport: change_reports(),
     p.Clear: st.builds(p.Clear, stations),
     p.Fault: st.builds(p.Fault, st.sampled_from(p.FaultCode), texts),
-    p.Status: st.builds(p.Status, st.sampled_from(p.ModuleState), bools, bools, bools, u16, u32, u32,
-                        u32, st.one_of(st.just(""), stations)),
+    p.Status: st.builds(p.Status, st.sampled_from(p.ModuleState), bools, bools, bools, u16, u32,
+                        u32, u32, st.one_of(st.just(""), stations)),
     p.ParamValue: param_values(p.ParamValue),
     p.Captured: st.one_of(st.builds(p.Captured, stations),
                           st.builds(p.Captured, stations, u16,
@@ -191,7 +194,8 @@ def test_captured_tells_what_a_station_can_see_from_version_4_only():
 def test_doc_parameter_table_matches_the_whitelist():
     text = DOC.read_text(encoding="utf-8")
     for param in p.PARAMS:
-        row = f"| {param.id} | `{param.name}` | {param.minimum} | {param.maximum} | {param.default} |"
+        row = (f"| {param.id} | `{param.name}` | {param.minimum} | {param.maximum} "
+               f"| {param.default} |")
         assert row in text
 
 
@@ -213,7 +217,8 @@ def test_doc_parameter_table_matches_the_whitelist():
     (lambda: p.Region(1, (0, 0), (1, 1, 1), 5), "3 integers"),
     (lambda: p.Region(1, (0, 0, 40000), (1, 1, 1), 5), "-32768..32767"),
     (lambda: p.ChangeReport(1, 2, 2, "k"), "whole number in 0..1"),
-    (lambda: p.ChangeReport(1, 0, 1, "k", (p.Region(1, (0, 0, 0), (1, 1, 1), 1),) * 12), "split_change_report"),
+    (lambda: p.ChangeReport(1, 0, 1, "k", (p.Region(1, (0, 0, 0), (1, 1, 1), 1),) * 12),
+     "split_change_report"),
     (lambda: p.Fault(p.FaultCode.INTERNAL_ERROR, "x" * 201), "at most 200"),
     (lambda: p.Hello(p.Role.BASE, 1, "s" * 33), "at most 32"),
     (lambda: p.Hello(p.Role.BASE, 1, proto_min=3, proto_max=2), "proto_max"),
@@ -268,17 +273,23 @@ def good(seq: int = 1) -> bytes:
     (good()[:-3] + bytes([good()[-3] ^ 0x40]) + good()[-2:], p.DecodeReason.BAD_CRC, None),
     (raw_frame(p.VERSION + 1, p.MsgType.CHECK, 7, payload=b"\x01k"), p.DecodeReason.BAD_VERSION,
      p.NakReason.BAD_VERSION),
-    (raw_frame(1, p.MsgType.CHECK_RESULT, 7, payload=bytes(20) + b"\x01k"), p.DecodeReason.UNKNOWN_TYPE,
-     p.NakReason.UNKNOWN_TYPE),
+    (raw_frame(1, p.MsgType.CHECK_RESULT, 7, payload=bytes(20) + b"\x01k"),
+     p.DecodeReason.UNKNOWN_TYPE, p.NakReason.UNKNOWN_TYPE),
     (raw_frame(1, 0x7F, 7), p.DecodeReason.UNKNOWN_TYPE, p.NakReason.UNKNOWN_TYPE),
-    (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x01\x01"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
-    (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x09"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
-    (raw_frame(1, p.MsgType.CHECK, 7, payload=b"\x02.."), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
-    (raw_frame(1, p.MsgType.CLEAR, 7, payload=b"\x05ab"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
-    (raw_frame(1, p.MsgType.FAULT, 7, payload=b"\x01\x02\xff\xfe"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x01\x01"),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.PAUSE, 7, payload=b"\x09"),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.CHECK, 7, payload=b"\x02.."),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.CLEAR, 7, payload=b"\x05ab"),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
+    (raw_frame(1, p.MsgType.FAULT, 7, payload=b"\x01\x02\xff\xfe"),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),
     (raw_frame(1, p.MsgType.SET_PARAM, 7, payload=bytes([1]) + (50).to_bytes(4, "little")),
      p.DecodeReason.BAD_PAYLOAD, p.NakReason.OUT_OF_RANGE),
-    (raw_frame(1, p.MsgType.GET_PARAM, 7, payload=b"\x63"), p.DecodeReason.BAD_PAYLOAD, p.NakReason.UNKNOWN_PARAM),
+    (raw_frame(1, p.MsgType.GET_PARAM, 7, payload=b"\x63"),
+     p.DecodeReason.BAD_PAYLOAD, p.NakReason.UNKNOWN_PARAM),
     (b"\x01" * 300 + b"\x00", p.DecodeReason.TOO_LONG, None),
     (raw_frame(1, p.MsgType.CHANGE_REPORT, 7, payload=b"\x01\x00\x02\x02\x01k\x00"),
      p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),  # part 2 of 2
@@ -290,7 +301,8 @@ def good(seq: int = 1) -> bytes:
     (raw_frame(1, p.MsgType.CHANGE_REPORT, 7, payload=b"\x01\x00\x00\x01\x01k\x01"
                + b"\x03" + bytes(16)),
      p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),  # region kind 3
-    (raw_frame(1, p.MsgType.CHANGE_REPORT, 7, payload=b"\x01\x00\x00\x01\x01k\x01" + bytes(17)[:-1]),
+    (raw_frame(1, p.MsgType.CHANGE_REPORT, 7, payload=b"\x01\x00\x00\x01\x01k\x01"
+               + bytes(17)[:-1]),
      p.DecodeReason.BAD_PAYLOAD, p.NakReason.BAD_PAYLOAD),  # region cut short
 ])
 def test_bad_frame_is_counted_then_the_next_frame_decodes(bad, reason, nak):
@@ -417,7 +429,8 @@ def test_empty_report_is_one_part_and_assembler_memory_is_bounded():
     assert (only.part, only.parts, only.regions) == (0, 1, ())
     assembler = p.ReportAssembler(max_pending=2)
     for rid in range(5):
-        assert assembler.add(p.split_change_report(rid, "k", [region(i) for i in range(20)])[0]) is None
+        assert assembler.add(p.split_change_report(rid, "k", [region(i) for i in range(20)])[0]) \
+            is None
     assert len(assembler._pending) == 2 and assembler.dropped == 3
     with pytest.raises(MessageError, match="at most 255"):
         p.split_change_report(1, "k", [region(0)] * (256 * p.REGIONS_PER_PART))

@@ -61,7 +61,7 @@ def test_a_recording_plays_in_librealsense_exactly_and_the_bag_backend_reads_the
         read = list(source)
         assert source.intrinsics.fx == pytest.approx(CAMERA.fx, abs=1e-4)
     assert len(played) == len(read) == len(twelve)
-    for a, b, depth in zip(played, read, twelve):
+    for a, b, depth in zip(played, read, twelve, strict=True):
         assert np.array_equal(a.depth, depth) and np.array_equal(b.depth, depth)
     assert [f.index for f in played] == list(range(len(twelve)))
     assert [f.timestamp_us for f in played] == [1_000_000 + k * 33_333 for k in range(12)]
@@ -77,7 +77,7 @@ def test_a_ros1_recording_of_older_librealsense_plays_as_the_bag_backend_reads_i
             frames = list(source)
             assert source.intrinsics == Intrinsics(64, 48, 57.6, 57.6, 31.5, 23.5), uri
         assert [f.index for f in frames] == list(range(len(expected))), uri
-        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected)), uri
+        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected, strict=True)), uri
 
 
 def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
@@ -91,7 +91,7 @@ def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
             assert source.intrinsics == CAMERA, uri
             if uri.startswith("rosbag"):
                 assert source.topic == "/device_0/sensor_0/Depth_0/image/data"
-        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, twelve[:4])), uri
+        assert all(np.array_equal(f.depth, d) for f, d in zip(frames, twelve[:4], strict=True)), uri
         assert len(frames) == 4, uri
 
 
@@ -137,7 +137,7 @@ def test_a_reader_killed_mid_recording_is_replaced_without_losing_a_frame(record
         got += list(source)
         assert source.pid != first and source.stats.restarts == 1
     assert [f.index for f in got] == list(range(len(twelve)))
-    assert all(np.array_equal(f.depth, d) for f, d in zip(got, twelve))
+    assert all(np.array_equal(f.depth, d) for f, d in zip(got, twelve, strict=True))
 
 
 def test_a_hung_reader_is_killed_and_replaced_in_place(recording, twelve):
@@ -148,7 +148,7 @@ def test_a_hung_reader_is_killed_and_replaced_in_place(recording, twelve):
         got += list(source)  # read(timeout=None): waits, kills the hung reader, carries on
         assert time.monotonic() - start < 8.0 and source.stats.restarts == 1
     assert [f.index for f in got] == list(range(len(twelve)))
-    assert all(np.array_equal(f.depth, d) for f, d in zip(got, twelve))
+    assert all(np.array_equal(f.depth, d) for f, d in zip(got, twelve, strict=True))
 
 
 def test_bad_recordings_are_depth_file_errors_before_librealsense_sees_them(tmp_path, recording):

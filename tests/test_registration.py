@@ -412,7 +412,7 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     kept = np.isfinite(pruned)
     np.testing.assert_array_equal(pruned[kept], got[kept])
     assert (got[~kept] < got.max()).all() and (kept.all() if both_ways else not kept.all())
-    for score, rot, t in zip(got, rots, transs):
+    for score, rot, t in zip(got, rots, transs, strict=True):
         inliers = 0
         for own, other, R, tt in ((cl, rl, rot, t), (rl, cl, rot.T, -rot.T @ t))[:1 + both_ways]:
             res, _jac, zs = _associate_twin(own.vertex, own.normal, other.vertex, other.normal,
@@ -518,8 +518,11 @@ _STATION_LINED_UP = (0, "all_moved", (0.15, 6.0, 78249))  # every object on the 
 _STATION_CONTESTED = (3003, "all_moved", (0.05, 2.0, 30935))  # the same, another table
 
 
-def _station_error(station, params=RegistrationParams()):
+def _station_error(station, params=None):
     from sim_fixtures.stations import station_pair
+
+    if params is None:
+        params = RegistrationParams()
 
     ref, cur, truth, intrinsics = station_pair(*station)
     got = register_depth(ref, cur, intrinsics, params)
@@ -1338,7 +1341,7 @@ def test_seen_from_keeps_what_the_camera_saw():
         depth[v, u] = round(z * 1000)
     moved = seen_from(depth, K, T)
     landed = {pixel(((u - K.cx) * d / 1000 / K.fx - 0.5, (v - K.cy) * d / 1000 / K.fy, d / 1000))
-              for v, u in zip(*np.nonzero(depth)) for d in [int(depth[v, u])]}
+              for v, u in zip(*np.nonzero(depth), strict=True) for d in [int(depth[v, u])]}
     assert len(landed) == 1  # both on one pixel of the new image
     (u, v), = landed
     assert moved[v, u] == 1000 and np.count_nonzero(moved) == 1

@@ -153,7 +153,7 @@ def test_only_the_largest_regions_get_a_full_label_and_the_title_counts_the_rest
     disappeared = _regions("disappeared", 12, seed=4, clustered=True)
     figure = _drawn_change(_changes(appeared, disappeared), max_full_labels=max_full_labels)
     try:
-        for axis, regions in zip(figure.axes[:2], (disappeared, appeared)):
+        for axis, regions in zip(figure.axes[:2], (disappeared, appeared), strict=True):
             labels = _texts(axis, LABEL_GID)
             assert len(labels) == max_full_labels
             numbers = {int(re.match(r"\w+ (\d+): ", text.get_text()).group(1))

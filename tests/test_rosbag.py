@@ -25,7 +25,8 @@ from hw.record import record
 rosbags = pytest.importorskip("rosbags", reason="rosbags is a dependency: pip install rosbags")
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin  # noqa: E402
+from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 SCENE = SIM_FIXTURES / "scenes" / "office_box_added"
@@ -114,7 +115,7 @@ def write_bag(path: Path, kind: str, frames: list[np.ndarray], *, encoding: str 
                 cam = (infos or [camera] * len(frames))[k]
                 writer.write(cameras, stamps[k], serialize(info(k, cam), Info.__msgtype__))
             writer.write(images, stamps[k], serialize(image(k, depth), Image.__msgtype__))
-        for name, (connection, messages) in others.items():
+        for connection, messages in others.values():
             for k, message in enumerate(messages):
                 writer.write(connection, stamps[0] + k, serialize(message, connection.msgtype))
     return target
@@ -149,7 +150,7 @@ def test_a_bag_reads_back_exactly(tmp_path, depth_frames, kind):
     assert camera == CAMERA
     assert [f.timestamp_us for f in frames] == [(s + 500) // 1000 for s in STAMPS_NS]
     assert [f.index for f in frames] == [0, 1, 2]
-    for frame, original in zip(frames, depth_frames):
+    for frame, original in zip(frames, depth_frames, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
         assert frame.intrinsics == CAMERA
 
@@ -176,7 +177,7 @@ def test_32fc1_metres_with_nan_read_as_millimetres(tmp_path, depth_frames, kind)
     bag = write_bag(tmp_path / "run", kind, depth_frames, encoding="32FC1", bigendian=True,
                     pad=8)
     frames, _ = read_all(f"rosbag:{bag}")
-    for frame, original in zip(frames, depth_frames):
+    for frame, original in zip(frames, depth_frames, strict=True):
         assert np.count_nonzero(original == 0) > 0  # the NaNs are there to be read as 0
         np.testing.assert_array_equal(frame.depth, original)
 
@@ -184,7 +185,7 @@ def test_32fc1_metres_with_nan_read_as_millimetres(tmp_path, depth_frames, kind)
 def test_big_endian_and_padded_rows_of_16uc1(tmp_path, depth_frames):
     bag = write_bag(tmp_path / "run", "ros1", depth_frames, bigendian=True, pad=6)
     frames, _ = read_all(f"rosbag:{bag}")
-    for frame, original in zip(frames, depth_frames):
+    for frame, original in zip(frames, depth_frames, strict=True):
         np.testing.assert_array_equal(frame.depth, original)
 
 
@@ -305,7 +306,7 @@ def test_loop_keeps_indices_and_time_increasing_and_rate_paces(tmp_path, depth_f
     stamps = [f.timestamp_us for f in frames]
     period = stamps[1] - stamps[0]
     assert stamps[3] - stamps[2] == period  # the next lap starts one period after the last
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
     for k, frame in enumerate(frames):
         np.testing.assert_array_equal(frame.depth, depth_frames[k % 3])
     with open_depth(f"rosbag:{bag}?rate=0.5") as source:
@@ -378,7 +379,7 @@ def test_record_to_rosbag2_reads_back_through_rosbags_itself(tmp_path):
     images = [m for topic, _, m in messages if topic == DEPTH]
     infos = [m for topic, _, m in messages if topic == INFO]
     assert len(images) == len(infos) == 3
-    for image, info, original in zip(images, infos, originals):
+    for image, info, original in zip(images, infos, originals, strict=True):
         assert (image.encoding, image.is_bigendian, image.step) == ("16UC1", 0, 1280)
         assert image.header.frame_id == info.header.frame_id == "camera_depth_optical_frame"
         stamp_us = image.header.stamp.sec * 1_000_000 + image.header.stamp.nanosec // 1000
@@ -392,7 +393,7 @@ def test_record_to_rosbag2_reads_back_through_rosbags_itself(tmp_path):
     # and our reader gives the frames back as they were
     frames, camera = read_all(f"rosbag:{out}")
     assert camera == originals[0].intrinsics
-    for frame, original in zip(frames, originals):
+    for frame, original in zip(frames, originals, strict=True):
         assert frame.timestamp_us == original.timestamp_us
         np.testing.assert_array_equal(frame.depth, original.depth)
 
@@ -477,5 +478,5 @@ def test_a_realsense_ros1_recording_reads_without_librealsense():
         assert source.intrinsics == Intrinsics(64, 48, 57.6, 57.6, 31.5, 23.5)
     expected = np.load(folder / "d435_ros1.npy")
     assert len(frames) == len(expected)
-    assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected))
+    assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected, strict=True))
     assert [f.index for f in frames] == list(range(len(expected)))

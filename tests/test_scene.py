@@ -113,7 +113,7 @@ def test_build_from_depth_frames(ref_model, sim):
     assert m.version == robot_change.__version__ and m.source == "test:reference"
     created = datetime.datetime.fromisoformat(m.created)
     assert created.utcoffset() == datetime.timedelta(0)
-    assert abs((datetime.datetime.now(datetime.timezone.utc) - created).total_seconds()) < 600
+    assert abs((datetime.datetime.now(datetime.UTC) - created).total_seconds()) < 600
 
 
 def test_pixel_voxel_maps_depth_pixels_to_their_points(ref_model):

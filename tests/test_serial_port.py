@@ -57,7 +57,8 @@ def test_pty_path_carries_bytes_both_ways_untouched():
 
 
 def test_missing_device_says_to_plug_it_in():
-    with pytest.raises(PortError, match="does not exist: is the USB serial adapter plugged in") as info:
+    with pytest.raises(PortError,
+                       match="does not exist: is the USB serial adapter plugged in") as info:
         open_port("/dev/ttyUSB_robot_change_missing")
     assert "/dev/serial/by-id/" in str(info.value)
 
@@ -71,7 +72,8 @@ def test_unknown_scheme_is_a_uri_error_listing_the_schemes():
 
 def test_permission_denied_names_the_dialout_group(monkeypatch):
     def refuse(url, **kwargs):
-        raise serial.SerialException(errno.EACCES, f"could not open port {url}: [Errno 13] Permission denied")
+        raise serial.SerialException(errno.EACCES,
+                                     f"could not open port {url}: [Errno 13] Permission denied")
 
     monkeypatch.setattr(serial, "serial_for_url", refuse)
     with pytest.raises(PortError, match="dialout"):

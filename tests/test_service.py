@@ -86,7 +86,7 @@ class Rig:
         self.out = io.StringIO()
         self.sim = BaseSim(FdPort(master), out=self.out, proto_max=proto_max)
 
-    def __enter__(self) -> "Rig":
+    def __enter__(self) -> Rig:
         self.service.start()
         return self
 
@@ -338,7 +338,8 @@ def test_parameters_get_set_bounds_and_the_refused_cross_check(rig: Rig) -> None
     assert rig.service.params["check_interval_ms"] == 100
 
 
-def test_watch_pauses_only_when_the_change_persists_then_clears(tmp_path: Path, scene_frames) -> None:
+def test_watch_pauses_only_when_the_change_persists_then_clears(tmp_path: Path,
+                                                                 scene_frames) -> None:
     with Rig(tmp_path, scene_frames) as rig:
         rig.run("""
             capture office
@@ -851,7 +852,8 @@ def test_commands_beyond_the_queue_are_refused_with_nak_busy(rig: Rig) -> None:
     busy = [f for f in sim.failed if f.nak == p.NakReason.BUSY]
     assert busy and len(busy) == len(sim.failed), [f.reason for f in sim.failed]
     assert rig.service.counters["commands_refused"] == len(busy)
-    assert not [e for e in sim.log if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
+    assert not [e for e in sim.log
+                if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
 
 
 def test_a_version_2_base_gets_one_coalesced_fault_for_refused_commands(tmp_path: Path,
@@ -864,7 +866,8 @@ def test_a_version_2_base_gets_one_coalesced_fault_for_refused_commands(tmp_path
         sim.pump(10.0, until=lambda: sim.link.in_flight == 0 and sim.link.queued == 0)
         assert not sim.failed  # version 2 knows no BUSY: acknowledged ...
         refused = rig.service.counters["commands_refused"]
-        faults = [e for e in sim.log if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
+        faults = [e for e in sim.log
+                  if e.name == "FAULT" and e.obj.code == p.FaultCode.COMMAND_REFUSED]
         assert refused > 0 and 1 <= len(faults) <= refused  # ... and told, coalesced
         assert all("busy" in e.obj.text for e in faults)
 

@@ -513,7 +513,7 @@ def test_regenerating_a_scene_reproduces_the_stored_files(tmp_path):
     for epoch, (r, label) in enumerate(((ref, "reference"), (cur, "current"))):
         stored = scene.frames(label)
         frames = noisy_frames(spec, r, epoch, len(stored))
-        for frame, again in zip(frames, stored):
+        for frame, again in zip(frames, stored, strict=True):
             np.testing.assert_array_equal(frame, again)
         # the writer is deterministic: the same frames give a byte-identical file
         (tmp_path / label).mkdir()
@@ -560,10 +560,11 @@ def test_stored_recordings_play_through_openni2_and_as_images(name, tmp_path, mo
         expected = scene.frames(epoch)
         played = read_all(scene.uri(epoch))  # the real libOpenNI2 player
         assert [f.index for f in played] == list(range(1, len(expected) + 1))
-        assert [f.timestamp_us for f in played] == [round(k * 1e6 / 30) for k in range(len(expected))]
+        assert [f.timestamp_us for f in played] == \
+            [round(k * 1e6 / 30) for k in range(len(expected))]
         as_images = read_all(scene.uri(epoch, "images"))  # PNG copies in the cache
         assert len(played) == len(as_images) == len(expected) == 3
-        for a, b, c in zip(played, as_images, expected):
+        for a, b, c in zip(played, as_images, expected, strict=True):
             np.testing.assert_array_equal(a.depth, c)
             np.testing.assert_array_equal(b.depth, c)
         assert played[0].intrinsics == scene.intrinsics
@@ -600,5 +601,5 @@ def test_oni_writer_picks_the_smallest_codec(tmp_path):
         assert write_oni_recording(tmp_path / "reference", frames, spec) == ["reference.oni"]
         info = read_oni_header(tmp_path / "reference.oni")
         assert (info.width, info.height, info.frames, info.codec) == (640, 480, 2, four_cc)
-        for got, want in zip(read_oni_frames(tmp_path / "reference.oni"), frames):
+        for got, want in zip(read_oni_frames(tmp_path / "reference.oni"), frames, strict=True):
             np.testing.assert_array_equal(got.depth, want)

@@ -1,5 +1,5 @@
-"""robot_change.service.store: verified per-station references; a bad file is quarantined and reported,
-never used; a kill -9 in the middle of a save leaves the previous reference whole."""
+"""robot_change.service.store: verified per-station references; a bad file is quarantined and
+reported, never used; a kill -9 in the middle of a save leaves the previous reference whole."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""robot_change.service.systemd: sd_notify datagrams on a real unix socket, the watchdog interval, and
-the unit and udev files under systemd/ (systemd-analyze verify must print nothing unexpected)."""
+"""robot_change.service.systemd: sd_notify datagrams on a real unix socket, the watchdog interval,
+and the unit and udev files under systemd/ (systemd-analyze verify must print nothing
+unexpected)."""
 
 from __future__ import annotations
 

@@ -13,9 +13,9 @@ from hw.depth import Intrinsics
 from sim_fixtures import UnknownScene
 from sim_fixtures.tabletop import (
     MIN_REGION_PX,
+    OBJECT_EDGE_PX,
     PAIRS,
     TRUTH_MARGIN_MM,
-    OBJECT_EDGE_PX,
     TabletopDataMissing,
     changed_objects,
     drop_specks,
