@@ -20,7 +20,7 @@ def test_readme_opens_with_exactly_two_commands():
     commands = _readme_commands()
     assert len(commands) == 2
     assert "robot-change demo" in commands[0]
-    assert "pytest" in commands[1]
+    assert "pytest" in commands[1] and "ruff check" in commands[1]
 
 
 def test_ci_runs_the_readme_test_command():
