@@ -13,6 +13,15 @@ SIM_FIXTURES = REPO / "sim_fixtures"
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """The numba kernels compiled (or loaded) once before any test, as setup.sh leaves them:
+    the cache cleared first when the sources changed since it was filled (kernel_cache), so
+    that no test runs a stale kernel and no daemon under test waits on a cold compile."""
+    from robot_change.service.warmup import warm_up
+
+    warm_up()
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """Path of ../shared/data; skips the test where it is absent (a user's clone)."""
