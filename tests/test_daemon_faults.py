@@ -168,12 +168,18 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         assert not any(s == "STATUS=configuration reloaded" for s in statuses), statuses
         # the old configuration goes on working: no INTERNAL_ERROR
         assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
-        # a file cut short at a line: valid TOML, its last section ([store]) gone (issue 44)
-        d.write_config()
+        # files cut short at a line: valid TOML, their last section ([store]) or its last key
+        # gone (issue 44)
+        d.write_config("[watch]\nwatch_m = 2\n")
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("STATUS=configuration reloaded")
         whole = d.config.read_text()
         d.config.write_text(whole[: whole.index("[store]")])
         d.proc.send_signal(signal.SIGHUP)
-        d.wait_for("has no [store] section(s), which the running configuration has")
+        d.wait_for("does not set store.state_dir, watch.watch_m, which the running")
+        d.config.write_text(whole[: whole.index("watch_m")])
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("does not set watch.watch_m, which the running")
         assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
         _sigterm_in(d)
 

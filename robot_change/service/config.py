@@ -449,8 +449,9 @@ class Config:
     fleet: FleetConfig = dataclasses.field(default_factory=FleetConfig)
     #: the file it was read from (None for defaults); not part of equality
     path: Path | None = dataclasses.field(default=None, compare=False)
-    #: the sections that file holds (a reload refuses a file that lost one: cut short?)
-    sections: frozenset[str] = dataclasses.field(default=frozenset(), compare=False)
+    #: the keys that file sets, "section.key" (a reload refuses a file that lost one: cut
+    #: short?); a section without keys counts as "section"
+    keys: frozenset[str] = dataclasses.field(default=frozenset(), compare=False)
 
     @classmethod
     def default(cls) -> Config:
@@ -607,4 +608,10 @@ def load_config(path: str | os.PathLike, *, empty_ok: bool = True) -> Config:
         raise ConfigError(f"{path}: holds no key at all (a half-written or emptied file?); an "
                           "empty configuration is refused on a reload")
     config = config_from_dict(data, str(path), base_dir=path.resolve().parent)
-    return dataclasses.replace(config, path=path, sections=frozenset(data))
+    keys: set[str] = set()
+    for section, table in data.items():
+        if isinstance(table, dict) and table:
+            keys.update(f"{section}.{key}" for key in table)
+        else:
+            keys.add(section)
+    return dataclasses.replace(config, path=path, keys=frozenset(keys))

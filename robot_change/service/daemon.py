@@ -183,7 +183,7 @@ def _reload(service: Service, load: Callable[[], Config] | None,
             return
         try:
             config = load()
-            _check_no_section_lost(service.config, config)
+            _check_no_key_lost(service.config, config)
         except ConfigError as exc:
             log.error("SIGHUP: the new configuration is refused, the old one stays: %s", exc)
             outcome = f"configuration refused, the old one stays: {exc}"
@@ -198,15 +198,16 @@ def _reload(service: Service, load: Callable[[], Config] | None,
             systemd.ready(status=outcome[:200])
 
 
-def _check_no_section_lost(running: Config, new: Config) -> None:
-    """A reload of a file that lost a section the running configuration's file had is refused
+def _check_no_key_lost(running: Config, new: Config) -> None:
+    """A reload of a file that lost a key the running configuration's file set is refused
     (:class:`ConfigError`): most likely a file cut short (half copied, a full disk) whose rest
     would silently become defaults.  A restart takes such a file."""
-    lost = sorted(running.sections - new.sections)
+    lost = sorted(running.keys - new.keys)
     if lost:
-        raise ConfigError(f"{new.path}: has no [{'], ['.join(lost)}] section(s), which the "
-                          "running configuration has (a file cut short?); a reload keeps "
-                          "them, restart the service to run without them")
+        shown = ", ".join(lost[:6]) + (f" and {len(lost) - 6} more" if len(lost) > 6 else "")
+        raise ConfigError(f"{new.path}: does not set {shown}, which the running configuration "
+                          "sets (a file cut short?); a reload never drops a setting: restart "
+                          "the service to run without them")
 
 
 def _status_line(service: Service) -> str:
