@@ -579,6 +579,32 @@ def test_the_base_asks_for_the_missing_parts_and_only_those_are_sent_again():
     assert again and {f.message.index for f in again} == {1, 4}
 
 
+def test_a_need_for_no_piece_of_the_message_or_malformed_changes_nothing_and_is_never_naked():
+    """Issue 46, points 7 and 8: one rule for a NEED naming no piece of its message (indices
+    beyond its count) and for a malformed one (its bitmap's last byte zero): ignored, the
+    carousel goes on with what it cycled, and no NAK (its seq is the module's message's)."""
+    wire = Wire().connect()
+    seq = wire.module.send(p.Fault(p.FaultCode.CAMERA_LOST, "x" * 60))
+
+    def cycle() -> list[p.Frame]:
+        out = []
+        for _ in range(10):
+            wire.clock.t += 0.005
+            wire.module.poll()
+            out += frames(wire.module.outgoing())
+        return out
+
+    count = cycle()[0].message.count
+    wire.module.receive(p.encode(p.Need((1, 4)), seq, version=3))
+    assert {f.message.index for f in cycle()} == {1, 4}
+    for bad in (p.encode(p.Need((count, count + 3)), seq, version=3),
+                raw_frame(3, p.MsgType.NEED, seq, payload=b"\x12\x00")):
+        wire.module.receive(bad)
+        out = cycle()
+        assert not [f for f in out if f.message.TYPE == p.MsgType.NAK]
+        assert {f.message.index for f in out if f.message.TYPE == p.MsgType.PART} == {1, 4}
+
+
 def test_a_parted_message_is_retried_until_the_carry_timeout_then_the_link_is_faulty():
     wire = Wire().connect()
     wire.cut = True

@@ -277,7 +277,10 @@ class Link:
         self.stats.bytes_in += len(data)
         for item in self.decoder.feed(data):
             if type(item) is DecodeError:
-                if item.nak is not None and item.msg_type not in (MsgType.ACK, MsgType.NAK):
+                # never NAK an ACK or a NAK, nor a NEED: its seq is the module's own message's,
+                # and a NAK of it would fail an unrelated message of the base with that seq
+                if item.nak is not None and item.msg_type not in (MsgType.ACK, MsgType.NAK,
+                                                                  MsgType.NEED):
                     self._nak(item.seq or 0, item.nak, item.msg_type or 0)
                 continue
             self._on_frame(item, now)  # type: ignore[arg-type]
