@@ -331,6 +331,40 @@ def test_incompatible_versions_are_reported():
     assert change.new == LinkState.INCOMPATIBLE and f"{low}..{high}" in change.why
 
 
+def test_an_incompatible_hello_is_naked_and_the_module_goes_quiet_until_one_that_meets():
+    """Issue 46, item 3: the base learns it (NAK BAD_VERSION of its HELLO, not an ACK); the
+    module sends nothing the base refused to read (no heartbeat) until a HELLO whose versions
+    meet (the base updated), which it acknowledges, greeting the base again."""
+    clock = Clock()
+    module = Link(p.Role.MODULE, clock=clock, boot_id=0xAAAA)
+    module.set_heartbeat(p.Heartbeat(p.ModuleState.IDLE))
+    module.poll()
+    module.outgoing()  # its HELLO and first heartbeat
+    too_new = p.Hello(p.Role.BASE, 9, "fw", proto_min=p.VERSION + 1, proto_max=p.VERSION + 2)
+    module.receive(p.encode(too_new, 1))
+    (answer,) = frames(module.outgoing())
+    assert answer.message == p.Nak(p.NakReason.BAD_VERSION, p.MsgType.HELLO) and answer.seq == 1
+    assert module.state == LinkState.INCOMPATIBLE
+    for _ in range(20):  # a second: no heartbeat; only its own HELLO's tries (any peer reads
+        clock.t += 0.05  # a HELLO: it tells the base this end's versions)
+        module.poll()
+    assert {f.message.TYPE for f in frames(module.outgoing())} <= {p.MsgType.HELLO}
+    updated = p.Hello(p.Role.BASE, 10, "fw 2", proto_min=1, proto_max=p.VERSION)
+    module.receive(p.encode(updated, 1))
+    out = frames(module.outgoing())
+    assert [f.message.TYPE for f in out][:1] == [p.MsgType.ACK] and out[0].seq == 1
+    hello = [f for f in out if f.message.TYPE == p.MsgType.HELLO]
+    if not hello:  # its first HELLO was still in flight: its retry greets the base
+        clock.t += 0.2
+        module.poll()
+        hello = [f for f in frames(module.outgoing()) if f.message.TYPE == p.MsgType.HELLO]
+    module.receive(p.encode(p.Ack(), hello[0].seq))
+    assert module.state == LinkState.UP and module.version == p.VERSION
+    clock.t += 0.2
+    module.poll()
+    assert p.MsgType.HEARTBEAT in [f.message.TYPE for f in frames(module.outgoing())]
+
+
 @pytest.mark.parametrize("header_version", [1, 2])
 def test_a_newer_base_offering_1_to_2_is_answered_and_agrees_on_2(header_version):
     # the bug of issue 12: a HELLO whose header says 2 and offers 1..2 was refused

@@ -228,7 +228,7 @@ class Link:
         times = [p.next_at for p in self._inflight.values()]
         if any(p.parts is not None for p in self._inflight.values()):
             times.append((self._part_clock or 0.0) + 0.002)  # the PART carousel runs
-        if self._heartbeat is not None:
+        if self._heartbeat is not None and self.state != LinkState.INCOMPATIBLE:
             times.append(self._next_heartbeat)
         if self.state == LinkState.UP:
             times.append(self._last_rx + self.config.silence_timeout)
@@ -259,7 +259,8 @@ class Link:
             else:
                 self._transmit(pending, now)
         self._run_carousel(now)
-        if self._heartbeat is not None and now >= self._next_heartbeat:
+        if (self._heartbeat is not None and now >= self._next_heartbeat
+                and self.state != LinkState.INCOMPATIBLE):  # in no version the peer reads
             self._out += encode(self._heartbeat, version=self.version)
             self.stats.heartbeats_sent += 1
             self._next_heartbeat = now + cfg.heartbeat_interval
@@ -320,6 +321,14 @@ class Link:
             self._seen_order.clear()
             self._ack_burst_at.clear()
             self._assemblies.clear()  # half-joined messages of the old boot
+        if isinstance(message, Hello) and not self._meets(message):
+            # docs/protocol.md 7.5: NAKed, not acknowledged, so that the peer learns it too
+            self.peer = message
+            self._nak(seq, NakReason.BAD_VERSION, message.TYPE)
+            self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} speaks "
+                            f"protocol {message.proto_min}..{message.proto_max}, this end "
+                            f"{MIN_VERSION}..{self.proto_max}: update the older side", now)
+            return
         if seq in self._seen:
             self._ack(frame, now)
             self.stats.duplicates += 1
@@ -391,17 +400,20 @@ class Link:
         if wanted:
             pending.wanted, pending.cursor = wanted, 0
 
+    def _meets(self, hello: Hello) -> bool:
+        """Whether ``hello``'s version range meets this end's."""
+        return max(MIN_VERSION, hello.proto_min) <= min(self.proto_max, hello.proto_max)
+
     def _on_hello(self, hello: Hello, new_peer: bool, now: float) -> None:
+        """A HELLO whose range meets ours (:meth:`_on_sequenced` refused the others)."""
         self.peer = hello
-        low, high = max(MIN_VERSION, hello.proto_min), min(self.proto_max, hello.proto_max)
-        if low > high:
-            self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} speaks "
-                            f"protocol {hello.proto_min}..{hello.proto_max}, this end "
-                            f"{MIN_VERSION}..{self.proto_max}: update the older side")
-        else:
-            self.version = high
-            if new_peer and self._greeted and self._hello_seq is None:
-                self._start_hello(now)  # it restarted and does not know us yet
+        self.version = min(self.proto_max, hello.proto_max)
+        if self.state == LinkState.INCOMPATIBLE:  # the peer was updated: greet it again
+            self._set_state(LinkState.CONNECTING, "a HELLO whose versions meet ours", now)
+            if self._hello_seq is None:
+                self._start_hello(now)
+        elif new_peer and self._greeted and self._hello_seq is None:
+            self._start_hello(now)  # it restarted and does not know us yet
 
     def _on_ack(self, seq: int, now: float) -> None:
         pending = self._inflight.pop(seq, None)
@@ -464,7 +476,7 @@ class Link:
         self._transmit(pending, now)
 
     def _promote(self, now: float) -> None:
-        if not self._greeted:
+        if not self._greeted or self.state == LinkState.INCOMPATIBLE:
             return  # nothing but HELLO until the peer has reset its duplicate memory for us
         while self._urgent_q:
             pending = self._urgent_q.popleft()
