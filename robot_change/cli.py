@@ -316,10 +316,11 @@ def build_parser() -> argparse.ArgumentParser:
     base_sim.add_argument("--script", help="commands from FILE (wait / expect / expect-none lines "
                           "too); exit 1 when one fails")
     base_sim.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
-    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3, 4), default=4,
+    base_sim.add_argument("--protocol", type=int, choices=(1, 2, 3, 4, 5), default=5,
                           help="the highest protocol version the simulated base speaks "
-                          "(1, 2: an older base firmware, whole frames; 3: PARTs; default 4: "
-                          "CAPTURED tells what the station can see)")
+                          "(1, 2: an older base firmware, whole frames; 3: the module's "
+                          "messages in PARTs; 4: CAPTURED tells what the station can see; "
+                          "default 5: the base's commands in PARTs too)")
     base_sim.add_argument("-v", "--verbose", action="store_true",
                           help="print every heartbeat and ack")
     base_sim.set_defaults(func=cmd_base_sim)
@@ -348,16 +349,20 @@ def build_parser() -> argparse.ArgumentParser:
     link_bench = commands.add_parser("link-bench", help="PAUSE round trips, change reports, "
                                      "STATUS or a flood over a pty pair through a noisy, "
                                      "baud-paced relay")
-    link_bench.add_argument("--mode", choices=("pause", "report", "status", "flood"),
+    link_bench.add_argument("--mode", choices=("pause", "report", "check", "restart", "idle",
+                                               "status", "flood"),
                             default="pause", help="what to measure (default pause): report = "
-                            "PAUSE + CHECK_RESULT + CHANGE_REPORT then RESUME; flood = --count "
-                            "STATUS_QUERYs at once")
+                            "PAUSE + CHECK_RESULT + CHANGE_REPORT then RESUME; check = the "
+                            "base's CHECK, then that answer; restart = the module restarts, "
+                            "the base must see its new boot; idle = --count seconds of "
+                            "heartbeats alone; flood = --count STATUS_QUERYs at once")
     link_bench.add_argument("--noise", choices=("mixed", "flip"), default="mixed",
                             help="mixed: bit flips, drops and insertions in equal shares "
                             "(default); flip: bit flips only")
-    link_bench.add_argument("--proto", type=int, choices=(1, 2, 3, 4), default=4,
+    link_bench.add_argument("--proto", type=int, choices=(1, 2, 3, 4, 5), default=5,
                             help="highest protocol version both ends offer (2: whole frames, "
-                            "as before version 3; default 4)")
+                            "as before version 3; 4: the module's messages in PARTs, the "
+                            "base's whole; default 5: PARTs both ways)")
     link_bench.add_argument("--regions", type=int, default=3,
                             help="regions per change report in --mode report (default 3)")
     link_bench.add_argument("--corrupt", type=float, default=0.1,

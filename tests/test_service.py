@@ -183,7 +183,7 @@ def test_capture_then_check_without_change_answers_clear(rig: Rig) -> None:
     assert rig.store.load("office").mount == rig.service.config.camera.mount()
     # version 4: CAPTURED tells what the station can see and the camera's noise profile
     captured = next(e.obj for e in rig.sim.log if e.name == "CAPTURED")
-    assert rig.sim.link.version == 4
+    assert rig.sim.link.version == p.VERSION
     assert captured.noise == rig.store.load("office").noise.name
     assert 50 < captured.smallest_change_mm < 200
 

@@ -93,14 +93,18 @@ def cmd_fleet_tail(args: argparse.Namespace) -> int:
 
 
 def cmd_link_bench(args: argparse.Namespace) -> int:
-    """PAUSE round trips, reports, STATUS or a flood over a pty pair through a noisy relay."""
+    """PAUSE round trips, reports, CHECKs, restarts, STATUS or a flood over a pty pair through a
+    noisy relay."""
     from robot_change.tools.linkbench import run_link_bench
 
     result = run_link_bench(args.corrupt, args.count, args.baud, args.json, seed=args.seed,
                             mode=args.mode, noise=args.noise, proto=args.proto,
                             regions=args.regions)
     ok = {"pause": result.get("delivered"), "report": result.get("reports_complete"),
+          "check": result.get("answered"), "restart": result.get("seen"),
           "status": result.get("answered")}.get(args.mode)
     if args.mode == "flood":
         return 0 if result["answers_dropped"] == 0 else 1
+    if args.mode == "idle":
+        return 0 if result["link_faults"] == result["base_link_faults"] == 0 else 1
     return 0 if ok == result["sent"] else 1

@@ -146,13 +146,14 @@ class GetParam(Message):
 
 @dataclass(frozen=True, slots=True)
 class Need(Message):
-    """Base -> module (version 3): of the message whose seq is this frame's header seq, the
-    parts ``missing`` have not arrived yet (a bitmap on the wire, bit i of byte i // 8 for
-    part i, least significant bit first; the last byte non-zero)."""
+    """Base -> module (version 3; both ways from version 5): of the message whose seq is this
+    frame's header seq, the parts ``missing`` have not arrived yet (a bitmap on the wire, bit i
+    of byte i // 8 for part i, least significant bit first; the last byte non-zero)."""
 
     TYPE: ClassVar[MsgType] = MsgType.NEED
     SEQUENCED: ClassVar[bool] = False
     SENDER: ClassVar[Role | None] = Role.BASE
+    BOTH_WAYS_SINCE: ClassVar[int | None] = 5
     SINCE: ClassVar[int] = 3
     missing: tuple[int, ...]
 

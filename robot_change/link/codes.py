@@ -14,7 +14,7 @@ from enum import Enum, IntEnum
 from robot_change import validate
 
 #: The highest protocol version this end speaks, and the lowest (docs/protocol.md 7.5).
-VERSION = 4
+VERSION = 5
 MIN_VERSION = 1
 MAX_PAYLOAD = 240
 HEADER = struct.Struct("<BBHB")
@@ -24,7 +24,7 @@ MIN_BODY = HEADER_SIZE + CRC_SIZE  # 7
 MAX_BODY = MIN_BODY + MAX_PAYLOAD  # 247
 #: Longest COBS-encoded body (without the 0x00 delimiter): one overhead byte below 254 bytes.
 MAX_ENCODED = MAX_BODY + 1  # 248
-#: Urgent frames (PAUSE, RESUME) are written this many times in a row, and so are their ACKs.
+#: Urgent frames (PAUSE, RESUME, HELLO) are written this many times in a row, and so are their ACKs.
 URGENT_COPIES = 8
 FLAG_URGENT = 0x01
 FLAG_RETRY = 0x02

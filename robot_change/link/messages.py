@@ -109,6 +109,8 @@ class Message:
     URGENT: ClassVar[bool] = False
     #: Who may send it; None: both.
     SENDER: ClassVar[Role | None] = None
+    #: The first protocol version in which both ends may send it (PART, NEED: 5); None: never.
+    BOTH_WAYS_SINCE: ClassVar[int | None] = None
     #: The first protocol version that has it.
     SINCE: ClassVar[int] = 1
 
@@ -258,6 +260,8 @@ class Nak(Message):
         return cls(payload[0], payload[1])
 
 
-def may_send(role: Role, cls: type[Message]) -> bool:
-    """True when ``role`` is allowed to send messages of class ``cls``."""
-    return cls.SENDER is None or cls.SENDER == role
+def may_send(role: Role, cls: type[Message], version: int = VERSION) -> bool:
+    """True when ``role`` is allowed to send messages of class ``cls`` in a frame of
+    protocol ``version``."""
+    return (cls.SENDER is None or cls.SENDER == role
+            or (cls.BOTH_WAYS_SINCE is not None and version >= cls.BOTH_WAYS_SINCE))

@@ -412,13 +412,15 @@ _CAPTURED = struct.Struct("<H")
 
 @dataclass(frozen=True, slots=True)
 class Part(Message):
-    """Module -> base (version 3): part ``index`` of ``count`` of the body of a sequenced
-    message, whose seq is this frame's header seq (docs/protocol.md 7.11).  Not acknowledged
-    itself: the carried message is, once the base has joined every part."""
+    """Module -> base (version 3; both ways from version 5): part ``index`` of ``count`` of
+    the body of a sequenced message, whose seq is this frame's header seq (docs/protocol.md
+    7.11).  Not acknowledged itself: the carried message is, once the peer has joined every
+    part."""
 
     TYPE: ClassVar[MsgType] = MsgType.PART
     SEQUENCED: ClassVar[bool] = False
     SENDER: ClassVar[Role | None] = Role.MODULE
+    BOTH_WAYS_SINCE: ClassVar[int | None] = 5
     SINCE: ClassVar[int] = 3
     index: int
     count: int

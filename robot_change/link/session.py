@@ -7,9 +7,12 @@
 pumps a Link over a real port (pyserial object or anything with ``read``/``write``).
 
 The rules (docs/protocol.md, "Session"): every sequenced message is acknowledged by seq; the
-sender retries every 100 ms, 5 tries in all, then fails the message and declares the link FAULTY;
-the receiver acks duplicates again but delivers them once; urgent messages (PAUSE, RESUME) and
-their ACKs go out as bursts of URGENT_COPIES; heartbeats flow both ways whatever the state.
+sender retries every 100 ms, 5 tries in all (version 5: for CARRY_TIMEOUT), then fails the
+message and declares the link FAULTY (version 5: only when the peer acknowledged nothing of ours
+meanwhile); the receiver acks duplicates again but delivers them once; urgent messages (PAUSE,
+RESUME, HELLO) and their ACKs go out as bursts of URGENT_COPIES; from version 3 the module's
+other messages, from version 5 the base's too, are carried in PARTs; heartbeats flow both ways
+whatever the state.
 
 :class:`LinkConfig`, :class:`LinkState`, the events and :class:`LinkStats` are in
 :mod:`robot_change.link.session_types`, :class:`LinkRunner` in
@@ -104,11 +107,13 @@ class Link:
     ``clock`` is a callable returning seconds (monotonic); every method that takes ``now`` uses
     ``clock()`` when it is None.  ``proto_max``: the highest protocol version this end offers
     (an older peer is simulated with 1); :attr:`version` is the one the two ends agreed on.
+    ``software``: HELLO's informational field, empty by default (docs/protocol.md 7.5: every
+    byte of a HELLO costs it some of its chance through a noisy line).
     """
 
     def __init__(self, role: Role, *, clock: Callable[[], float] = time.monotonic,
                  config: LinkConfig | None = None, boot_id: int | None = None,
-                 software: str = "robot-change", proto_max: int = VERSION,
+                 software: str = "", proto_max: int = VERSION,
                  admit: Callable[[Message], NakReason | None] | None = None) -> None:
         if not MIN_VERSION <= proto_max <= VERSION:
             raise LinkError(f"proto_max {proto_max}: this code speaks {MIN_VERSION}..{VERSION}")
@@ -148,6 +153,9 @@ class Link:
         self._carousel = 0
         now = clock()
         self._last_rx = now
+        #: the last frame from the peer, intact or not (version 5's silence rule, 7.7)
+        self._last_frame = now
+        self._last_ack = -float("inf")
         self._next_hello = now
 
     # -- the application's side ---------------------------------------------------------------
@@ -231,7 +239,7 @@ class Link:
         if self._heartbeat is not None and self.state != LinkState.INCOMPATIBLE:
             times.append(self._next_heartbeat)
         if self.state == LinkState.UP:
-            times.append(self._last_rx + self.config.silence_timeout)
+            times.append(self._heard_at() + self.config.silence_timeout)
         elif self._hello_seq is None and self.state != LinkState.INCOMPATIBLE:
             times.append(self._next_hello)
         return min(times, default=float("inf"))
@@ -254,7 +262,7 @@ class Link:
             self._start_hello(now)
         self._promote(now)
         for pending in [p for p in self._inflight.values() if p.next_at <= now]:
-            if pending.tries >= cfg.max_tries or pending.parts is not None:
+            if pending.tries >= self._tries_allowed(pending) or pending.parts is not None:
                 self._give_up(pending, now)
             else:
                 self._transmit(pending, now)
@@ -264,10 +272,10 @@ class Link:
             self._out += encode(self._heartbeat, version=self.version)
             self.stats.heartbeats_sent += 1
             self._next_heartbeat = now + cfg.heartbeat_interval
-        if self.state == LinkState.UP and now - self._last_rx > cfg.silence_timeout:
+        if self.state == LinkState.UP and now - self._heard_at() > cfg.silence_timeout:
             self._set_state(LinkState.FAULTY,
                             f"nothing heard from the {self.peer_role.name.lower()} "
-                            f"for {now - self._last_rx:.2f} s: check the cable and that it is "
+                            f"for {now - self._heard_at():.2f} s: check the cable and that it is "
                             "powered", now)
 
     # -- bytes in ------------------------------------------------------------------------------
@@ -277,6 +285,7 @@ class Link:
         now = self._now(now)
         self.stats.bytes_in += len(data)
         for item in self.decoder.feed(data):
+            self._last_frame = now
             if type(item) is DecodeError:
                 # never NAK an ACK or a NAK, nor a NEED: its seq is the module's own message's,
                 # and a NAK of it would fail an unrelated message of the base with that seq
@@ -299,7 +308,7 @@ class Link:
             self._on_ack(seq, now)
         elif kind == MsgType.NAK:
             self._on_nak(seq, message)  # type: ignore[arg-type]
-        elif not may_send(self.peer_role, type(message)) or (
+        elif not may_send(self.peer_role, type(message), frame.version) or (
                 isinstance(message, Hello) and message.role != self.peer_role):
             self._nak(seq, NakReason.WRONG_DIRECTION, kind)
         elif kind == MsgType.PART:
@@ -330,8 +339,8 @@ class Link:
                             f"{MIN_VERSION}..{self.proto_max}: update the older side", now)
             return
         if seq in self._seen:
-            self._ack(frame, now)
-            self.stats.duplicates += 1
+            if self._ack(frame, now):  # copies of one burst are one transmission
+                self.stats.duplicates += 1
             return
         if self.role == Role.MODULE and self.peer is None and not isinstance(message, Hello):
             # docs/protocol.md 7.5: no command is acted on before the base's HELLO (no version
@@ -385,7 +394,7 @@ class Link:
             return
         if (type(inner) is not Frame or inner.seq != seq or not inner.message.SEQUENCED
                 or inner.message.URGENT or isinstance(inner.message, Hello)
-                or not may_send(self.peer_role, type(inner.message))):
+                or not may_send(self.peer_role, type(inner.message), inner.version)):
             self.stats.carried_bad += 1  # a part with a falsely matching CRC: start again
             return
         self.stats.carried += 1
@@ -399,6 +408,12 @@ class Link:
         wanted = [i for i in need.missing if i < len(pending.parts)]
         if wanted:
             pending.wanted, pending.cursor = wanted, 0
+
+    def _heard_at(self) -> float:
+        """When the peer last showed it is there, for the silence rule (docs/protocol.md 7.7):
+        its last valid frame; in version 5 its last frame of any kind (a damaged frame is a
+        peer talking through a noisy line, not a silent one)."""
+        return self._last_frame if self.version >= 5 else self._last_rx
 
     def _meets(self, hello: Hello) -> bool:
         """Whether ``hello``'s version range meets this end's."""
@@ -416,6 +431,7 @@ class Link:
             self._start_hello(now)  # it restarted and does not know us yet
 
     def _on_ack(self, seq: int, now: float) -> None:
+        self._last_ack = now  # the peer hears us (7.1: what a failed message then means)
         pending = self._inflight.pop(seq, None)
         if pending is None:
             self.stats.stray_acks += 1
@@ -446,18 +462,21 @@ class Link:
 
     # -- bytes out -----------------------------------------------------------------------------
 
-    def _ack(self, frame: Frame, now: float) -> None:
+    def _ack(self, frame: Frame, now: float) -> bool:
+        """ACK ``frame`` (a burst for an urgent one); False for another copy of a burst already
+        answered within ACK_HOLDOFF (not answered: the same transmission)."""
         ack = encode(Ack(), frame.seq, version=min(frame.version, self.proto_max))
         if not frame.flags & FLAG_URGENT:
             self._out += ack
-            return
+            return True
         last = self._ack_burst_at.get(frame.seq)
         if last is not None and now - last < self.config.ack_holdoff:
-            return  # another copy of a burst already answered with a burst
+            return False  # another copy of a burst already answered with a burst
         if len(self._ack_burst_at) > 64:
             self._ack_burst_at = {s: t for s, t in self._ack_burst_at.items() if now - t < 1.0}
         self._ack_burst_at[frame.seq] = now
         self._out += ack * self.config.urgent_copies
+        return True
 
     def _nak(self, seq: int, reason: NakReason, refused_type: int) -> None:
         self._out += encode(Nak(reason, refused_type), seq, version=self.version)
@@ -470,7 +489,7 @@ class Link:
 
     def _start_hello(self, now: float) -> None:
         hello = Hello(self.role, self.boot_id, self.software, MIN_VERSION, self.proto_max)
-        pending = _Pending(self._take_seq(), hello, False)
+        pending = _Pending(self._take_seq(), hello, True)  # a burst, as PAUSE (7.5)
         self._hello_seq = pending.seq
         self._inflight[pending.seq] = pending
         self._transmit(pending, now)
@@ -483,7 +502,10 @@ class Link:
             self._inflight[pending.seq] = pending
             self._transmit(pending, now)
         normal = sum(1 for p in self._inflight.values() if not p.urgent)
-        while self._normal_q and normal < self.config.window:
+        # version 5: the base carries one command at a time, so that the module joins its
+        # commands in the order they were sent (7.11; PARTs of several would join shortest first)
+        window = 1 if self.role == Role.BASE and self.version >= 5 else self.config.window
+        while self._normal_q and normal < window:
             pending = self._normal_q.popleft()
             self._inflight[pending.seq] = pending
             self._transmit(pending, now)
@@ -518,11 +540,23 @@ class Link:
         pending.tries += 1
         pending.next_at = now + self.config.retry_interval
 
+    def _carry_since(self) -> int:
+        """The first version in which this end carries its messages in PARTs (7.11): 3 for
+        the module, 5 for the base."""
+        return 3 if self.role == Role.MODULE else 5
+
     def _carries(self, pending: _Pending, version: int) -> bool:
-        """Version 3: the module sends every sequenced message but HELLO and the urgent ones
-        as PARTs (docs/protocol.md 7.11)."""
-        return (version >= 3 and self.role == Role.MODULE and not pending.urgent
-                and not isinstance(pending.message, Hello))
+        """Whether ``pending`` goes as PARTs: every sequenced message but the urgent ones
+        (PAUSE, RESUME, HELLO), from :meth:`_carry_since` on (docs/protocol.md 7.11)."""
+        return version >= self._carry_since() and not pending.urgent
+
+    def _tries_allowed(self, pending: _Pending) -> int:
+        """Transmissions of a whole frame before it has failed: MAX_TRIES; in version 5 (but
+        for HELLO, which has its own schedule) as many as fit in CARRY_TIMEOUT (7.1)."""
+        cfg = self.config
+        if self.version < 5 or isinstance(pending.message, Hello):
+            return cfg.max_tries
+        return max(cfg.max_tries, round(cfg.carry_timeout / cfg.retry_interval))
 
     def _run_carousel(self, now: float) -> None:
         """Write PARTs of the carried messages in flight, round robin over the messages and
@@ -531,7 +565,7 @@ class Link:
         if not carried:
             self._part_clock = None
             return
-        if self.version < 3:  # the peer came back older: send them whole
+        if self.version < self._carry_since():  # the peer came back older: send them whole
             for pending in carried:
                 pending.parts = pending.wanted = None
                 pending.tries, pending.next_at = 0, now
@@ -567,6 +601,8 @@ class Link:
                 self._set_state(LinkState.FAULTY, f"HELLO: {why}", now)
             return
         self._fail(pending, why)
+        if self.version >= 5 and self._last_ack > pending.first_at:
+            return  # 7.1: the peer acknowledged ours meanwhile; it hears us, the link is up
         if self.state != LinkState.INCOMPATIBLE:
             self._set_state(LinkState.FAULTY,
                             f"{pending.message.TYPE.name} seq {pending.seq}: {why}; "

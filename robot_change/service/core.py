@@ -179,7 +179,7 @@ class Service(Dispatch, Sending, Control):
         self.port = port
         self.params: dict[str, int] = dict(config.parameters())
         self.link = Link(Role.MODULE, config=link_config or LinkConfig.for_baud(config.serial.baud),
-                         software=f"robot-change {robot_change.__version__}", admit=self._admit)
+                         admit=self._admit)
         self._throttled = Throttled(log)
         self._admitted = 0  # commands admitted by the link, not yet in self._commands
         self.runner = LinkRunner(self.link, port, max_wait=self.options.link_max_wait)

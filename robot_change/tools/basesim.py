@@ -249,8 +249,8 @@ class BaseSim:
         self.out = out or sys.stdout
         self.verbose = verbose
         self.clock = clock
-        self.link = Link(Role.BASE, clock=clock, software="robot-change base-sim",
-                         config=LinkConfig.for_baud(baudrate), proto_max=proto_max)
+        self.link = Link(Role.BASE, clock=clock, config=LinkConfig.for_baud(baudrate),
+                         proto_max=proto_max)
         self.runner = LinkRunner(self.link, port)
         self.port = port
         self.t0 = clock()

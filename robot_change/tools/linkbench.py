@@ -16,13 +16,23 @@ Modes (``mode``):
   the CHANGE_REPORT parts of ``regions`` regions; the base sends RESUME when the report is whole
   (or after ``report_timeout``).  A report counts as complete when the base has joined it
   within ``report_timeout`` (5 s) of the PAUSE being sent.
+- ``check``: ``count`` CHECKs from the base, one at a time; the module answers each the way the
+  service does (PAUSE, CHECK_RESULT, the report), then the base sends RESUME.  Counted: CHECKs
+  the module received, answers whose PAUSE and whole report the base had within
+  ``report_timeout`` of sending the CHECK, and the base's link faults: both directions.
+- ``restart``: ``count`` times the module restarts (a new Link, a new boot id; what the old one
+  had on the line still arrives) and the base must see the new boot: the time from the new
+  module's start to the base receiving its HELLO, and to both ends speaking ``proto`` again.
+- ``idle``: ``count`` seconds of heartbeats alone (the base parked, nothing to say): counted are
+  the link faults each end declares, which must be none while both ends are alive.
 - ``status``: ``count`` STATUS_QUERY -> STATUS round trips from the base, one at a time.
 - ``flood``: the base queues ``count`` STATUS_QUERYs at once; the module answers each the way
   the service does (coalesced: one STATUS in flight, one waiting); counted: queries
   acknowledged, refused, STATUS received, answers dropped.
 
-``proto`` (3 by default) is the highest version both ends offer: 2 measures the whole-frame
-transport of versions 1 and 2.
+``proto`` (the newest by default) is the highest version both ends offer: 2 measures the
+whole-frame transport of versions 1 and 2, 4 the module's PARTs with the base's whole frames,
+5 PARTs both ways.
 
 A round trip counts as delivered when the base received the PAUSE and the module received its
 ACK; its latency is from ``send()`` to that ACK.  Everything runs in one thread (select), so the
@@ -48,9 +58,11 @@ from robot_change.link.protocol import (
     VERSION,
     BaseHeartbeat,
     ChangeReport,
+    Check,
     CheckOutcome,
     CheckResult,
     Heartbeat,
+    Hello,
     ModuleState,
     Motion,
     Pause,
@@ -74,7 +86,9 @@ from robot_change.link.session import (
     StateChanged,
 )
 
-MODES = ("pause", "report", "status", "flood")
+#: ``restart`` mode: how long a restarting module is silent (stopped, not yet started again).
+RESTART_SILENCE = 0.3
+MODES = ("pause", "report", "check", "restart", "idle", "status", "flood")
 NOISES = ("mixed", "flip")
 
 
@@ -142,11 +156,15 @@ def run_link_bench(corrupt: float = 0.1, count: int = 200, baud: int = 115200, j
     """Run the bench; print the result (one JSON object with ``json``) and return it as a dict.
 
     Keys of every mode: mode, proto, noise, sent, corrupt, baud, seconds, retransmissions,
-    parts_sent, bad_frames, bytes, corrupted_bytes, link_faults.  ``pause`` adds delivered,
-    received_by_base, failed, p50_ms, p99_ms, max_ms (round trips), one_way_p50_ms,
-    one_way_p99_ms; ``report``: pauses_received, reports_complete, report_p50_ms,
-    report_p99_ms, report_max_ms, resumes_delivered; ``status``: answered, status_p50_ms,
-    status_p99_ms; ``flood``: acked, refused, status_received, answers_dropped.
+    parts_sent (both ends), bad_frames, bytes, corrupted_bytes, link_faults (the module's),
+    base_link_faults.  ``pause`` adds delivered, received_by_base, failed, p50_ms, p99_ms,
+    max_ms (round trips), one_way_p50_ms, one_way_p99_ms; ``report``: pauses_received,
+    reports_complete, report_p50_ms, report_p99_ms, report_max_ms, resumes_delivered;
+    ``check``: reached, answered, answer_p50_ms, answer_p99_ms, answer_max_ms,
+    resumes_delivered; ``restart``: seen, seen_p50_ms, seen_p99_ms, seen_max_ms, ready,
+    ready_p50_ms, ready_p99_ms; ``idle``: (the faults only); ``status``: answered,
+    status_p50_ms, status_p99_ms; ``flood``:
+    acked, refused, status_received, answers_dropped.
     """
     if not 0 <= corrupt < 1:
         raise InputError(f"--corrupt {corrupt}: give a probability per byte, 0 <= p < 1")
@@ -210,6 +228,16 @@ def _summary(r: dict[str, Any]) -> str:
                  f"{r['report_timeout_s']:g} s {pct(r['reports_complete'])}, p50 "
                  f"{r['report_p50_ms']} ms, p99 {r['report_p99_ms']} ms; RESUME delivered "
                  f"{pct(r['resumes_delivered'])}")
+    elif r["mode"] == "check":
+        line += (f"reached the module {pct(r['reached'])}, PAUSE and the whole report within "
+                 f"{r['report_timeout_s']:g} s {pct(r['answered'])}, p50 {r['answer_p50_ms']} ms, "
+                 f"p99 {r['answer_p99_ms']} ms; RESUME delivered {pct(r['resumes_delivered'])}")
+    elif r["mode"] == "restart":
+        line += (f"new boot seen {pct(r['seen'])}, p50 {r['seen_p50_ms']} ms, p99 "
+                 f"{r['seen_p99_ms']} ms, max {r['seen_max_ms']} ms; both ends at protocol "
+                 f"{r['proto']} again p50 {r['ready_p50_ms']} ms, p99 {r['ready_p99_ms']} ms")
+    elif r["mode"] == "idle":
+        line += "seconds of heartbeats alone"
     elif r["mode"] == "status":
         line += (f"answered {pct(r['answered'])}, p50 {r['status_p50_ms']} ms, p99 "
                  f"{r['status_p99_ms']} ms")
@@ -217,7 +245,8 @@ def _summary(r: dict[str, Any]) -> str:
         line += (f"acked {r['acked']}, refused {r['refused']}, failed {r['failed']}, STATUS "
                  f"received {r['status_received']}, answers dropped {r['answers_dropped']}")
     return line + (f"; {r['retransmissions']} retransmissions, {r['parts_sent']} PARTs, "
-                   f"{r['bad_frames']} bad frames, {r['link_faults']} link faults")
+                   f"{r['bad_frames']} bad frames, link faults: module {r['link_faults']}, "
+                   f"base {r['base_link_faults']}")
 
 
 class _Bench:
@@ -229,37 +258,48 @@ class _Bench:
         if flood:  # the base queues the whole flood at once
             from dataclasses import replace
             base_config = replace(config, max_queue=max(config.max_queue, flood))
-        self.module = Link(Role.MODULE, config=config, proto_max=proto)
+        self.config, self.proto = config, proto
+        self.module = self.new_module()
         self.base = Link(Role.BASE, config=base_config, proto_max=proto)
-        self.module.set_heartbeat(Heartbeat(ModuleState.WATCHING, paused=True, armed=True,
-                                            fps_x10=300))
         self.base.set_heartbeat(BaseHeartbeat(Motion.PARKED))
         self.port_m, self.port_b, self.ma, self.mb = port_m, port_b, ma, mb
         self.to_base, self.to_module = to_base, to_module
-        self.faults = 0
+        self.faults = self.base_faults = 0
+        self.module_off = False
         self.start = time.monotonic()
         self.module_events: list[Any] = []
         self.base_events: list[Any] = []
         self.status_seq = 0
 
+    def new_module(self) -> Link:
+        """A module's link as one starts: a new boot id, version 1 until the base's HELLO."""
+        module = Link(Role.MODULE, config=self.config, proto_max=self.proto)
+        module.set_heartbeat(Heartbeat(ModuleState.WATCHING, paused=True, armed=True,
+                                       fps_x10=300))
+        return module
+
     def pump(self, max_wait: float = 0.01) -> float:
         """One turn: timers, writes, relay, reads.  Events pile up in *_events."""
         now = time.monotonic()
-        for link, port in ((self.module, self.port_m), (self.base, self.port_b)):
+        links = ((self.module, self.port_m), (self.base, self.port_b))
+        for link, port in links[self.module_off:]:
             link.poll(now)
             data = link.outgoing()
             if data:
                 port.write(data)
         self.to_base.flush(now)
         self.to_module.flush(now)
-        deadline = min(self.module.next_deadline(), self.base.next_deadline(),
+        deadline = min(float("inf") if self.module_off else self.module.next_deadline(),
+                       self.base.next_deadline(),
                        self.to_base.next_due(), self.to_module.next_due(), now + max_wait)
         fds = [self.port_m.fileno(), self.port_b.fileno(), self.ma, self.mb]
         readable, _, _ = select.select(fds, [], [], max(0.0, deadline - now))
         now = time.monotonic()
         for fd in readable:
             if fd == fds[0]:
-                self.module.receive(self.port_m.read(self.port_m.in_waiting or 1), now)
+                data = self.port_m.read(self.port_m.in_waiting or 1)
+                if not self.module_off:  # a module between two lives hears nothing
+                    self.module.receive(data, now)
             elif fd == fds[1]:
                 self.base.receive(self.port_b.read(self.port_b.in_waiting or 1), now)
             else:
@@ -274,7 +314,10 @@ class _Bench:
             elif isinstance(event, Received) and isinstance(event.message, StatusQuery):
                 self.answer_status()
             self.module_events.append(event)
-        self.base_events.extend(self.base.events())
+        for event in self.base.events():
+            if isinstance(event, StateChanged) and event.new == LinkState.FAULTY:
+                self.base_faults += 1
+            self.base_events.append(event)
         return now
 
     def answer_status(self) -> None:
@@ -292,7 +335,7 @@ class _Bench:
         self.module_events.clear()
         self.base_events.clear()
         self.to_base.corrupt = self.to_module.corrupt = corrupt
-        self.faults = 0
+        self.faults = self.base_faults = 0
 
     def wait(self, seconds: float, until: Any = None) -> float:
         end = time.monotonic() + seconds
@@ -312,11 +355,12 @@ class _Bench:
     def totals(self, corrupt: float, baud: int) -> dict[str, Any]:
         m, b = self.module, self.base
         return {"retransmissions": m.stats.retransmissions + b.stats.retransmissions,
-                "parts_sent": m.stats.parts_sent,
+                "parts_sent": m.stats.parts_sent + b.stats.parts_sent,
                 "bad_frames": m.decoder.errors + b.decoder.errors,
                 "bytes": self.to_base.bytes + self.to_module.bytes,
                 "corrupted_bytes": self.to_base.corrupted + self.to_module.corrupted,
-                "link_faults": self.faults, "corrupt": corrupt, "baud": baud,
+                "link_faults": self.faults, "base_link_faults": self.base_faults,
+                "corrupt": corrupt, "baud": baud,
                 "seconds": round(time.monotonic() - self.start, 2)}
 
     # -- modes ------------------------------------------------------------------------------
@@ -362,22 +406,13 @@ class _Bench:
     def run_report(self, corrupt: float, count: int, timeout: float, gap: float, regions: int,
                    report_timeout: float) -> dict[str, Any]:
         self.connect(corrupt)
-        rng = random.Random(count)
-        wire_regions = [Region(RegionKind.APPEARED, (rng.randrange(-3000, 3000),
-                                                     rng.randrange(-3000, 3000),
-                                                     rng.randrange(0, 2000)),
-                               (rng.randrange(10, 2000),) * 3, rng.randrange(12, 50000))
-                        for _ in range(regions)]
+        wire_regions = _regions(regions, count)
         assembler = ReportAssembler()
         pauses = complete = resumes = 0
         latencies: list[float] = []
         for k in range(1, count + 1):
             started = time.monotonic()
-            pause_seq = self.module.send(Pause(PauseCause.CHANGE_CHECK), started)
-            if self.module.version >= 2:
-                self.module.send(CheckResult("kitchen", CheckOutcome.CHANGED, k), started)
-            for part in split_change_report(k, "kitchen", wire_regions):
-                self.module.send(part, started)
+            pause_seq = self.answer_check(k, wire_regions, started)
             state = {"pause": False, "report": None}
 
             def joined(pause_seq=pause_seq, state=state, k=k, started=started) -> bool:
@@ -399,17 +434,7 @@ class _Bench:
                 complete += 1
                 latencies.append(state["report"])
             self.module_events.clear()
-            seq = self.base.send(Resume())
-            result: list[Any] = []
-
-            def resumed(seq=seq, result=result) -> bool:
-                result.extend(e for e in self.base_events
-                              if isinstance(e, (Delivered, SendFailed)) and e.seq == seq)
-                self.base_events.clear()
-                return bool(result)
-
-            self.wait(timeout, resumed)
-            resumes += bool(result) and isinstance(result[0], Delivered)
+            resumes += self.resume(timeout)
             # what is still in flight for this report is left to finish or fail on its own
             self.wait(gap, lambda: not self.module.in_flight and not self.module.queued)
             self.module_events.clear()
@@ -419,6 +444,121 @@ class _Bench:
                 "report_p99_ms": _ms(_percentile(latencies, 99)),
                 "report_max_ms": _ms(max(latencies) if latencies else None),
                 "resumes_delivered": resumes}
+
+    def answer_check(self, k: int, regions: list[Region], now: float) -> int:
+        """Answer check ``k`` as the service does: PAUSE, CHECK_RESULT (version >= 2), the
+        report's parts; the PAUSE's seq."""
+        pause_seq = self.module.send(Pause(PauseCause.CHANGE_CHECK), now)
+        if self.module.version >= 2:
+            self.module.send(CheckResult("kitchen", CheckOutcome.CHANGED, k), now)
+        for part in split_change_report(k, "kitchen", regions):
+            self.module.send(part, now)
+        return pause_seq
+
+    def resume(self, timeout: float) -> bool:
+        """The base sends RESUME; whether it was acknowledged within ``timeout``."""
+        seq = self.base.send(Resume())
+        result: list[Any] = []
+
+        def resumed() -> bool:
+            result.extend(e for e in self.base_events
+                          if isinstance(e, (Delivered, SendFailed)) and e.seq == seq)
+            self.base_events.clear()
+            return bool(result)
+
+        self.wait(timeout, resumed)
+        return bool(result) and isinstance(result[0], Delivered)
+
+    def run_check(self, corrupt: float, count: int, timeout: float, gap: float, regions: int,
+                  report_timeout: float) -> dict[str, Any]:
+        self.connect(corrupt)
+        wire_regions = _regions(regions, count)
+        assembler = ReportAssembler()
+        reached = answered = resumes = 0
+        latencies: list[float] = []
+        for k in range(1, count + 1):
+            started = time.monotonic()
+            self.base.send(Check("kitchen"), started)
+            state: dict[str, Any] = {"pause_seq": None, "pause": False, "report": None}
+
+            def answered_whole(state=state, k=k, started=started) -> bool:
+                for e in self.module_events:
+                    if (isinstance(e, Received) and isinstance(e.message, Check)
+                            and state["pause_seq"] is None):
+                        state["pause_seq"] = self.answer_check(k, wire_regions, time.monotonic())
+                self.module_events.clear()
+                for e in self.base_events:
+                    if isinstance(e, Received) and isinstance(e.message, Pause) \
+                            and e.seq == state["pause_seq"]:
+                        state["pause"] = True
+                    elif isinstance(e, Received) and isinstance(e.message, ChangeReport) \
+                            and e.message.report_id == k and assembler.add(e.message) is not None:
+                        state["report"] = time.monotonic() - started
+                self.base_events.clear()
+                return state["report"] is not None and state["pause"]
+
+            self.wait(report_timeout, answered_whole)
+            if state["report"] is not None and state["pause"]:
+                answered += 1
+                latencies.append(state["report"])
+            # a CHECK still carried is left to arrive (or fail) before the next one
+            self.wait(self.base.config.carry_timeout,
+                      lambda: not self.base.in_flight and not self.base.queued)
+            answered_whole()
+            reached += state["pause_seq"] is not None
+            resumes += self.resume(timeout)
+            self.wait(gap, lambda: not self.module.in_flight and not self.module.queued)
+            self.module_events.clear()
+        return {"sent": count, "regions": regions, "report_timeout_s": report_timeout,
+                "reached": reached, "answered": answered,
+                "answer_p50_ms": _ms(_percentile(latencies, 50)),
+                "answer_p99_ms": _ms(_percentile(latencies, 99)),
+                "answer_max_ms": _ms(max(latencies) if latencies else None),
+                "resumes_delivered": resumes}
+
+    def run_restart(self, corrupt: float, count: int, timeout: float, gap: float, regions: int,
+                    report_timeout: float) -> dict[str, Any]:
+        self.connect(corrupt)
+        rng = random.Random(count)
+        seen: list[float] = []
+        ready: list[float] = []
+        for _ in range(count):
+            self.module_off = True  # stopped: silent and deaf until it starts again
+            self.wait(RESTART_SILENCE)
+            self.module, self.module_off = self.new_module(), False
+            started = time.monotonic()
+            state: dict[str, float] = {}
+
+            def known(boot=self.module.boot_id, state=state, started=started) -> bool:
+                now = time.monotonic()
+                for e in self.base_events:
+                    if (isinstance(e, Received) and isinstance(e.message, Hello)
+                            and e.message.boot_id == boot and "seen" not in state):
+                        state["seen"] = now - started
+                self.base_events.clear()
+                if ("ready" not in state and self.module.state == LinkState.UP
+                        and self.module.version == self.base.version == self.proto):
+                    state["ready"] = now - started
+                return len(state) == 2
+
+            self.wait(report_timeout, known)
+            if "seen" in state:
+                seen.append(state["seen"])
+            if "ready" in state:
+                ready.append(state["ready"])
+            self.module_events.clear()
+            self.wait(rng.uniform(0.2, 0.5))  # up a while before the next restart
+        return {"sent": count, "timeout_s": report_timeout, "seen": len(seen),
+                "seen_p50_ms": _ms(_percentile(seen, 50)),
+                "seen_p99_ms": _ms(_percentile(seen, 99)),
+                "seen_max_ms": _ms(max(seen) if seen else None), "ready": len(ready),
+                "ready_p50_ms": _ms(_percentile(ready, 50)),
+                "ready_p99_ms": _ms(_percentile(ready, 99))}
+
+    def run_idle(self, corrupt: float, count: int, *_: Any) -> dict[str, Any]:
+        self.connect(corrupt)
+        self.wait(float(count))
+        return {"sent": count}
 
     def run_status(self, corrupt: float, count: int, timeout: float, gap: float, *_: Any
                    ) -> dict[str, Any]:
@@ -462,6 +602,15 @@ class _Bench:
         dropped = sum(isinstance(e, SendFailed) for e in self.module_events)
         return {"sent": count, "acked": acked, "refused": refused, "failed": failed,
                 "status_received": statuses, "answers_dropped": dropped}
+
+
+def _regions(count: int, seed: int) -> list[Region]:
+    """``count`` made-up regions of a change report (the same for one ``seed``)."""
+    rng = random.Random(seed)
+    return [Region(RegionKind.APPEARED, (rng.randrange(-3000, 3000), rng.randrange(-3000, 3000),
+                                         rng.randrange(0, 2000)),
+                   (rng.randrange(10, 2000),) * 3, rng.randrange(12, 50000))
+            for _ in range(count)]
 
 
 def median_of(runs: list[dict[str, Any]]) -> dict[str, Any]:
