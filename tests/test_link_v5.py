@@ -4,10 +4,14 @@ clock and the in-memory line of tests/test_link.py."""
 
 from __future__ import annotations
 
+import io
+import json
+
 import pytest
 
 from robot_change.link import protocol as p
 from robot_change.link.session import Delivered, Link, LinkState, SendFailed, StateChanged
+from robot_change.tools.linkbench import run_link_bench
 from tests.test_link import Wire, frames, received
 from tests.test_protocol import raw_frame
 
@@ -187,3 +191,13 @@ def test_a_silent_peer_is_still_a_link_fault_in_version_5():
     wire.cut = True
     wire.run(wire.base.config.silence_timeout + 0.2)
     assert wire.base.state == wire.module.state == LinkState.FAULTY
+
+
+@pytest.mark.parametrize("mode,key", [("check", "answered"), ("restart", "seen"), ("idle", None)])
+def test_link_bench_measures_both_directions_over_a_real_pty_pair(mode, key):
+    out = io.StringIO()
+    result = run_link_bench(0.02, 3, json=True, seed=1, out=out, mode=mode)
+    assert json.loads(out.getvalue()) == result and result["proto"] == p.VERSION
+    if key is not None:
+        assert result[key] == 3 and result[f"{'answer' if key == 'answered' else key}_p99_ms"]
+    assert result["link_faults"] == result["base_link_faults"] == 0

@@ -412,23 +412,11 @@ class _Bench:
         latencies: list[float] = []
         for k in range(1, count + 1):
             started = time.monotonic()
-            pause_seq = self.answer_check(k, wire_regions, started)
-            state = {"pause": False, "report": None}
-
-            def joined(pause_seq=pause_seq, state=state, k=k, started=started) -> bool:
-                for e in self.base_events:
-                    if isinstance(e, Received) and isinstance(e.message, Pause) \
-                            and e.seq == pause_seq:
-                        state["pause"] = True
-                    elif isinstance(e, Received) and isinstance(e.message, ChangeReport) \
-                            and e.message.report_id == k:
-                        whole = assembler.add(e.message)
-                        if whole is not None:
-                            state["report"] = time.monotonic() - started
-                self.base_events.clear()
-                return state["report"] is not None and state["pause"]
-
-            self.wait(report_timeout, joined)
+            state: dict[str, Any] = {"pause_seq": self.answer_check(k, wire_regions, started),
+                                     "pause": False, "report": None}
+            self.wait(report_timeout,
+                      lambda state=state, k=k, started=started:
+                      self.answer_seen(state, k, started, assembler))
             pauses += state["pause"]
             if state["report"] is not None and state["report"] <= report_timeout:
                 complete += 1
@@ -454,6 +442,21 @@ class _Bench:
         for part in split_change_report(k, "kitchen", regions):
             self.module.send(part, now)
         return pause_seq
+
+    def answer_seen(self, state: dict[str, Any], k: int, started: float,
+                    assembler: ReportAssembler) -> bool:
+        """Take the base's events: PAUSE ``state["pause_seq"]`` received, report ``k`` joined
+        (``state["report"]``: seconds since ``started``); whether both are there."""
+        for e in self.base_events:
+            if not isinstance(e, Received):
+                continue
+            if isinstance(e.message, Pause) and e.seq == state["pause_seq"]:
+                state["pause"] = True
+            elif (isinstance(e.message, ChangeReport) and e.message.report_id == k
+                  and assembler.add(e.message) is not None):
+                state["report"] = time.monotonic() - started
+        self.base_events.clear()
+        return state["report"] is not None and state["pause"]
 
     def resume(self, timeout: float) -> bool:
         """The base sends RESUME; whether it was acknowledged within ``timeout``."""
@@ -487,15 +490,7 @@ class _Bench:
                             and state["pause_seq"] is None):
                         state["pause_seq"] = self.answer_check(k, wire_regions, time.monotonic())
                 self.module_events.clear()
-                for e in self.base_events:
-                    if isinstance(e, Received) and isinstance(e.message, Pause) \
-                            and e.seq == state["pause_seq"]:
-                        state["pause"] = True
-                    elif isinstance(e, Received) and isinstance(e.message, ChangeReport) \
-                            and e.message.report_id == k and assembler.add(e.message) is not None:
-                        state["report"] = time.monotonic() - started
-                self.base_events.clear()
-                return state["report"] is not None and state["pause"]
+                return self.answer_seen(state, k, started, assembler)
 
             self.wait(report_timeout, answered_whole)
             if state["report"] is not None and state["pause"]:
