@@ -151,6 +151,7 @@ def test_unit_keeps_usb_serial_and_the_jit_working():
     assert {"char-usb_device", "char-ttyUSB", "char-ttyACM"} <= allowed
     assert set(s["SupplementaryGroups"][0].split()) == {"dialout", "plugdev"}
     assert "Environment" in s and "NUMBA_CACHE_DIR=%C/robot-change/numba" in s["Environment"]
+    assert "MALLOC_ARENA_MAX=2" in s["Environment"]  # the soak's level RSS (benchmarks.md)
     assert s["ExecStart"][0].startswith("/opt/robot-change/.venv/bin/robot-change run --config "
                                         "/etc/robot-change/robot-change.toml")
     assert int(s["TimeoutStartSec"][0]) >= 120
