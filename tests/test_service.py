@@ -28,7 +28,7 @@ from hw.depth import open_depth
 from hw.serial_port import FdPort, open_port
 from robot_change.errors import ConfigError
 from robot_change.link import protocol as p
-from robot_change.link.session import LinkState
+from robot_change.link.session import LinkState, SendFailed
 from robot_change.service.camera import FrameQueue
 from robot_change.service.config import Config, config_from_dict
 from robot_change.service.core import Service, ServiceOptions, wire_text
@@ -890,3 +890,18 @@ def test_the_module_sends_pause_again_when_the_link_comes_back_with_the_latch_se
     assert rig.service.link.state == LinkState.FAULTY
     rig.run("expect PAUSE cause=CHANGE_CHECK 4")
     assert rig.service.latched
+
+
+def test_a_pause_that_failed_while_the_link_stayed_up_is_sent_again(rig: Rig) -> None:
+    """Version 5: a PAUSE unacknowledged for 10 s fails without the link going FAULTY when
+    the base acknowledges the module's other messages; the latch set, it goes out again."""
+    rig.run("capture office\nexpect CAPTURED 5")
+    rig.show("current")
+    rig.run("check office\nexpect PAUSE cause=CHANGE_CHECK 5\nexpect REPORT 5")
+    assert rig.service.link.state == LinkState.UP and rig.service.latched
+    rig.service._on_event(SendFailed(p.Pause(p.PauseCause.CHANGE_CHECK), 99, "no ACK", None))
+    rig.run("expect PAUSE cause=CHANGE_CHECK 4")
+    rig.run("resume\nwait 0.5")
+    assert not rig.service.latched
+    rig.service._on_event(SendFailed(p.Pause(p.PauseCause.CHANGE_CHECK), 99, "no ACK", None))
+    rig.run("expect-none PAUSE 1.0")

@@ -198,7 +198,6 @@ class Service(Dispatch, Sending, Control):
         self.armed = True
         self.station = ""
         self.motion = Motion.UNKNOWN
-        self._pause_undelivered = False
         self._last_pause_cause = PauseCause.CHANGE_CHECK
         self._cancel = threading.Event()
         self._watch: StationWatch | None = None

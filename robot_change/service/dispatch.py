@@ -65,23 +65,23 @@ class Dispatch:
         if isinstance(event, Received):
             self._on_message(event.message)
         elif isinstance(event, Delivered):
-            if isinstance(event.message, Pause):
-                self._pause_undelivered = False
-            elif isinstance(event.message, Fault) and self.stalled:
+            if isinstance(event.message, Fault) and self.stalled:
                 self.stall_told.set()
         elif isinstance(event, SendFailed):
             self._throttled(f"failed-{event.message.TYPE.name}", logging.WARNING,
                             "%s seq %d not delivered: %s", event.message.TYPE.name, event.seq,
                             event.reason)
             self.counters["send_failed"] += 1
-            if isinstance(event.message, Pause):
-                self._pause_undelivered = True
+            if (isinstance(event.message, Pause) and event.nak is None
+                    and self.link.state == LinkState.UP):
+                # version 5 (docs/protocol.md 7.1): a PAUSE tried for 10 s fails without the
+                # link going FAULTY when the base acknowledges our other messages
+                self._pause_again("a PAUSE was not acknowledged")
         elif isinstance(event, StateChanged):
             log.log(logging.WARNING if event.new != LinkState.UP else logging.INFO,
                     "link %s: %s", event.new.value, event.why)
-            if event.new == LinkState.UP and event.old != LinkState.CONNECTING and self.latched:
-                log.info("link back up with the pause latch set: sending PAUSE again")
-                self._send(Pause(self._last_pause_cause))
+            if event.new == LinkState.UP and event.old != LinkState.CONNECTING:
+                self._pause_again("link back up")
         elif isinstance(event, PortProblem):
             log.log(logging.INFO if event.up else logging.ERROR, "serial port %s: %s",
                     "back" if event.up else "lost", event.detail)
@@ -118,7 +118,6 @@ class Dispatch:
         elif isinstance(m, Resume):
             with self._lock:
                 was, self.latched = self.latched, False
-                self._pause_undelivered = False
             if was:
                 log.info("RESUME: pause latch cleared")
         elif isinstance(m, Stop):

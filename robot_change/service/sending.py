@@ -66,10 +66,22 @@ class Sending:
         with self._lock:
             self.latched = True
             self._last_pause_cause = cause
-        self._send(Pause(V1_PAUSE_CAUSE.get(cause, cause) if self.link.version < 2 else cause))
+        self._send(self._pause_of(cause))
         self.counters["pauses"] += 1
         log.warning("PAUSE %s", cause.name)
         self._refresh_heartbeat(force=True)
+
+    def _pause_again(self, why: str) -> None:
+        """PAUSE once more while the pause latch is set (the base may not have had it)."""
+        if not self.latched:
+            return
+        log.info("%s with the pause latch set: sending PAUSE again", why)
+        self._send(self._pause_of(self._last_pause_cause))
+
+    def _pause_of(self, cause: PauseCause) -> Pause:
+        """PAUSE ``cause`` as the session's version has it (version 1: NOT_AT_STATION's and
+        the like mapped to its older causes)."""
+        return Pause(V1_PAUSE_CAUSE.get(cause, cause) if self.link.version < 2 else cause)
 
     def send_report(self, station: str, changes: ChangeSet) -> int:
         """CHECK_RESULT (version 2) then the CHANGE_REPORT parts; regions in base_link in
