@@ -695,6 +695,22 @@ def test_admit_refuses_with_a_nak_and_the_message_is_not_remembered():
     assert received(wire.module_events, p.Check) == [p.Check("kitchen")]
 
 
+@pytest.mark.parametrize("proto", [3, p.VERSION])  # whole frame; carried in PARTs (v5)
+def test_a_copy_of_a_refused_command_crossing_the_nak_gets_the_same_nak(proto):
+    asked = []
+    wire = Wire(proto_max=proto)
+    wire.module.admit = lambda m: asked.append(m) or p.NakReason.BUSY
+    wire.connect()
+    seq = wire.base.send(p.Check("kitchen"))
+    wire.base.poll()
+    data = wire.base.outgoing()
+    for _ in range(2):  # the command, then its retry sent before our NAK arrived
+        wire.module.receive(data)
+        naks = [f for f in frames(wire.module.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+        assert naks and {(f.seq, f.message.reason) for f in naks} == {(seq, p.NakReason.BUSY)}
+    assert len(asked) == 1 and not received(wire.module.events(), p.Check)
+
+
 def test_coalesced_answers_replace_the_one_still_waiting():
     wire = Wire(proto_max=2).connect()
     wire.cut = True

@@ -140,8 +140,9 @@ class Link:
         self._inflight: dict[int, _Pending] = {}
         self._hello_seq: int | None = None
         self._greeted = False
-        self._seen: set[int] = set()
-        self._seen_order: deque[int] = deque()
+        # seqs of the peer's current boot this end answered (docs/protocol.md 7.2), oldest
+        # first: None when acknowledged, else the NAK (reason, type) that refused it
+        self._seen: dict[int, tuple[NakReason, int] | None] = {}
         self._ack_burst_at: dict[int, float] = {}
         self._out = bytearray()
         self._events: list[Event] = []
@@ -327,7 +328,6 @@ class Link:
                                                    message.boot_id != self.peer.boot_id)
         if new_peer:  # the peer (re)started: its sequence numbers start afresh
             self._seen.clear()
-            self._seen_order.clear()
             self._ack_burst_at.clear()
             self._assemblies.clear()  # half-joined messages of the old boot
         if isinstance(message, Hello) and not self._meets(message):
@@ -339,7 +339,10 @@ class Link:
                             f"{MIN_VERSION}..{self.proto_max}: update the older side", now)
             return
         if seq in self._seen:
-            if self._ack(frame, now):  # copies of one burst are one transmission
+            refused = self._seen[seq]
+            if refused is not None:  # a copy sent before our NAK arrived: the same answer
+                self._nak(seq, *refused)
+            elif self._ack(frame, now):  # copies of one burst are one transmission
                 self.stats.duplicates += 1
             return
         if self.role == Role.MODULE and self.peer is None and not isinstance(message, Hello):
@@ -351,13 +354,11 @@ class Link:
         if self.admit is not None and not isinstance(message, Hello):
             refusal = self.admit(message)
             if refusal is not None:
+                self._remember(seq, (refusal, message.TYPE))
                 self._nak(seq, refusal, message.TYPE)
                 return
         self._ack(frame, now)
-        self._seen.add(seq)
-        self._seen_order.append(seq)
-        if len(self._seen_order) > self.config.dedup_memory:
-            self._seen.discard(self._seen_order.popleft())
+        self._remember(seq, None)
         if isinstance(message, Hello):
             self._on_hello(message, new_peer, now)
         self._events.append(Received(message, seq))
@@ -368,8 +369,12 @@ class Link:
         part: Part = frame.message  # type: ignore[assignment]
         seq = frame.seq
         self.stats.parts_received += 1
-        if seq in self._seen:  # joined already: our ACK burst was lost; another one
-            self._ack(Frame(part, seq, FLAG_URGENT, frame.version), now)
+        if seq in self._seen:  # joined already: our answer was lost; another one
+            refused = self._seen[seq]
+            if refused is not None:
+                self._nak(seq, *refused)
+            else:
+                self._ack(Frame(part, seq, FLAG_URGENT, frame.version), now)
             return
         assembly = self._assemblies.get(seq)
         if assembly is None or assembly.count != part.count:
@@ -477,6 +482,13 @@ class Link:
         self._ack_burst_at[frame.seq] = now
         self._out += ack * self.config.urgent_copies
         return True
+
+    def _remember(self, seq: int, refused: tuple[NakReason, int] | None) -> None:
+        """Remember an answered seq for duplicates (docs/protocol.md 7.2), the last
+        ``dedup_memory`` of them."""
+        self._seen[seq] = refused
+        if len(self._seen) > self.config.dedup_memory:
+            del self._seen[next(iter(self._seen))]
 
     def _nak(self, seq: int, reason: NakReason, refused_type: int) -> None:
         self._out += encode(Nak(reason, refused_type), seq, version=self.version)
