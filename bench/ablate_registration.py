@@ -85,14 +85,9 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
     "wide_cut": ({"wide_cut_m": 0.0},
                  "the coarsest level's second ICP with a wide Tukey cut "
                  "(register._coarse_to_fine)"),
-    "coarse_restart": ({"restart_min_score": 1.0},
-                       "the coarsest level's restarts never accepted (register._restart; they "
-                       "are still run, so the time is not saved)"),
     "end_restart": ({"restart_end_through": 0.0},
                     "step 7d, the coarse-to-fine passes again from 12 starts "
                     "(register._restarted_end)"),
-    "restarts": ({"restart_step_m": 0.0, "restart_step_deg": 0.0},
-                 "both restarts: no starts (register._restart_starts)"),
     "table_starts": ({"table_starts": 0},
                      "step 6b, the table-plane starts (table_top.table_starts); the planes "
                      "are still found for the trimming and checks"),

@@ -96,18 +96,10 @@ class RegistrationParams:
     # collapses to the noise and the objects' pairs, still centimetres off, are cut: the
     # estimate drifts about the table's normal.  A room's walls keep the narrow cut right.
     wide_cut_m: float = 0.2
-    # When the coarsest level's end scores no more than 0 (as many cells seen through or
-    # unpaired as paired: ICP fell into a pose that is no pose of this view), ICP restarts
-    # there from the initial pose moved by restart_step_m along and turned by
-    # restart_step_deg about each camera axis (12 starts), and the best-scoring end goes on
-    # when it scores more than restart_min_score of the two levels' cells with a normal: a
-    # pose that fits (0 and 0: never).  Station 10003, one object moved, 15 cm / 6 deg away:
-    # from the initial pose ICP ended 27 cm off (score -0.40 of the cells), from 3 of the 12
-    # restarts at the truth (+0.23).  Station 10008, every object moved, 10 cm away: the truth
-    # itself scores -0.00 at the coarsest level, the best restart +0.03 at 21 cm off.
+    # The starts of step 7d: the initial pose moved by restart_step_m along and turned by
+    # restart_step_deg about each camera axis (12 starts; 0 and 0: none).
     restart_step_m: float = 0.1
     restart_step_deg: float = 5.0
-    restart_min_score: float = 0.1
     # When more than restart_end_through of one view is seen through by the other at the
     # end (after the final searches; 0: never), the coarse-to-fine passes run again from the
     # same 12 starts, and the best of their ends, scored both ways at the finest level,
@@ -258,7 +250,6 @@ class RegistrationParams:
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
         _num("restart_step_m", self.restart_step_m, 0.0, 1.0, unit=" metres")
         _num("restart_step_deg", self.restart_step_deg, 0.0, 45.0, unit=" degrees")
-        _num("restart_min_score", self.restart_min_score, 0.0, 1.0)
         _num("restart_end_through", self.restart_end_through, 0.0, 1.0)
         _num("restart_end_ratio", self.restart_end_ratio, 0.0, 1.0)
         _int("table_starts", self.table_starts, 0, 20)

@@ -172,7 +172,7 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
                     params: RegistrationParams, min_cos: float,
                     seen: list[np.ndarray] | None = None) -> _Pass:
     """Steps 1-6c from the estimate ``T`` (4, 4): ICP per level, coarse to fine, with the
-    coarsest level's wide cut and restarts, the table-plane tracks, the middle level's
+    coarsest level's wide cut, the table-plane tracks, the middle level's
     searches and a table top's trimming.  With ``seen`` (the coarsest level's ends of earlier
     passes, (4, 4) each): the pass is given up, T None, where its coarsest end is one of
     them (:func:`_same_pose`: the levels after it would end where that pass did), and its
@@ -193,11 +193,6 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
             iterations += wide[1]
             if best_pose(rl, cl, [T, wide[0]], params, min_cos) == 1:  # narrow wins ties
                 T, n_it, converged, lam_n, vec, A = wide
-        if li == 0 and (params.restart_step_m > 0 or params.restart_step_deg > 0):
-            restarted = _restart(rl, cl, start, T, params, min_cos, pairs)
-            if restarted is not None:
-                T, n_it, converged, lam_n, vec, A = restarted
-                iterations += n_it
         if li == 0 and seen is not None:
             if any(_same_pose(T, other) for other in seen):
                 return _Pass(None, iterations, converged, lam_n, vec, A, planes)
@@ -238,26 +233,6 @@ def _coarse_to_fine(ref_levels: list[Level], cur_levels: list[Level], T: np.ndar
                                                           Pairs(cl))
             iterations += n_it
     return _Pass(T, iterations, converged, lam_n, vec, A, planes)
-
-
-def _restart(rl: Level, cl: Level, start: np.ndarray, T: np.ndarray,
-             params: RegistrationParams, min_cos: float, pairs: Pairs):
-    """The coarsest level's ICP (:func:`icp_level`'s tuple) from the best of ``start`` moved
-    by ``restart_step_m`` along and turned by ``restart_step_deg`` about each axis of the
-    current camera, when ``T`` (ICP's end from ``start``) scores no more than 0 (as many of
-    its cells seen through or unpaired as paired: not a pose of this view) and that best
-    scores more than ``restart_min_score`` of the two levels' cells with a normal (a pose
-    that fits); None otherwise.  Every restart's iterations are counted."""
-    if score_poses(rl, cl, [T], params, min_cos)[0] > 0:
-        return None
-    ends = [icp_level(rl, cl, st, params, 0, min_cos, pairs)
-            for st in _restart_starts(start, params)]
-    scores = score_poses(rl, cl, [e[0] for e in ends], params, min_cos)
-    best = int(np.argmax(scores))
-    if scores[best] <= params.restart_min_score * (rl.n_normals + cl.n_normals):
-        return None
-    end = ends[best]
-    return (end[0], sum(e[1] for e in ends), *end[2:])
 
 
 def _restart_starts(start: np.ndarray, params: RegistrationParams) -> list[np.ndarray]:
