@@ -1199,7 +1199,7 @@ def test_the_reference_says_whether_the_station_is_a_table_top():
     """A big box (60 x 50 x 30 cm) put on the table leaves the table under
     ``table_plane_fraction`` of the current's cells; the station is still a table top (the
     reference says so) and the current's dominant plane is that table.  A current whose
-    dominant plane is turned further than ``max_rotation_deg`` from the reference's is not
+    dominant plane is turned further than ``table_max_tilt_deg`` from the reference's is not
     the table seen again."""
     W_ref = _camera_over_table(0.0, 0.0, 0.0)
     W_cur = _camera_over_table(0.04, -0.03, 2.0)
@@ -1215,7 +1215,7 @@ def test_the_reference_says_whether_the_station_is_a_table_top():
     got = register_depth(ref, cur, INTR)  # the box hides two of the three boxes that stayed
     assert set(table_top.in_plane_names(planes[1])) <= set(got.weak), got.weak
     tilted = W_cur.copy()
-    tilted[:3, :3] = W_cur[:3, :3] @ rpy_deg_to_rotation(params.max_rotation_deg + 5.0, 0, 0)
+    tilted[:3, :3] = W_cur[:3, :3] @ rpy_deg_to_rotation(params.table_max_tilt_deg + 5.0, 0, 0)
     assert table_top.table_planes(rl, pyramid.levels(_table_scene(tilted), INTR, params),
                                  params) is None
 

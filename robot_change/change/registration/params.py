@@ -113,7 +113,8 @@ class RegistrationParams:
     restart_end_ratio: float = 0.5
     # Table-plane starts (0: none): when the dominant plane of the reference's coarsest level
     # holds at least table_plane_fraction of its cells (a table top: 0.63-0.91 of the cells;
-    # the current's need only be that plane again), and both views' span at most
+    # the current's need only be that plane again, its normal within table_max_tilt_deg of
+    # the reference's), and both views' span at most
     # table_max_extent_m (a table top 0.8-1.2 m; room floors 0.40-0.81 but 2.7-3.5 m), the
     # two views are drawn top-down on that plane (table_cell_m cells: +1 above it by more than
     # table_object_m, -1 on it, 0 unseen) and cross-correlated over in-plane shifts (FFT) for
@@ -123,6 +124,7 @@ class RegistrationParams:
     # ICP into a compromise; its outline and the objects that stayed fix (x, y, yaw).
     table_starts: int = 3
     table_plane_fraction: float = 0.6
+    table_max_tilt_deg: float = 20.0
     table_max_extent_m: float = 2.0
     table_cell_m: float = 0.02
     table_object_m: float = 0.015
@@ -190,7 +192,10 @@ class RegistrationParams:
     # Station tolerance: fitness, plus the share of the current's cells that lie behind a
     # nearer reading of the reference (what was taken away, what the new place sees past an
     # edge: consistent with the station), below min_fitness, a translation above
-    # max_translation_m, a rotation above max_rotation_deg, or more than max_seen_through of
+    # max_translation_m or a rotation above max_rotation_deg (the range registration and the
+    # checks are promised and measured in, 15 cm / 6 deg, plus the 1 cm / 0.5 deg an estimate
+    # converged within may be off: beyond it the robot is told where it stands, nothing is
+    # compared; docs/algorithm.md, step 8), or more than max_seen_through of
     # either whole view seen through by the other (the views contradict each other: another
     # place, or a change too large to register against) is "not at the station".  Seen
     # through: a reading farther by more than seen_through_margin_m +
@@ -204,8 +209,8 @@ class RegistrationParams:
     seen_through_margin_m: float = 0.03
     seen_through_margin_per_m2: float = 0.004
     seen_through_sigmas: float = 3.0
-    max_translation_m: float = 0.5
-    max_rotation_deg: float = 20.0
+    max_translation_m: float = 0.16
+    max_rotation_deg: float = 6.5
     # Depth readings outside this range are not used (metres).
     min_depth_m: float = 0.4
     max_depth_m: float = 5.0
@@ -254,6 +259,7 @@ class RegistrationParams:
         _num("restart_end_ratio", self.restart_end_ratio, 0.0, 1.0)
         _int("table_starts", self.table_starts, 0, 20)
         _num("table_plane_fraction", self.table_plane_fraction, 0.0, 1.0)
+        _num("table_max_tilt_deg", self.table_max_tilt_deg, 0.0, 90.0)
         _num("table_max_extent_m", self.table_max_extent_m, 0.0, 100.0, unit=" metres")
         _num("table_cell_m", self.table_cell_m, 0.002, 0.2, unit=" metres")
         _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")

@@ -178,7 +178,7 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
     supporters (2-98 %) span no more than ``table_max_extent_m`` in either plane direction (a
     room's floor is larger).  Whether the station is a table top is the reference's to say:
     its plane must hold ``table_plane_fraction`` of its cells.  The current's plane need only
-    be that table seen again, its normal within ``max_rotation_deg`` of the reference's: a
+    be that table seen again, its normal within ``table_max_tilt_deg`` of the reference's: a
     revisit displaced sideways sees less of the table and more of what lies beyond it."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
@@ -186,7 +186,7 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
         if frac == 0.0 or (not planes and frac < params.table_plane_fraction):
             return None
         if planes and float(n @ planes[0].frame[:3, 2]) < math.cos(
-                math.radians(params.max_rotation_deg)):
+                math.radians(params.table_max_tilt_deg)):
             return None  # not the reference's table
         F = plane_frame(n, d)
         v = level.vertex.reshape(-1, 3)
