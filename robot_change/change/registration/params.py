@@ -193,9 +193,10 @@ class RegistrationParams:
     # nearer reading of the reference (what was taken away, what the new place sees past an
     # edge: consistent with the station), below min_fitness, a translation above
     # max_translation_m or a rotation above max_rotation_deg (the range registration and the
-    # checks are promised and measured in, 15 cm / 6 deg, plus the 1 cm / 0.5 deg an estimate
-    # converged within may be off: beyond it the robot is told where it stands, nothing is
-    # compared; docs/algorithm.md, step 8), or more than max_seen_through of
+    # checks are measured in, 15 cm and 7.8 deg -- the sets' 6 deg drawn as yaw / pitch / roll
+    # steps compose to single turns of up to 7.8 deg at a table -- plus the 1 cm / 0.5 deg an
+    # estimate converged within may be off: beyond it the robot is told where it stands,
+    # nothing is compared; docs/algorithm.md, step 8), or more than max_seen_through of
     # either whole view seen through by the other (the views contradict each other: another
     # place, or a change too large to register against) is "not at the station".  Seen
     # through: a reading farther by more than seen_through_margin_m +
@@ -210,7 +211,7 @@ class RegistrationParams:
     seen_through_margin_per_m2: float = 0.004
     seen_through_sigmas: float = 3.0
     max_translation_m: float = 0.16
-    max_rotation_deg: float = 6.5
+    max_rotation_deg: float = 8.5
     # Depth readings outside this range are not used (metres).
     min_depth_m: float = 0.4
     max_depth_m: float = 5.0
