@@ -788,6 +788,35 @@ def test_what_lies_behind_the_reference_counts_for_the_station():
         assert at_station or "behind what the reference saw nearer" in got
 
 
+def test_the_station_tolerance_covers_the_range_the_checks_are_measured_in():
+    """Every revisit of the station sets (15 cm; 6 deg drawn as yaw / pitch / roll steps, which
+    with the camera pitched down at a table compose to single turns of up to 7.8 deg) is within
+    the tolerance with an estimate 1 cm / 0.5 deg off; 17 cm or 9 degrees is not."""
+    from robot_change.change.registration.result import Registration
+    from sim_fixtures.scenes import true_transform
+    from sim_fixtures.stations import station_checks, station_spec
+
+    params = RegistrationParams()
+    off = np.eye(4)
+    off[:3, :3] = rpy_deg_to_rotation(0.3, 0.3, 0.2)
+    angles = []
+    for base in range(8000, 18000, 1000):
+        for _name, seed, change, offset in station_checks(10, base, levels=(15,)):
+            T = true_transform(station_spec(seed, change, offset)) @ off
+            T[:3, 3] *= 1.0 + 0.009 / 0.15  # an estimate 9 mm farther
+            reg = Registration(T, 0.9, 0.0, (), np.ones(6), 0, 0, 0, True, 0.0)
+            assert reg.not_at_station(params) == "", (seed, change)
+            angles.append(reg.rotation_deg)
+    assert max(angles) > 7.5
+    beyond = np.eye(4)
+    beyond[:3, 3] = (0.17, 0.0, 0.0)
+    turned = np.eye(4)
+    turned[:3, :3] = rpy_deg_to_rotation(0.0, 0.0, 9.0)
+    for T, why in ((beyond, "offset"), (turned, "rotation")):
+        reg = Registration(T, 0.9, 0.0, (), np.ones(6), 0, 0, 0, True, 0.0)
+        assert reg.not_at_station(params).startswith(why)
+
+
 def test_offset_beyond_the_station_tolerance_is_not_at_station():
     sc = load_scene("office_no_change_pose_10cm")
     ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
