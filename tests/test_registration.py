@@ -817,6 +817,28 @@ def test_the_station_tolerance_covers_the_range_the_checks_are_measured_in():
         assert reg.not_at_station(params).startswith(why)
 
 
+def test_the_station_test_leaves_out_what_the_views_do_not_pin():
+    """Along a weak direction the estimate is a search's pick, not measured: every object on a
+    table moved, at the station itself, a slide 18 cm along x (weak x, 17000) must not read as
+    the robot standing elsewhere.  The rotation vector is exp_so3's inverse."""
+    from robot_change.change.registration.result import Registration
+    from robot_change.change.registration.rigid import rotation_vector
+
+    for w in ([0.1, -0.05, 0.02], [0.0, 0.0, 0.0], [0.0, 2.0, 0.5]):
+        np.testing.assert_allclose(rotation_vector(exp_so3(np.array(w))), w, atol=1e-12)
+    params = RegistrationParams()
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(np.radians([0.0, 12.0, 2.0]))
+    T[:3, 3] = (0.18, 0.02, 0.01)
+    slid = Registration(T, 0.7, 0.0, ("x", "rot_y"), np.ones(6), 0, 0, 0, True, 0.0)
+    moved, turned = slid.pinned_offset()
+    assert moved == pytest.approx(math.hypot(0.02, 0.01)) and turned == pytest.approx(2.0)
+    assert slid.not_at_station(params) == ""
+    pinned = dataclasses.replace(slid, weak=())
+    assert pinned.not_at_station(params).startswith("offset 0.18 m")
+    assert dataclasses.replace(slid, weak=("x",)).not_at_station(params).startswith("rotation")
+
+
 def test_offset_beyond_the_station_tolerance_is_not_at_station():
     sc = load_scene("office_no_change_pose_10cm")
     ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)

@@ -4,11 +4,12 @@ it (fitness, weak directions, the station test)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
 from .params import RegistrationParams
-from .rigid import invert, rotation_angle_deg, rotation_to_rpy_deg
+from .rigid import invert, rotation_angle_deg, rotation_to_rpy_deg, rotation_vector
 
 #: Names of the six directions of the estimate, in the order of the Gauss-Newton step
 #: (rotation vector, then translation), camera optical frame: rotations about x (right),
@@ -71,17 +72,29 @@ class Registration:
         """(4, 4) ``T_cur_from_ref``."""
         return invert(self.T_ref_from_cur)
 
+    def pinned_offset(self) -> tuple[float, float]:
+        """(metres, degrees): the offset along the directions the views pin, the translation
+        and the rotation vector without their :attr:`weak` components (along a weak direction
+        the estimate is the starting value or a search's pick, not measured)."""
+        t = self.translation_m.copy()
+        w = rotation_vector(self.T_ref_from_cur[:3, :3])
+        for name in self.weak:
+            i = AXES.index(name)
+            (w if i < 3 else t)[i % 3] = 0.0
+        return float(np.linalg.norm(t)), math.degrees(float(np.linalg.norm(w)))
+
     def not_at_station(self, params: RegistrationParams) -> str:
-        """Why the camera is not at the station by the tolerance of ``params``; "" when it is."""
-        moved = float(np.linalg.norm(self.translation_m))
+        """Why the camera is not at the station by the tolerance of ``params``; "" when it is.
+        The offset tested is :meth:`pinned_offset`."""
+        moved, turned = self.pinned_offset()
         if self.fitness + self.behind < params.min_fitness:
             return (f"registration fitness {self.fitness:.2f} (and {self.behind:.2f} behind "
                     f"what the reference saw nearer) < {params.min_fitness:.2f}: the views do "
                     f"not overlap enough")
         if moved > params.max_translation_m:
             return f"offset {moved:.2f} m > {params.max_translation_m:.2f} m"
-        if self.rotation_deg > params.max_rotation_deg:
-            return f"rotation {self.rotation_deg:.1f} deg > {params.max_rotation_deg:.1f} deg"
+        if turned > params.max_rotation_deg:
+            return f"rotation {turned:.1f} deg > {params.max_rotation_deg:.1f} deg"
         if self.seen_through > params.max_seen_through:
             return (f"{self.seen_through:.0%} of one view is seen through by the other (more "
                     f"than {params.max_seen_through:.0%}): another place, or a change too large "

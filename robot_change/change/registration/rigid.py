@@ -30,6 +30,16 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """(3,) the axis of the rotation matrix ``R`` (3, 3) times its angle, radians (under
+    180 degrees; the inverse of :func:`exp_so3`)."""
+    angle = math.radians(rotation_angle_deg(R))
+    if angle < 1e-12:
+        return np.zeros(3)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return axis * (angle / (2.0 * math.sin(angle)))
+
+
 def rotation_to_rpy_deg(R: np.ndarray) -> np.ndarray:
     """(3,) roll, pitch, yaw in degrees of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (angles about
     the frame's x, y and z axes, the REP 103 convention)."""
