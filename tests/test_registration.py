@@ -826,6 +826,10 @@ def test_the_station_test_leaves_out_what_the_views_do_not_pin():
 
     for w in ([0.1, -0.05, 0.02], [0.0, 0.0, 0.0], [0.0, 2.0, 0.5]):
         np.testing.assert_allclose(rotation_vector(exp_so3(np.array(w))), w, atol=1e-12)
+    half_turn = rotation_vector(exp_so3(np.array([0.0, 0.6, 0.8]) * math.pi))
+    assert np.linalg.norm(half_turn) == pytest.approx(math.pi)  # never read as a small turn
+    np.testing.assert_allclose(np.abs(half_turn), np.array([0.0, 0.6, 0.8]) * math.pi,
+                               atol=1e-6)
     params = RegistrationParams()
     T = np.eye(4)
     T[:3, :3] = exp_so3(np.radians([0.0, 12.0, 2.0]))

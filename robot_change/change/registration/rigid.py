@@ -31,11 +31,15 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
-    """(3,) the axis of the rotation matrix ``R`` (3, 3) times its angle, radians (under
-    180 degrees; the inverse of :func:`exp_so3`)."""
+    """(3,) the axis of the rotation matrix ``R`` (3, 3) times its angle, radians (the
+    inverse of :func:`exp_so3`; at 180 degrees either of the two axes)."""
     angle = math.radians(rotation_angle_deg(R))
     if angle < 1e-12:
         return np.zeros(3)
+    if math.sin(angle) < 1e-6:  # about 180 degrees: (R + I) / 2 = axis axis^T
+        S = (np.asarray(R, dtype=np.float64) + np.eye(3)) / 2.0
+        k = int(np.argmax(np.diag(S)))
+        return S[:, k] / math.sqrt(S[k, k]) * angle
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return axis * (angle / (2.0 * math.sin(angle)))
 
