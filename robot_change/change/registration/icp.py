@@ -16,7 +16,7 @@ from robot_change.noise.kernels import sigma_at
 
 from .params import RegistrationParams
 from .pyramid import Level
-from .result import weak_direction
+from .result import AXES
 from .rigid import exp_so3
 
 
@@ -227,11 +227,16 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
     return T, n_it, False, lam_n, vec, A, has_system
 
 
-def weak_directions(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float
-                    ) -> list[tuple[str, np.ndarray]]:
-    """:func:`~.result.weak_direction` of each eigenvector (``vec`` (6, 6), columns) whose
-    eigenvalue per unit weight (``lam_n`` (6,)) is below ``weak_eigenvalue``."""
-    return [weak_direction(vec[:, i]) for i in range(6) if lam_n[i] < weak_eigenvalue]
+def weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> tuple[str, ...]:
+    """The :data:`AXES` names nearest to the eigenvectors (``vec`` (6, 6), columns) whose
+    eigenvalues per unit weight (``lam_n`` (6,)) are below ``weak_eigenvalue``."""
+    names = []
+    for i in range(6):
+        if lam_n[i] < weak_eigenvalue:
+            axis = AXES[int(np.argmax(np.abs(vec[:, i])))]
+            if axis not in names:
+                names.append(axis)
+    return tuple(names)
 
 
 class Pairs:

@@ -30,15 +30,15 @@ from .agreement import (
     slide_support,
     weak_search,
 )
-from .icp import Pairs, icp_level, weak_directions
+from .icp import Pairs, icp_level, weak_names
 from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
-from .result import AXES, Registration, identity_registration, weak_direction
+from .result import AXES, Registration, identity_registration
 from .rigid import invert, rotation_angle_deg, rpy_deg_to_rotation
 from .table_station import structure_levels, structure_search
 from .table_top import (
     TablePlane,
-    in_plane_directions,
+    in_plane_names,
     table_planes,
     table_pose_weak,
     table_starts,
@@ -49,11 +49,6 @@ from .table_top import (
 #: alike, and step 7d's passes give up the later.
 _SAME_M = 0.002
 _SAME_DEG = 0.1
-
-
-#: Weak directions as the steps find them: (:data:`AXES` name, (6,) unit direction) each
-#: (:func:`~.result.weak_direction`).
-_Weak = list[tuple[str, np.ndarray]]
 
 
 class _Pass(NamedTuple):
@@ -131,19 +126,8 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     if 0 < params.restart_end_through < end[2][4]:  # its judgement's seen-through share
         end = _restarted_end(ref_levels, cur_levels, T, end, params, min_cos, coarse_ends)
     est, weak, (fit, rmse, n_pairs, n_cells, through, behind) = end
-    return Registration(est.T, fit, rmse, _names(weak), est.lam_n, n_pairs, n_cells,
-                        est.iterations, est.converged, (time.perf_counter() - t0) * 1e3,
-                        through, behind, np.array([v for _, v in weak]).reshape(-1, 6))
-
-
-def _names(weak: _Weak) -> tuple[str, ...]:
-    """The names of ``weak``, each once, in order."""
-    return tuple(dict.fromkeys(name for name, _ in weak))
-
-
-def _translating(weak: _Weak) -> _Weak:
-    """The translations of ``weak``."""
-    return [(name, v) for name, v in weak if name in AXES[3:]]
+    return Registration(est.T, fit, rmse, weak, est.lam_n, n_pairs, n_cells, est.iterations,
+                        est.converged, (time.perf_counter() - t0) * 1e3, through, behind)
 
 
 def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
@@ -152,7 +136,7 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
     """A pass's ``end`` judged (:func:`_judge`) and, weak along a translation and not a
     table top, searched at the end (steps 7b, 7c; the final search also round ``start``
     (4, 4), the initial pose), then at a table station judged on its structure (step 7e):
-    (the end, moved where a search moved it; the weak directions (:data:`_Weak`); the judgement:
+    (the end, moved where a search moved it; the weak direction names; the judgement:
     fitness, rmse_m, inlier pairs, current cells with a normal, seen-through share, behind
     share)."""
     T, iterations, converged, lam_n, vec, A, planes = end
@@ -167,19 +151,19 @@ def _finished(ref_levels: list[Level], cur_levels: list[Level], end: _Pass,
             searches.append(functools.partial(_final_search, start=start))
         searches.append(structure_search)
     for search in searches:
-        if A is None or not _translating(weak):
+        if A is None or not any(a in weak for a in AXES[3:]):
             break
         found = search(ref_levels, cur_levels, T, A, params, min_cos)
         if found is not None:
-            searched = _translating(weak)
+            searched = tuple(a for a in weak if a in AXES[3:])
             T, n_it, converged, lam_n, vec, A = found
             iterations += n_it
             weak, judged = _judge(ref_levels[-1], cur_levels[-1], T, A, lam_n, vec, planes,
                                   params, min_cos)
             # where along that line the estimate stands a search's score chose, not the
             # geometry: it stays said (a wrong end can look pinned once there)
-            weak = weak + searched
-    if planes is None and not _translating(weak):
+            weak = tuple(dict.fromkeys(weak + searched))
+    if planes is None and not any(a in weak for a in AXES[3:]):
         weak = weak + _structure_slide(ref_levels, cur_levels, T, A, params, min_cos, judged[3])
     return _Pass(T, iterations, converged, lam_n, vec, A, planes), weak, judged
 
@@ -310,18 +294,19 @@ def _same_pose(T: np.ndarray, other: np.ndarray) -> bool:
 def _judge(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None, lam_n: np.ndarray,
            vec: np.ndarray, planes: tuple[TablePlane, TablePlane] | None,
            params: RegistrationParams, min_cos: float):
-    """What the finest levels (``rl``, ``cl``) say of the estimate ``T``: (weak directions
-    (:data:`_Weak`), (fitness, rmse_m, inlier pairs, current cells with a normal, seen-through
-    share, behind share))."""
+    """What the finest levels (``rl``, ``cl``) say of the estimate ``T``: (weak direction
+    names, (fitness, rmse_m, inlier pairs, current cells with a normal, seen-through share,
+    behind share))."""
     fit, rmse, n_pairs, n_cells, through, behind = final_agreement(rl, cl, T, params, min_cos)
-    weak = weak_directions(lam_n, vec, params.weak_eigenvalue)
+    weak = weak_names(lam_n, vec, params.weak_eigenvalue)
     # on a table top the objects that changed were left out of the estimate and the table's
     # own checks judge what stayed: their contradiction does not contest the slide
     slide = _unsupported_slide(rl, cl, T, A, params, min_cos, n_cells, contested=planes is None)
-    if planes is not None and table_pose_weak(rl, cl, T, planes, _names(weak + slide),
-                                              params, min_cos):
-        weak = weak + in_plane_directions(planes[1])
-    return weak + slide, (fit, rmse, n_pairs, n_cells, through, behind)
+    if planes is not None and table_pose_weak(rl, cl, T, planes, weak + slide, params,
+                                              min_cos):
+        weak = weak + in_plane_names(planes[1])
+    weak = tuple(dict.fromkeys(weak + slide))
+    return weak, (fit, rmse, n_pairs, n_cells, through, behind)
 
 
 def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
@@ -365,31 +350,31 @@ def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
 
 def _structure_slide(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
                      A: np.ndarray | None, params: RegistrationParams, min_cos: float,
-                     n_cells: int) -> _Weak:
-    """Step 7e, at a table station (:func:`~.table_station.structure_levels`): ``T``'s least
-    constrained translation (:data:`_Weak`) when what does not stand on
+                     n_cells: int) -> tuple[str, ...]:
+    """Step 7e, at a table station (:func:`~.table_station.structure_levels`): the
+    :data:`AXES` name of ``T``'s least constrained translation when what does not stand on
     the table leaves it unsupported or contested (:func:`_unsupported_slide` on the structure
-    alone), else none: every object on the table may have moved and lined up there.  Said,
+    alone), else (): every object on the table may have moved and lined up there.  Said,
     not searched: a search on it moved right estimates (docs/algorithm.md)."""
     structure = structure_levels(ref_levels, cur_levels, T, params)
     if structure is None:
-        return []
+        return ()
     return _unsupported_slide(*structure, T, A, params, min_cos, n_cells, contested=True)
 
 
 def _unsupported_slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,
                        params: RegistrationParams, min_cos: float, n_cells: int, *,
-                       contested: bool) -> _Weak:
-    """The least constrained translation (:data:`_Weak`) of the finest level's normal matrix
-    ``A`` (6, 6), when what faces along it (:func:`slide_support`) does not pin it at
+                       contested: bool) -> tuple[str, ...]:
+    """The :data:`AXES` name of the least constrained translation of the finest level's normal
+    matrix ``A`` (6, 6), when what faces along it (:func:`slide_support`) does not pin it at
     ``T``: fewer than ``slide_support_share`` of the ``n_cells`` current cells with a normal
     fit, or (``contested``) more than ``slide_contested_share`` of those judged contradict;
-    else none."""
+    else ()."""
     if A is None:
-        return []
+        return ()
     direction = np.linalg.eigh(A[3:, 3:])[1][:, 0]
     fit, contradict = slide_support(rl, cl, T, direction, params, min_cos)
     if fit >= params.slide_support_share * n_cells and (
             not contested or contradict <= params.slide_contested_share * (fit + contradict)):
-        return []
-    return [weak_direction(np.r_[np.zeros(3), direction])]
+        return ()
+    return (AXES[3 + int(np.argmax(np.abs(direction)))],)

@@ -17,18 +17,6 @@ from .rigid import invert, rotation_angle_deg, rotation_to_rpy_deg, rotation_vec
 AXES = ("rot_x", "rot_y", "rot_z", "x", "y", "z")
 
 
-def weak_direction(vector: np.ndarray) -> tuple[str, np.ndarray]:
-    """A weak direction of the 6-D step (rotation vector, translation) ``vector`` (6,): the
-    :data:`AXES` name of its largest component, and (6,) the unit direction within that
-    name's block (rotation or translation; the other block zero)."""
-    vector = np.asarray(vector, dtype=np.float64)
-    i = int(np.argmax(np.abs(vector)))
-    block = 3 * (i // 3)
-    direction = np.zeros(6)
-    direction[block:block + 3] = vector[block:block + 3] / np.linalg.norm(vector[block:block + 3])
-    return AXES[i], direction
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class Registration:
     """The estimated rigid transform between the two camera frames, and how far to trust it.
@@ -49,9 +37,7 @@ class Registration:
     (``table_static_share``): not to be trusted.  ``eigenvalues`` (6,) of the scaled normal
     matrix per unit weight, ascending.  ``n_pairs`` inlier correspondences, ``n_cells``
     current cells at the finest level; ``iterations`` run; ``ms`` the time taken;
-    ``converged``.  ``weak_vectors`` (k, 6): the unit directions :attr:`weak` names
-    (:func:`weak_direction`: a name is the nearest axis, the vector the direction itself);
-    None: the named axes.
+    ``converged``.
     """
 
     T_ref_from_cur: np.ndarray
@@ -66,7 +52,6 @@ class Registration:
     ms: float
     seen_through: float = 0.0
     behind: float = 0.0
-    weak_vectors: np.ndarray | None = None
 
     @property
     def translation_m(self) -> np.ndarray:
@@ -89,22 +74,14 @@ class Registration:
 
     def pinned_offset(self) -> tuple[float, float]:
         """(metres, degrees): the offset along the directions the views pin, the translation
-        and the rotation vector less their share along the weak directions
-        (:attr:`weak_vectors`; along a weak direction the estimate is the starting value or a
-        search's pick, not measured)."""
-        offset = np.concatenate([rotation_vector(self.T_ref_from_cur[:3, :3]),
-                                 self.translation_m])
-        vectors = self.weak_vectors
-        if vectors is None:
-            vectors = np.eye(6)[[AXES.index(name) for name in self.weak]]
-        for block in (0, 3):
-            span = vectors[:, block:block + 3]
-            span = span[np.linalg.norm(span, axis=1) > 0]
-            if len(span):
-                u, s, _ = np.linalg.svd(span.T, full_matrices=False)
-                u = u[:, s > 1e-9 * s[0]]
-                offset[block:block + 3] -= u @ (u.T @ offset[block:block + 3])
-        return float(np.linalg.norm(offset[3:])), math.degrees(float(np.linalg.norm(offset[:3])))
+        and the rotation vector without their :attr:`weak` components (along a weak direction
+        the estimate is the starting value or a search's pick, not measured)."""
+        t = self.translation_m.copy()
+        w = rotation_vector(self.T_ref_from_cur[:3, :3])
+        for name in self.weak:
+            i = AXES.index(name)
+            (w if i < 3 else t)[i % 3] = 0.0
+        return float(np.linalg.norm(t)), math.degrees(float(np.linalg.norm(w)))
 
     def not_at_station(self, params: RegistrationParams) -> str:
         """Why the camera is not at the station by the tolerance of ``params``; "" when it is.

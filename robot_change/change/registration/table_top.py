@@ -14,7 +14,7 @@ table's plane.  So here
 * **trimming the change** (:func:`without_changed_objects`): the objects (cells above the
   table) that contradict the other view more than they fit it get no normal, so ICP runs again
   on the table and the objects that stayed put;
-* **saying a weak pose** (:func:`table_pose_weak`, :func:`in_plane_directions`): the directions in
+* **saying a weak pose** (:func:`table_pose_weak`, :func:`in_plane_names`): the directions in
   the table's plane are reported weak when the two tables do not overlap at the estimate, no
   object stayed put, or the normal equations flag one of them.
 
@@ -35,7 +35,7 @@ from scipy import ndimage
 from .agreement import agreement_counts, cell_states
 from .params import RegistrationParams
 from .pyramid import Level
-from .result import weak_direction
+from .result import AXES
 from .rigid import invert
 
 #: A cell within this distance of a view's table plane is on it (metres).
@@ -347,7 +347,7 @@ def table_pose_weak(rl: Level, cl: Level, T: np.ndarray,
     slide along the table is nearly a turn about a far axis, and the weakest direction mixes
     them), the two tables do not overlap (``table_outline_holes``), or no object stayed put
     (``table_static_share``)."""
-    if any(name in weak for name, _ in in_plane_directions(planes[1])):
+    if any(name in weak for name in in_plane_names(planes[1])):
         return True
     if params.table_outline_holes > 0 and min(
             _table_holes(rl, cl, invert(T), planes[0], params),
@@ -357,9 +357,10 @@ def table_pose_weak(rl: Level, cl: Level, T: np.ndarray,
         rl, cl, T, planes, params, min_cos) < params.table_static_share
 
 
-def in_plane_directions(plane: TablePlane) -> list[tuple[str, np.ndarray]]:
-    """:func:`~.result.weak_direction` of the motions that keep a view on its table ``plane``:
+def in_plane_names(plane: TablePlane) -> tuple[str, ...]:
+    """The :data:`AXES` names nearest to the motions that keep a view on its table ``plane``:
     the slides along the plane's two axes and the turn about its normal (camera frame)."""
     F = plane.frame
-    return [weak_direction(np.r_[np.zeros(3), F[:3, k]]) for k in (0, 1)] + \
-        [weak_direction(np.r_[F[:3, 2], np.zeros(3)])]
+    names = [AXES[3 + int(np.argmax(np.abs(F[:3, k])))] for k in (0, 1)]
+    names.append(AXES[int(np.argmax(np.abs(F[:3, 2])))])
+    return tuple(dict.fromkeys(names))
