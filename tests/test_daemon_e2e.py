@@ -145,6 +145,11 @@ def test_daemon_end_to_end_over_a_pty_with_systemd_notify(tmp_path: Path) -> Non
         # an emptied file on SIGHUP is refused: the camera does not fall back to openni2://
         config.write_text("")
         daemon.send_signal(signal.SIGHUP)
+        # the reload is taken between the main loop's waits: wait for its answer before the
+        # check and SIGTERM (a stop pending with it wins, and the reload is never read)
+        log_file, deadline = tmp_path / "daemon.log", time.monotonic() + 20
+        while "the old one stays" not in log_file.read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
         code = run_base_sim(FdPort(master), script(tmp_path, "three.script", """
             check office
             expect PAUSE cause=CHANGE_CHECK 10
