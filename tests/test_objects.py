@@ -405,7 +405,7 @@ def all_moved():
 
 def test_a_surface_where_the_other_epochs_changed_surface_stood_is_claimed(all_moved):
     sc, ref, cur = all_moved
-    params = ChangeParams()
+    params = ChangeParams(object_turned_share=1.0)  # this rule alone
     ep_cur, ep_ref = as_epoch(cur, "current"), as_epoch(ref, "reference")
     t_cur = point_truth(ep_cur.pixel_voxel, sc.truth_appeared, ep_cur.n_points)
     t_ref = point_truth(ep_ref.pixel_voxel, sc.truth_disappeared, ep_ref.n_points)
@@ -497,6 +497,26 @@ def test_a_place_hidden_behind_the_other_is_claimed_not_what_a_new_object_hides(
     gone = detect_changes(ref, cur, ChangeParams()).disappeared_index
     assert len(gone) == len(detect_changes(ref, cur, without).disappeared_index) == 0
     assert not sc.truth_disappeared.any()
+
+
+def test_the_turned_rule_judges_only_where_the_other_direction_holds_a_region(all_moved,
+                                                                            monkeypatch):
+    """Five changed points of the reference make no region: the turned rule claims nothing
+    (nor does any other); the same points taken as a region, it claims turned surfaces."""
+    import robot_change.change.objects as objects
+
+    sc, ref, cur = all_moved
+    ep_cur, ep_ref = as_epoch(cur, "current"), as_epoch(ref, "reference")
+    t_ref = point_truth(ep_ref.pixel_voxel, sc.truth_disappeared, ep_ref.n_points)
+    few = np.zeros(ep_ref.n_points, bool)
+    few[np.flatnonzero(t_ref)[:5]] = True
+    nothing = np.zeros(ep_cur.n_points, bool)
+    observed = np.ones(ep_cur.n_points, bool)
+    assert not claim_counterparts(ep_cur, nothing, observed, ep_ref, few, None,
+                                  ChangeParams()).any()
+    monkeypatch.setattr(objects, "region_rows", lambda *args: [np.flatnonzero(few)])
+    assert claim_counterparts(ep_cur, nothing, observed, ep_ref, few, None,
+                              ChangeParams()).any()
 
 
 def test_an_object_turned_where_it_stands_is_claimed_at_both_places():
