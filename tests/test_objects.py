@@ -39,7 +39,6 @@ from robot_change.change.registration.surfaces import (
 from robot_change.change.scene import build_scene
 from robot_change.errors import InputError
 from robot_change.noise.kernels import table_sigma
-from sim_fixtures import load_scene
 from sim_fixtures.stations import station_scene
 from sim_fixtures.truth import point_truth
 
@@ -405,7 +404,7 @@ def all_moved():
 
 def test_a_surface_where_the_other_epochs_changed_surface_stood_is_claimed(all_moved):
     sc, ref, cur = all_moved
-    params = ChangeParams(object_turned_share=1.0)  # this rule alone
+    params = ChangeParams()
     ep_cur, ep_ref = as_epoch(cur, "current"), as_epoch(ref, "reference")
     t_cur = point_truth(ep_cur.pixel_voxel, sc.truth_appeared, ep_cur.n_points)
     t_ref = point_truth(ep_ref.pixel_voxel, sc.truth_disappeared, ep_ref.n_points)
@@ -499,73 +498,9 @@ def test_a_place_hidden_behind_the_other_is_claimed_not_what_a_new_object_hides(
     assert not sc.truth_disappeared.any()
 
 
-def test_the_turned_rule_judges_only_where_the_other_direction_holds_a_region(all_moved,
-                                                                            monkeypatch):
-    """Five changed points of the reference make no region: the turned rule claims nothing
-    (nor does any other); the same points taken as a region, it claims turned surfaces."""
-    import robot_change.change.objects as objects
-
-    sc, ref, cur = all_moved
-    ep_cur, ep_ref = as_epoch(cur, "current"), as_epoch(ref, "reference")
-    t_ref = point_truth(ep_ref.pixel_voxel, sc.truth_disappeared, ep_ref.n_points)
-    few = np.zeros(ep_ref.n_points, bool)
-    few[np.flatnonzero(t_ref)[:5]] = True
-    nothing = np.zeros(ep_cur.n_points, bool)
-    observed = np.ones(ep_cur.n_points, bool)
-    assert not claim_counterparts(ep_cur, nothing, observed, ep_ref, few, None,
-                                  ChangeParams()).any()
-    monkeypatch.setattr(objects, "region_rows", lambda *args: [np.flatnonzero(few)])
-    assert claim_counterparts(ep_cur, nothing, observed, ep_ref, few, None,
-                              ChangeParams()).any()
-
-
-def test_an_object_turned_where_it_stands_is_claimed_at_both_places():
-    """Station 9001, every object moved: a box turned by some 30 degrees and moved a few
-    centimetres stands within the free-space margin of its old place nearly everywhere; what
-    either epoch holds as evidence of it is its edges, too thin for a region of its own.  Its
-    faces stand where the other epoch saw a face turned away: it is found whole at both
-    places with the turned rule, not without it (object_turned_share 1: off)."""
-    sc, ref, cur = _station_pair(9001, "all_moved")
-    box = np.zeros(sc.truth_appeared.shape, bool)
-    box[60:250, 250:335] = True  # the middle box, in both images
-    found = {}
-    for share in (1.0, ChangeParams().object_turned_share):
-        res = detect_changes(ref, cur, ChangeParams(object_turned_share=share))
-        for name, model, index, truth, observed in (
-                ("appeared", cur, res.appeared_index, sc.truth_appeared, sc.observed_current),
-                ("disappeared", ref, res.disappeared_index, sc.truth_disappeared,
-                 sc.observed_reference)):
-            t = box & truth & observed
-            hit = _found_image(model, index)
-            found[share, name] = (hit & t).sum() / t.sum(), (hit & ~truth).sum()
-            assert t.sum() > 2000
-    for name in ("appeared", "disappeared"):
-        assert found[1.0, name][0] < 0.3, found
-        assert found[0.5, name][0] > 0.85, found
-        assert found[0.5, name][1] <= found[1.0, name][1] + 200, found  # pixels, not points
-
-
-def test_fragments_of_a_far_wall_are_not_judged_turned(monkeypatch):
-    """The dev room lounge_chair_removed, its far wall 4.4 m away: the sensor's depth steps
-    cut fragments out of it whose cells' normals scatter; the turned rule claims none of them
-    (the same result as without the rule), and would without its pixel floor."""
-    import robot_change.change.objects as objects
-
-    sc = load_scene("lounge_chair_removed")
-    ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
-    cur = build_scene(sc.current_frames(), intrinsics=sc.intrinsics)
-    without = detect_changes(ref, cur, ChangeParams(object_turned_share=1.0))
-    on = detect_changes(ref, cur, ChangeParams())
-    np.testing.assert_array_equal(on.appeared_index, without.appeared_index)
-    np.testing.assert_array_equal(on.disappeared_index, without.disappeared_index)
-    monkeypatch.setattr(objects, "_TURNED_MIN_PIXELS", 0)
-    floorless = detect_changes(ref, cur, ChangeParams())
-    assert len(floorless.appeared_index) > len(without.appeared_index) + 20
-
-
 def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_range,
                        other_depth, other_pixel_voxel, other_changed, radius, own_normal,
-                       other_normal, f, noise, sigmas, pose_m, cos_fold, cos_turn, step,
+                       other_normal, f, noise, sigmas, pose_m, cos_fold, step,
                        hidden_gap_m, other_segments, n_other):
     """NumPy twin of ``_counterparts_kernel``: the pixels warped as the free-space check's
     twin does, the other's changed pixels off their outline by a minimum filter (outside the
@@ -592,7 +527,6 @@ def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_r
     b[inside] = other_normal[v[inside] // f, u[inside] // f]
     ok &= inside & a.any(axis=1) & b.any(axis=1)
     dot = np.sum((a @ T[:3, :3].T) * b, axis=1)
-    turned = ok & (dot < cos_fold) & (dot >= cos_turn)
     ok &= dot >= cos_fold
     changed_px = np.zeros(h * w, bool)
     has = other_pixel_voxel.ravel() >= 0
@@ -600,11 +534,12 @@ def _counterparts_twin(segments, n_segments, own_depth, T, intr, window, depth_r
     inner = ndimage.minimum_filter(changed_px.reshape(h, w), size=2 * radius + 1,
                                    mode="constant", cval=True).ravel()
     seg = segments.ravel()[k]
-    counts = [np.bincount(seg[m], minlength=n_segments)
-              for m in (landed, ok, turned, ok & inner[q], hid)]
+    same = np.bincount(seg[ok], minlength=n_segments)
+    found = np.bincount(seg[ok & inner[q]], minlength=n_segments)
+    hidden = np.bincount(seg[hid], minlength=n_segments)
     by = other_segments.ravel()[q]
     take = hid & inner[q] & (by >= 0)
-    return (*counts, seg[take].astype(np.int64) * n_other + by[take])
+    return same, found, hidden, seg[take].astype(np.int64) * n_other + by[take]
 
 
 @pytest.mark.parametrize("step, moved_by, cell", [(1, None, 4), (2, None, 4), (1, "turn", 4),
@@ -629,7 +564,7 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
     other_segments = _segment_pixels(other, params)[-1]
     common = (other.depth, other.pixel_voxel.astype(np.int32), other_changed, 3,
               _cell_normals(ep, params), _cell_normals(other, params), cell, NOISE, 3.0, 0.01,
-              math.cos(math.radians(20.0)), math.cos(math.radians(60.0)), step, 0.3,
+              math.cos(math.radians(20.0)), step, 0.3,
               other_segments, int(other_segments.max()) + 1)
     intr = ep.intrinsics
     got = _counterparts_kernel(*args, T[:3, :3].copy(), T[:3, 3].copy(), intr.fx, intr.fy,
@@ -637,9 +572,8 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
     want = _counterparts_twin(*args, T, intr, window, (0.4, 8.0), *common)
     for g, x in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, x)
-    landed, same, turned, found, hidden, hidden_pairs = got
+    same, found, hidden, hidden_pairs = got
     assert (found <= same).all() and same.sum() > 10 * found.sum() and hidden.sum() > 0
-    assert (same + turned + hidden <= landed).all() and turned.sum() > 0
     assert (np.bincount(hidden_pairs // common[-1], minlength=n) <= hidden).all()
     assert found.sum() > 0 or moved_by == "roll"  # turned about the axis, the box lands aside
 
@@ -654,8 +588,6 @@ def test_the_counterparts_kernel_matches_its_twin(moved, step, moved_by, cell):
                                           ("object_hidden_gap_m", -0.1),
                                           ("object_hidden_share", 1.5),
                                           ("object_hidden_shape", 0.5),
-                                          ("object_turned_share", -0.1),
-                                          ("object_turned_share", 1.5),
                                           ("evidence_min_points", 0),
                                           ("free_space_pose_deg", -0.5)])
 def test_bad_completion_parameters_are_refused(field, value):

@@ -43,16 +43,7 @@ behind its new one (moved away: the new behind the old), and nothing of the hidd
 seen through: a segment is also claimed when nearly all its landing pixels
 (``object_hidden_share``) lie on or hidden behind the other's changed pixels, and it has the
 shape of the changed segment that hides it (``object_hidden_shape``: an object added before
-another hides that one too, and table pieces at an object's feet hide behind it).  An
-object turned where it stands (a box turned by 15-45 degrees about its foot and moved a few
-centimetres) lies within the free-space margin of its old place nearly everywhere, and neither
-epoch holds evidence of more than its edges; but its faces stand where the other epoch saw a
-surface facing another way: a segment is also claimed when most of its pixels that land on a
-reading (``object_turned_share``) land at their own depth on a cell whose normal lies more than
-``object_fold_deg`` and at most 60 degrees from theirs (a piece of table at the foot of an
-object that stood there lands on its face, at 90), if it covers enough pixels for its cells'
-normals to be trusted, and only where the other direction's changes make a region: judged
-everywhere, it claimed turned-looking surfaces of a real kitchen where nothing had changed.
+another hides that one too, and table pieces at an object's feet hide behind it).
 """
 
 from __future__ import annotations
@@ -66,7 +57,6 @@ from robot_change.arrays import readonly_view
 from robot_change.change.epoch import Epoch, pair_sigma_table
 from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
-from robot_change.change.regions import region_rows
 from robot_change.change.registration.pyramid import surface_level
 from robot_change.change.registration.surfaces import (
     SEGMENT_OFF,
@@ -80,16 +70,6 @@ from robot_change.noise.kernels import margin_at
 #: Counterparts are counted on every second row and column: shares of a segment, a quarter of
 #: the work (a segment of fewer than ~4 pixels in a 2 x 2 block is never claimed so).
 _COUNTERPART_STEP = 2
-
-#: A surface is *turned* against the other epoch's at its depth up to this angle (degrees): a
-#: box turned about the table's normal shows faces turned by at most 45 degrees, while a piece
-#: of table at the foot of an object that stood there lands on its face, at 90.
-_TURNED_MAX_DEG = 60.0
-
-#: ... and only a segment of this many pixels is judged so: the sensor's depth steps cut a far
-#: wall into fragments (14-282 pixels on the dev rooms) whose cells' normals scatter by more
-#: than the fold angle; a turned object's face at a table station covers thousands.
-_TURNED_MIN_PIXELS = 400
 
 __all__ = [
     "claim_counterparts",
@@ -293,12 +273,11 @@ def _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
 @numba.njit(cache=True, nogil=True)
 def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx, cy, window,
                          min_m, max_m, other_depth, other_pixel_voxel, other_changed, radius,
-                         own_normal, other_normal, f, noise, sigmas, pose_m, cos_fold,
-                         cos_turn, step, hidden_gap_m, other_segments, n_other):
-    """Per segment: how many of its pixels (of every ``step``-th row and column) land on a
-    reading of the other image, how many of those on the same surface, how many on a surface
-    at the same depth that faces another way (turned), how many on its changed surface (of
-    the same surface), how many land hidden behind the reading, and, where that reading is a
+                         own_normal, other_normal, f, noise, sigmas, pose_m, cos_fold, step,
+                         hidden_gap_m, other_segments, n_other):
+    """Per segment: how many of its pixels (of every ``step``-th row and column) land on the
+    same surface of the other image, how many on its changed surface (of the same surface),
+    how many land hidden behind the reading, and, where that reading is a
     changed surface of one of the other's segments (``other_segments`` (H, W) int32, -1:
     none; ``n_other`` of them), the pair of segments.
 
@@ -309,17 +288,14 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
     depth z in the other frame (``sigmas`` sigmas of the difference of two readings,
     ``noise`` the sigma table, ``pose_m``: robot_change.noise.kernels.margin_at), and the two
     cells' normals (``own_normal``, ``other_normal`` (H / f, W / f, 3), 0: none; this one's
-    turned by ``rot``) within ``acos(cos_fold)``; turned: such a reading, both cells with a
-    normal, farther apart than that but within ``acos(cos_turn)``.  Hidden: the reading nearer
-    than z by more than that margin and by at most ``hidden_gap_m``.  A changed surface: every
-    pixel within ``radius`` belongs to a point (``other_pixel_voxel`` (H, W) int32) of
-    ``other_changed`` (M',) bool.
-    Returns (landed, same, turned, found, hidden) (n_segments,) int64 and the hidden pixels'
+    turned by ``rot``) within ``acos(cos_fold)``.  Hidden: the reading nearer than z by more
+    than that margin and by at most ``hidden_gap_m``.  A
+    changed surface: every pixel within ``radius`` belongs to a point (``other_pixel_voxel``
+    (H, W) int32) of ``other_changed`` (M',) bool.
+    Returns (same, found, hidden) (n_segments,) int64 and the hidden pixels'
     pairs (K,) int64, each this segment * n_other + the other's segment hiding it, in scan
     order."""
-    landed = np.zeros(n_segments, dtype=np.int64)
     same = np.zeros(n_segments, dtype=np.int64)
-    turned = np.zeros(n_segments, dtype=np.int64)
     found = np.zeros(n_segments, dtype=np.int64)
     hidden = np.zeros(n_segments, dtype=np.int64)
     h, w = own_depth.shape
@@ -338,7 +314,6 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
             reading = other_depth[v, u]
             if reading == 0:
                 continue
-            landed[s] += 1
             gap = z - reading * 0.001
             margin = margin_at(noise, z, sigmas, pose_m)
             if -gap > margin:
@@ -364,13 +339,11 @@ def _counterparts_kernel(segments, n_segments, own_depth, rot, trans, fx, fy, cx
                 (rot[1, 0] * a0 + rot[1, 1] * a1 + rot[1, 2] * a2) * b1 + \
                 (rot[2, 0] * a0 + rot[2, 1] * a1 + rot[2, 2] * a2) * b2
             if dot < cos_fold:
-                if dot >= cos_turn:
-                    turned[s] += 1
                 continue
             same[s] += 1
             if _inside_changed(other_pixel_voxel, other_changed, v, u, radius):
                 found[s] += 1
-    return landed, same, turned, found, hidden, pairs[:n_pairs]
+    return same, found, hidden, pairs[:n_pairs]
 
 
 def _extents(points: np.ndarray) -> np.ndarray | None:
@@ -397,13 +370,7 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     more than ``params.object_hidden_share`` of its landing pixels lie on or hidden (up to
     ``object_hidden_gap_m``) behind changed points, those make up the share, and the segment
     has the shape of the changed segment that hides it most (:func:`_extents`, within
-    ``object_hidden_shape`` of each other).  Or, for an object turned where it stands: more
-    than ``params.object_turned_share`` of its pixels that land on a reading land on a
-    surface at their depth facing more than ``object_fold_deg`` and at most
-    ``_TURNED_MAX_DEG`` away, the segment covers at least ``_TURNED_MIN_PIXELS`` pixels, and
-    those pixels make up the share, judged only where ``other_changed`` makes a region
-    (:func:`~robot_change.change.regions.region_rows`).  Only ``observed`` (M,) bool points
-    are added.
+    ``object_hidden_shape`` of each other).  Only ``observed`` (M,) bool points are added.
     Unchanged when ``params.object_counterparts`` or ``params.object_completion`` is off or
     nothing of ``other`` changed."""
     if not (params.object_counterparts and params.object_completion) or \
@@ -414,7 +381,7 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     T = np.eye(4) if other_from_own is None else np.asarray(other_from_own, dtype=np.float64)
     intr = epoch.intrinsics
     o_segment, o_point, o_size, _, o_image = _segment_pixels(other, params)
-    landed, same, turned, found, hidden, hidden_pairs = _counterparts_kernel(
+    same, found, hidden, hidden_pairs = _counterparts_kernel(
         image, len(size), readonly_view(np.ascontiguousarray(epoch.depth)),
         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), intr.fx, intr.fy,
         intr.cx, intr.cy, free_space_views(other, params)[2], float(cp.min_depth_m),
@@ -424,18 +391,10 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
         params.free_space_pose_radius_px, _cell_normals(epoch, params),
         _cell_normals(other, params), params.object_cell_px, pair_sigma_table(other, epoch),
         params.free_space_sigmas, params.free_space_pose_m,
-        math.cos(math.radians(params.object_fold_deg)),
-        math.cos(math.radians(_TURNED_MAX_DEG)), _COUNTERPART_STEP,
+        math.cos(math.radians(params.object_fold_deg)), _COUNTERPART_STEP,
         float(params.object_hidden_gap_m), o_image, len(o_size))
     claimed = (found > params.object_counterpart_share * same) & \
         _claim(epoch, found * _COUNTERPART_STEP ** 2, size, params)
-    # turned where it stands: most of it lands on a surface at its depth that faces another
-    # way; judged only where the other direction's changes make a region (an object turned
-    # leaves one at one place at least: its edges), so that it never makes a check changed
-    if region_rows(other, other_changed, params):
-        claimed |= (turned > params.object_turned_share * landed) & \
-            (size >= _TURNED_MIN_PIXELS) & \
-            _claim(epoch, turned * _COUNTERPART_STEP ** 2, size, params)
     # hidden behind its other place: nothing of it still seen unchanged where it stood, and
     # the shape of what hides it (an object added before another hides it too)
     hidden_own, hiding = np.divmod(hidden_pairs, max(len(o_size), 1))

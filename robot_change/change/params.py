@@ -201,15 +201,6 @@ class ChangeParams:
     object_hidden_gap_m: float = 0.3
     object_hidden_share: float = 0.9
     object_hidden_shape: float = 1.5
-    # ... or when it was turned where it stands (a box turned by 15-45 degrees and moved a few
-    # centimetres lies within the free-space margin of its old place, so that neither epoch
-    # holds evidence of it): more than object_turned_share of its pixels that land on a
-    # reading of the other image land at their depth on a surface facing more than
-    # object_fold_deg and at most 60 degrees away, on a segment of at least 400 pixels
-    # (robot_change.change.objects).  Judged only where the other direction's changes make a
-    # region: alone it claimed turned-looking segments of a held-out real kitchen (7-Scenes
-    # 624-625, 2026-12-07), where nothing had changed.  1: off.
-    object_turned_share: float = 0.5
     # Run the mirror (what disappeared); False reports appearances only (the paper).
     disappeared: bool = True
     # Fewer points than this in either clean cloud raises EmptySceneError.
@@ -262,7 +253,6 @@ class ChangeParams:
         _num("object_hidden_gap_m", self.object_hidden_gap_m, 0.0, 2.0, unit=" metres")
         _num("object_hidden_share", self.object_hidden_share, 0.0, 1.0)
         _num("object_hidden_shape", self.object_hidden_shape, 1.0, 10.0)
-        _num("object_turned_share", self.object_turned_share, 0.0, 1.0)
         _num("object_fold_deg", self.object_fold_deg, 0.0, 180.0, unit=" degrees")
         _int("object_cell_px", self.object_cell_px, 1, 64, unit=" pixels")
         _int("min_cloud_points", self.min_cloud_points, 1, 10**9)

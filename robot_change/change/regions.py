@@ -19,7 +19,6 @@ __all__ = [
     "group_regions",
     "label_voxel_components",
     "pixel_mask",
-    "region_rows",
 ]
 
 
@@ -108,45 +107,31 @@ def in_groups_of(epoch: Epoch, changed: np.ndarray, core: np.ndarray, min_points
     return out
 
 
-def region_rows(epoch: Epoch, changed: np.ndarray, params: ChangeParams) -> list[np.ndarray]:
-    """The rows (point indices) of each group of ``changed`` (M,) bool points of ``epoch``
-    (voxel keys, ``params.region_connectivity``) that makes a region: at least
-    ``min_region_points`` points and ``min_region_extent_m`` along its box's longest side;
-    largest first."""
+def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangeParams,
+                  posterior: np.ndarray | None = None,
+                  change_components: np.ndarray | None = None) -> tuple[Region, ...]:
+    """Group the changed points of ``epoch`` into :class:`Region` s (largest first).
+
+    ``changed`` (M,) bool; ``posterior`` (M, K) responsibilities of the searched mixture and
+    ``change_components`` the accepted components, to name each region's components.
+    """
     idx = np.flatnonzero(changed)
     if idx.size == 0:
-        return []
+        return ()
     labels = label_voxel_components(epoch.keys[idx], params.region_connectivity)
-    sizes = np.bincount(labels)
-    out = []
+    n_lab = int(labels.max()) + 1
+    sizes = np.bincount(labels, minlength=n_lab)
+    pix_count = np.bincount(epoch.pixel_voxel.ravel()[epoch.pixel_voxel.ravel() >= 0],
+                            minlength=epoch.n_points)
+    regions = []
     for lab in np.argsort(-sizes, kind="stable"):
         if sizes[lab] < params.min_region_points:
             break
         rows = idx[labels == lab]
         pts = epoch.points[rows].astype(np.float64)
-        if float(np.max(pts.max(axis=0) - pts.min(axis=0))) >= params.min_region_extent_m:
-            out.append(rows)
-    return out
-
-
-def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangeParams,
-                  posterior: np.ndarray | None = None,
-                  change_components: np.ndarray | None = None) -> tuple[Region, ...]:
-    """Group the changed points of ``epoch`` into :class:`Region` s (largest first,
-    :func:`region_rows`).
-
-    ``changed`` (M,) bool; ``posterior`` (M, K) responsibilities of the searched mixture and
-    ``change_components`` the accepted components, to name each region's components.
-    """
-    groups = region_rows(epoch, changed, params)
-    if not groups:
-        return ()
-    pix_count = np.bincount(epoch.pixel_voxel.ravel()[epoch.pixel_voxel.ravel() >= 0],
-                            minlength=epoch.n_points)
-    regions = []
-    for rows in groups:
-        pts = epoch.points[rows].astype(np.float64)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if float(np.max(hi - lo)) < params.min_region_extent_m:
+            continue
         comps: tuple[int, ...] = ()
         if posterior is not None and change_components is not None and len(change_components):
             mass = posterior[rows][:, change_components].sum(axis=0)
