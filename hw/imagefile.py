@@ -1,4 +1,5 @@
-"""Depth image files: 16-bit grayscale PNG and TIFF, read and written with Pillow.
+"""Depth image files: 16-bit grayscale PNG and TIFF, read and written with Pillow (a plain
+16-bit grayscale PNG, the usual depth image, read by :mod:`hw.png16`).
 
     depth = read_image("frame.png")        # (H, W) uint16 (uint8 for an 8-bit gray file)
     write_png("out.png", depth)            # atomically
@@ -20,6 +21,7 @@ from PIL import Image, UnidentifiedImageError
 
 from hw.atomic import write_atomically
 from hw.errors import DepthFileError, FrameError
+from hw.png16 import decode_png16
 
 __all__ = ["decode_image", "read_file", "read_image", "write_png"]
 
@@ -66,6 +68,10 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
         what = "BigTIFF is not supported" if data[:4] in (b"II+\x00", b"MM\x00+") else \
             "neither a PNG nor a TIFF (by its first bytes)"
         raise DepthFileError(f"{name}: {what}; depth images are 16-bit grayscale PNG or TIFF")
+    if kind == "PNG":  # the depth PNG's usual form, decoded without Pillow
+        samples = decode_png16(data, name, MAX_PIXELS)
+        if samples is not None:
+            return samples
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # Pillow's notes on damaged tags: the error says it

@@ -134,10 +134,20 @@ def _region_kernels() -> None:
                        0.01, 2)
 
 
+def _decoder_kernels() -> None:
+    """The depth decoders' kernels (a PNG's rows, an RVL stream), which a bag, a RealSense
+    recording or an image folder's first frame would otherwise compile in the camera thread."""
+    from hw.compressed_depth import decode_compressed_depth, encode_compressed_depth
+
+    depth = np.arange(16, dtype=np.uint16).reshape(4, 4)
+    for codec in ("png", "rvl"):
+        decode_compressed_depth(*encode_compressed_depth(depth, codec), "warm-up")
+
+
 def _own_share(config: Config) -> None:
     """This process's share while the helper runs: the cloud's, the mixture's (a reference
-    built, the current's mixture, the novelty fit over a background) and the free-space
-    check's kernels, without registration, EMD or regions."""
+    built, the current's mixture, the novelty fit over a background), the free-space check's
+    and the depth decoders' kernels, without registration, EMD or regions."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
@@ -158,6 +168,7 @@ def _own_share(config: Config) -> None:
         posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
         del refit
     _free_space_kernels(cam, rooms)
+    _decoder_kernels()
 
 
 def _start_helper() -> subprocess.Popen | None:
