@@ -33,7 +33,9 @@ soak-daemon  The same soak with ``robot-change run`` as a subprocess (what tests
          the console script's entry point: nothing else differs); plus its exit status and the
          reader's CPU.  ``--soak-camera realsense``: the same frames as a RealSense recording
          (written by librealsense, played by it at 30 fps in a loop; issue 43's target: no
-         frame dropped or repeated, the reader under 10 % of one core).
+         frame dropped or repeated, the reader under 10 % of one core); ``--soak-camera bag``:
+         that recording read by the bag backend (``rosbag:FILE``) in the daemon's camera
+         thread, the reader's CPU the thread time spent in the source's reads.
          ``--soak-check-every S``: a CHECK every S seconds, then WATCH again (issue 44: a
          60-minute soak in WATCH with CHECKs, its RSS slope over the last 30 minutes within
          noise: ``rss_slope_last_half_mb_per_min`` against ``rss_residual_sd_last_half_mb``).
@@ -241,16 +243,26 @@ def bench_latency(trials: int, seed: int = 0) -> dict:
 
 #: ``robot-change run`` (``robot_change.cli.main``, what the console script calls) with an
 #: observer: the sources the daemon opens and its service are kept, and once the daemon returns
-#: (SIGTERM) their counts go as JSON to the file named by the first argument.
+#: (SIGTERM) their counts go as JSON to the file named by the first argument, with the CPU time
+#: the calling threads spent in the sources' reads (an in-process reader's whole cost).
 _OBSERVED_RUN = """
-import json, sys
+import json, sys, time
 import robot_change.cli as cli, robot_change.service.daemon as daemon
 out = sys.argv.pop(1)
-sources, services = [], []
+sources, services, read_cpu, opened = [], [], [0.0], []
 real_open, real_run = cli.open_depth, daemon.run_service
 def open_depth(*args, **kwargs):
     source = real_open(*args, **kwargs)
     sources.append(source)
+    opened.append(time.monotonic())
+    real_read = source.read
+    def read(*args, **kwargs):
+        started = time.thread_time()
+        try:
+            return real_read(*args, **kwargs)
+        finally:
+            read_cpu[0] += time.thread_time() - started
+    source.read = read
     return source
 def run_service(service, **kwargs):
     services.append(service)
@@ -268,6 +280,8 @@ finally:
                        "source_dropped": sum(s.stats.dropped for s in sources),
                        "source_restarts": sum(s.stats.restarts for s in sources),
                        "sources_opened": len(sources), "camera_losses": service.camera_losses,
+                       "read_cpu_s": read_cpu[0],
+                       "read_wall_s": time.monotonic() - opened[0] if opened else 0.0,
                        "counters": dict(service.counters)}, f)
 sys.exit(code)
 """
@@ -555,23 +569,26 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
                 compress: bool = True, check_every: float = 0.0) -> dict:
     """``robot-change run`` as a subprocess watching the looped reference.oni at 30 fps for
     ``seconds`` (counted from WATCHING), then SIGTERM; ``camera="realsense"``: the same frames
-    as a RealSense recording written by librealsense, played by it (``realsense:FILE``).  RSS
+    as a RealSense recording written by librealsense, played by it (``realsense:FILE``);
+    ``camera="bag"``: that recording read in the daemon by the bag backend (``rosbag:FILE``).  RSS
     growth is from ``warmup`` s (default: 10 % of the run, at least 10 s) to the end.  Returns
     the figures as a dict (``accounted``: received == processed + dropped + queued == the
     source's delivered; ``reader_cpu_pct``: the reader's CPU time over the soak, % of one
-    core).  ``compress``: the RealSense recording's depth as compressedDepth PNG (librealsense's
+    core; for ``bag``, the CPU of its reads in the camera thread over the time since the source
+    opened).  ``compress``: the RealSense recording's depth as compressedDepth PNG (librealsense's
     default), else raw.  ``check_every``: a CHECK (then WATCH again) every that many seconds."""
     warmup = max(10.0, 0.1 * seconds) if warmup is None else warmup
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         source = None
-        if camera == "realsense":
+        if camera in ("realsense", "bag"):
             from hw.oni import read_oni_frames
             from hw.realsense_record import write_realsense_recording
 
             write_realsense_recording(tmp / "room.db3", read_oni_frames(SCENE / "reference.oni"),
                                       compress=compress)
-            source = f"realsense:{tmp / 'room.db3'}?loop=1&rate=30"
+            scheme = "realsense" if camera == "realsense" else "rosbag"
+            source = f"{scheme}:{tmp / 'room.db3'}?loop=1&rate=30"
         daemon = Daemon(tmp, observe=tmp / "counts.json", source=source)
         code: int | None = None
         readers: set[int] = set()
@@ -611,12 +628,16 @@ def soak_daemon(seconds: float, warmup: float | None = None, camera: str = "oni"
                                f"log: {(tmp / 'daemon.log').read_text()[-2000:]}") from None
         daemon_log = (tmp / "daemon.log").read_text()
     frames, delivered = counts["frames"], counts["source_delivered"]
+    read_cpu_pct = 100 * counts["read_cpu_s"] / max(counts["read_wall_s"], 1e-9)
+    if camera == "bag":  # the reader is the camera thread's reads, not a process
+        reader_cpu = read_cpu_pct / 100 * soak_wall
     return {"seconds": round(seconds), "warmup_s": warmup, "ready_s": round(ready_s, 2),
             **_rss_growth(samples, warmup), "reader_pids": len(readers),
             "longest_heartbeat_gap_s": round(max(gaps), 3),
             "heartbeat_states": seen["states"], "messages": seen["messages"],
             "camera": camera, "compressed": compress,
             "reader_cpu_pct": round(100 * reader_cpu / soak_wall, 2),
+            "read_cpu_pct": round(read_cpu_pct, 2),
             "frames": frames, "source_delivered": delivered,
             "source_dropped": counts["source_dropped"], "accounted": _accounted(frames, delivered),
             "sources_opened": counts["sources_opened"], "camera_losses": counts["camera_losses"],
@@ -636,11 +657,13 @@ def main() -> int:
     parser.add_argument("--soak-seconds", type=float, default=0.0,
                         help="soak duration (0: no soak; the issue's target is 600)")
     parser.add_argument("--only", default="latency,ready,cpu,soak")
-    parser.add_argument("--soak-camera", choices=("oni", "realsense"), default="oni",
+    parser.add_argument("--soak-camera", choices=("oni", "realsense", "bag"), default="oni",
                         help="soak-daemon's camera: the looped .oni through OpenNI2, or the same "
-                        "frames as a RealSense recording through librealsense")
+                        "frames as a RealSense recording through librealsense or the bag "
+                        "backend")
     parser.add_argument("--soak-raw", action="store_true",
-                        help="with --soak-camera realsense: the recording's depth raw, not PNG")
+                        help="with --soak-camera realsense / bag: the recording's depth raw, "
+                        "not PNG")
     parser.add_argument("--soak-check-every", type=float, default=0.0,
                         help="soak-daemon: a CHECK (then WATCH again) every this many seconds")
     parser.add_argument("--json", action="store_true")
