@@ -5,7 +5,7 @@ recording's frame; else zlib), the rows unfiltered by a kernel (NumPy twin in
 tests/test_png16.py).  A RealSense recording's 640 x 480 frame: 1.3 ms against Pillow's 2.3
 (docs/benchmarks.md).
 
-    depth = decode_png16(data, "frame.png")   # (H, W) uint16, or None: not such a PNG
+    depth = decode_png16(data, "frame.png", MAX_PIXELS)  # (H, W) uint16; None: not such a PNG
 
 Only a plain one (bit depth 16, colour type 0, not interlaced, no ``tRNS``, its chunks whole
 and in order) is decoded here; for anything else the answer is None and the caller reads it
