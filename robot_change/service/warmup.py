@@ -67,8 +67,8 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
     check: a read-only reference image, a writable current one), the transport's (the greedy
-    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path)
-    and the regions'."""
+    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path),
+    the regions' and the depth decoders'."""
     from robot_change.change import registration
     from robot_change.change.transport import greedy_emd, ground_distance
 
@@ -79,6 +79,7 @@ def _helper_share() -> None:
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
     _region_kernels()
+    _decoder_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -146,8 +147,8 @@ def _decoder_kernels() -> None:
 
 def _own_share(config: Config) -> None:
     """This process's share while the helper runs: the cloud's, the mixture's (a reference
-    built, the current's mixture, the novelty fit over a background), the free-space check's
-    and the depth decoders' kernels, without registration, EMD or regions."""
+    built, the current's mixture, the novelty fit over a background) and the free-space
+    check's kernels, without registration, EMD or regions."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
@@ -168,7 +169,6 @@ def _own_share(config: Config) -> None:
         posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
         del refit
     _free_space_kernels(cam, rooms)
-    _decoder_kernels()
 
 
 def _start_helper() -> subprocess.Popen | None:
@@ -229,7 +229,8 @@ def warm_up(config: Config | None = None, helper: bool = True) -> float:
 
 def _whole_path(config: Config) -> None:
     """Every kernel a capture and a check use, on the tiny scene: both directions, through a
-    registration and through a given transform, and the table-top registration kernels."""
+    registration and through a given transform, the table-top registration kernels and the
+    depth decoders'."""
     cam, rooms = _tiny_scene()
     params = config.scene_params()
     # regions of any size, and any registration taken as at the station, so that every stage
@@ -251,6 +252,7 @@ def _whole_path(config: Config) -> None:
         except (EmptySceneError, InputError):
             pass  # a tiny scene may be too small for some parameter set; kernels ran anyway
     _table_top_kernels()
+    _decoder_kernels()
 
 
 def _table_top_kernels() -> None:
