@@ -11,6 +11,8 @@ import zlib
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from hw.errors import DepthFileError
@@ -196,3 +198,23 @@ def test_decode_image_reads_plain_pngs_here_and_others_with_pillow():
     interlaced = png(4, 3, filtered_rows(depth, [0, 0, 0]), interlace=1)
     with pytest.raises(DepthFileError, match="x: truncated or corrupt PNG"):
         decode_image(interlaced, "x")  # Pillow's answer: Adam7 rows are laid out otherwise
+
+
+_FUZZ_BASE = png(5, 4, filtered_rows(np.arange(20, dtype=np.uint16).reshape(4, 5) * 999,
+                                     [0, 1, 3, 4]), extra=chunk(b"tEXt", b"a\0b"))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.integers(0, len(_FUZZ_BASE) - 1), st.integers(0, 255)),
+                min_size=1, max_size=4), st.integers(8, len(_FUZZ_BASE)))
+def test_damaged_pngs_give_samples_or_a_depth_file_error_never_another_exception(flips, keep):
+    data = bytearray(_FUZZ_BASE)
+    for at, value in flips:
+        data[at] = value
+    data = bytes(data[:keep])
+    for decode in (lambda d: decode_png16(d, "x", MAX_PIXELS), lambda d: decode_image(d, "x")):
+        try:
+            out = decode(data)
+        except DepthFileError:
+            continue
+        assert out is None or (out.dtype in (np.uint16, np.uint8) and out.ndim == 2)
