@@ -1,12 +1,13 @@
 """Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY.
 
 On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
-process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
-transport's and the regions' kernels into the cache while this process compiles the cloud's,
-the mixture's and the free-space check's (the two shares take about as long: ~18-20 s each on
-the 2-core test machine); then the whole capture-and-check path runs here once,
-loading what the helper left.  A kernel the helper did not leave (another argument type, or
-the helper failed) is compiled here then: the split only saves time, it is never needed.
+process (``python -m robot_change.service.warmup --helper``) compiles the registration's and
+the transport's kernels into the cache while this process compiles the cloud's, the
+mixture's, the free-space check's, the regions' and the depth decoders' (the two shares take
+about as long: ~19 s each on the 2-core test machine); then the whole capture-and-check path
+runs here once, loading what the helper left.  A kernel the helper did not leave (another
+argument type, or the helper failed) is compiled here then: the split only saves time, it is
+never needed.
 The helper is started only when this process's share is still running after
 ``HELPER_AFTER_S`` (a cold cache): with a warm cache everything loads here in about a second.
 """
@@ -66,9 +67,9 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
-    check: a read-only reference image, a writable current one), the transport's (the greedy
-    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check path),
-    the regions' and the depth decoders'."""
+    check: a read-only reference image, a writable current one) and the transport's (the
+    greedy EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check
+    path)."""
     from robot_change.change import registration
     from robot_change.change.transport import greedy_emd, ground_distance
 
@@ -78,8 +79,6 @@ def _helper_share() -> None:
         reference.setflags(write=False)
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
-    _region_kernels()
-    _decoder_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -147,8 +146,8 @@ def _decoder_kernels() -> None:
 
 def _own_share(config: Config) -> None:
     """This process's share while the helper runs: the cloud's, the mixture's (a reference
-    built, the current's mixture, the novelty fit over a background) and the free-space
-    check's kernels, without registration, EMD or regions."""
+    built, the current's mixture, the novelty fit over a background), the free-space check's,
+    the regions' and the depth decoders' kernels, without registration or EMD."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
@@ -169,6 +168,8 @@ def _own_share(config: Config) -> None:
         posteriors(novelty, points, np.arange(len(points)), (mix.n_components, log_bg))
         del refit
     _free_space_kernels(cam, rooms)
+    _region_kernels()
+    _decoder_kernels()
 
 
 def _start_helper() -> subprocess.Popen | None:
