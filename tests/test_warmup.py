@@ -18,16 +18,20 @@ import json
 from numba.core import event
 from robot_change.service.config import Config
 from robot_change.service import warmup
-compiled = set()
 class Listener(event.Listener):
+    def __init__(self):
+        self.compiled = set()
     def on_start(self, ev):
         f = ev.data["dispatcher"].py_func
-        compiled.add(f.__module__ + "." + f.__qualname__)
+        self.compiled.add(f.__module__ + "." + f.__qualname__)
     def on_end(self, ev):
         pass
-with event.install_listener("numba:compile", Listener()):
+own, whole = Listener(), Listener()
+with event.install_listener("numba:compile", own):
+    warmup._own_share(Config())
+with event.install_listener("numba:compile", whole):
     warmup._whole_path(Config())
-print(json.dumps(sorted(compiled)))
+print(json.dumps([sorted(own.compiled), sorted(whole.compiled)]))
 """
 
 
@@ -37,11 +41,11 @@ def _python(code_or_args: list[str], cache: Path, timeout: float = 300.0):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def test_the_helpers_kernels_are_the_ones_the_whole_path_loads(tmp_path):
-    """After the helper's share alone has filled an empty cache, the capture-and-check path
-    compiles nothing of registration's or transport's: the helper left exactly what it
-    needs (same argument types).  It compiles the cloud's, mixture's and free-space check's
-    kernels itself, none of them with an array-to-slice copy."""
+def test_the_two_shares_leave_the_kernels_the_whole_path_loads(tmp_path):
+    """After the helper's share has filled an empty cache, this process's share compiles
+    none of the helper's (registration's, transport's), and the capture-and-check path then
+    compiles none of the helper's nor the depth decoders': the shares left exactly what it
+    needs (same argument types).  No kernel of either copies an array into a slice."""
     cache = tmp_path / "cache"
     cache.mkdir()
     helper = _python(["-m", "robot_change.service.warmup", "--helper", str(os.getpid())],
@@ -49,14 +53,23 @@ def test_the_helpers_kernels_are_the_ones_the_whole_path_loads(tmp_path):
     assert helper.returncode == 0, helper.stderr
     run = _python(["-c", _WHOLE_PATH_COMPILES], cache)
     assert run.returncode == 0, run.stderr
-    compiled = json.loads(run.stdout.splitlines()[-1])
-    ours = [name for name in compiled if name.startswith("robot_change.")]
+    own, whole = json.loads(run.stdout.splitlines()[-1])
+    ours = [name for name in own if name.startswith(("robot_change.", "hw."))]
     assert ours, "a cold cache must compile the cloud's and mixture's kernels here"
-    left = [name for name in ours if name.startswith(("robot_change.change.registration.",
-                                                      "robot_change.change.transport"))]
-    assert left == [], f"the helper did not leave these for the whole path: {left}"
+
+    def helpers(names: list[str]) -> list[str]:  # registration's (its surface segments are
+        # the regions', in this share) and transport's
+        return [name for name in names if name.startswith(
+            ("robot_change.change.registration.", "robot_change.change.transport"))
+            and not name.startswith("robot_change.change.registration.surfaces.")]
+
+    assert helpers(own) == [], f"the helper's kernels compiled again here: {helpers(own)}"
+    assert helpers(whole) == [], f"the helper did not leave these for the whole path: " \
+        f"{helpers(whole)}"
+    decoders = [name for name in whole if name.startswith("hw.")]
+    assert decoders == [], f"this share did not leave these for the whole path: {decoders}"
     # an array-to-slice copy in a kernel costs ~2 s of compile for its shape-error message
-    slices = [name for name in compiled if "raise_with_shape_context" in name]
+    slices = [name for name in own + whole if "raise_with_shape_context" in name]
     assert slices == [], "a cloud, mixture or free-space kernel copies an array into a slice"
 
 
