@@ -96,7 +96,7 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
     (a read-only (H, W) int32 pixel -> point map, uint16 depth images), on the synthetic rooms
     without cleaning them."""
     from robot_change.change.free_space import free_space_votes
-    from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile
+    from robot_change.noise.profile import DEFAULT_PROFILE, builtin_profile, sigma_table
 
     profile = builtin_profile(DEFAULT_PROFILE)
 
@@ -108,7 +108,7 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
         pixel_voxel[valid] = np.arange(int(valid.sum())) // 4
         pixel_voxel.setflags(write=False)
         n_points = int(pixel_voxel.max()) + 1
-        free_space_votes(pixel_voxel, after, before.copy(), n_points, profile.kernel_table(),
+        free_space_votes(pixel_voxel, after, before.copy(), n_points, sigma_table(profile),
                          3.0, 0.01, 3, 5, True, intrinsics=cam, other_from_own=offset,
                          edge_px=profile.edge_px)
 
@@ -126,7 +126,7 @@ def _region_kernels() -> None:
     label_voxel_components(keys, 1)
     cells = np.zeros((6, 6, 3), np.float32)
     cells[..., 2] = 1.0
-    labels = cell_segments(cells, -cells, 0.9, 0.03, 0.01, 2)
+    labels = readonly_view(cell_segments(cells, -cells, 0.9, 0.03, 0.01, 2))  # as kept
     depth = np.full((24, 24), 1000, np.uint16)
     pixel_voxel = np.zeros((24, 24), np.int32)
     for image, points in ((depth, pixel_voxel), (readonly_view(depth), readonly_view(pixel_voxel))):
