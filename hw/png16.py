@@ -52,10 +52,12 @@ def decode_png16(data: bytes, name: str, max_pixels: int) -> np.ndarray | None:
     except _inflate.error as exc:
         raise DepthFileError(f"{name}: truncated or corrupt PNG (its image data: {exc})") \
             from None
-    if len(raw) != expected or not inflater.eof:
+    if len(raw) != expected:
         what = "more" if len(raw) > expected else "less"
         raise DepthFileError(f"{name}: truncated or corrupt PNG (its image data inflates to "
                              f"{what} than the {width}x{height} rows it declares)")
+    if not inflater.eof:
+        raise DepthFileError(f"{name}: truncated PNG (its image data stops before its end)")
     out = np.empty((height, width), dtype=np.uint16)
     if not unfilter16(np.frombuffer(raw, dtype=np.uint8), out):
         raise DepthFileError(f"{name}: corrupt PNG (a row's filter type is not 0-4)")

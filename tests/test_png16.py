@@ -133,8 +133,8 @@ def test_pillows_own_pngs_decode_as_pillow_reads_them(level):
 
 
 # --- what goes to Pillow, and what is refused ---------------------------------------------------
-@pytest.mark.parametrize("case", ["8-bit", "rgb", "interlaced", "trns", "no-iend", "short-chunk",
-                                  "ihdr-not-first", "idat-apart", "not-png"])
+@pytest.mark.parametrize("case", ["8-bit", "rgb", "interlaced", "trns", "plte", "no-iend",
+                                  "short-chunk", "ihdr-not-first", "idat-apart", "not-png"])
 def test_anything_but_a_plain_16_bit_gray_png_goes_to_pillow(case):
     depth = np.arange(12, dtype=np.uint16).reshape(3, 4)
     raw = filtered_rows(depth, [0, 0, 0])
@@ -146,6 +146,8 @@ def test_anything_but_a_plain_16_bit_gray_png_goes_to_pillow(case):
         data = png(4, 3, raw, interlace=1)
     elif case == "trns":
         data = png(4, 3, raw, extra=chunk(b"tRNS", b"\0\5"))
+    elif case == "plte":  # a critical chunk a grayscale PNG must not have
+        data = png(4, 3, raw, extra=chunk(b"PLTE", bytes(3)))
     elif case == "no-iend":
         data = png(4, 3, raw)[:-12]
     elif case == "short-chunk":
@@ -168,7 +170,8 @@ def test_ancillary_chunks_are_passed_over():
     assert np.array_equal(decode_png16(data, "x", MAX_PIXELS), depth)
 
 
-@pytest.mark.parametrize("case", ["corrupt-stream", "checksum", "short", "long", "too-large"])
+@pytest.mark.parametrize("case", ["corrupt-stream", "checksum", "unended", "short", "long",
+                                  "too-large"])
 def test_a_plain_png_with_bad_image_data_is_a_typed_error_naming_it(case):
     depth = np.arange(12, dtype=np.uint16).reshape(3, 4)
     raw = filtered_rows(depth, [0, 0, 0])
@@ -181,13 +184,19 @@ def test_a_plain_png_with_bad_image_data_is_a_typed_error_naming_it(case):
         ihdr = struct.pack(">IIBBBBB", 4, 3, 16, 0, 0, 0, 0)
         data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", bytes(deflated)) \
             + chunk(b"IEND", b"")
+    elif case == "unended":  # every row there, the stream's end and checksum cut off
+        deflater = zlib.compressobj()
+        deflated = deflater.compress(raw) + deflater.flush(zlib.Z_SYNC_FLUSH)
+        ihdr = struct.pack(">IIBBBBB", 4, 3, 16, 0, 0, 0, 0)
+        data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", deflated) \
+            + chunk(b"IEND", b"")
     elif case == "short":
         data = png(4, 4, raw)
     elif case == "long":
         data = png(4, 2, raw)
     else:
         data = png(4, 3, raw)
-    match = "too large" if case == "too-large" else "run7.png: truncated or corrupt PNG"
+    match = "too large" if case == "too-large" else "run7.png: truncated"
     with pytest.raises(DepthFileError, match=match):
         decode_png16(data, "run7.png", 11 if case == "too-large" else MAX_PIXELS)
 
