@@ -23,7 +23,7 @@ from hw.atomic import STALE_AFTER_S, remove_temp_files
 from hw.depth import open_depth
 from hw.errors import HwError
 from hw.pointfile import POINT_FORMATS
-from robot_change.commands.common import DEMO_FRAME, DETECT_SCENE, SIM_FIXTURES
+from robot_change.commands.common import DEMO_FRAME, DETECT_SCENE, SIM_FIXTURES, DefaultFrames
 from robot_change.commands.recording import cmd_list_devices, cmd_record
 from robot_change.commands.scene import (
     APPEARED_COLOR,
@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 "picture")
     cloud.add_argument("--source", required=True,
                        help="depth URI: openni2://, FILE.oni, images:DIR, FILE.png")
-    cloud.add_argument("--frames", type=_count, default=1,
+    cloud.add_argument("--frames", type=_count, default=DefaultFrames(1),
                        help="frames to fuse by per-pixel median (default 1)")
     cloud.add_argument("--intrinsics",
                        help="fx,fy,cx,cy in pixels (default: the source's, else OpenNI's VGA)")
@@ -211,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
                                   "N frames and save it")
     capture.add_argument("--source", required=True, help="depth URI (camera, .oni, images)")
     capture.add_argument("--out", required=True, help="the file to write, e.g. kitchen.scene.npz")
-    capture.add_argument("--frames", type=_count, default=5, help="frames to fuse (default 5)")
+    capture.add_argument("--frames", type=_count, default=DefaultFrames(5),
+                         help="frames to fuse (default 5)")
     capture.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's)")
     capture.add_argument("--leaf", type=float, help="voxel size in metres (default 0.03)")
     capture.add_argument("--mount", help="the camera on the base, recorded with the reference: "
@@ -244,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a saved scene (*.npz from capture) or a depth URI")
     detect.add_argument("--current", required=True,
                         help="a saved scene (*.npz) or a depth URI (.oni, images, camera)")
-    detect.add_argument("--frames", type=_count, default=5,
+    detect.add_argument("--frames", type=_count, default=DefaultFrames(5),
                         help="frames to fuse from a depth URI (default 5, fewer if it is shorter)")
     detect.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (default: the source's, "
                         "else OpenNI's VGA default)")

@@ -231,6 +231,17 @@ def test_a_source_shorter_than_frames_is_said(tmp_path):
     assert "ended after 1 of the 3 frames" in result.stderr
 
 
+def test_one_image_with_the_default_frames_is_used_without_a_warning(tmp_path):
+    """--frames not given: a still (one image, one cloud) is what the user meant; said only
+    at -v."""
+    image = "sim_fixtures/frames/room_vga.png"
+    result = run("detect", "--reference", image, "--current", image, "--no-picture")
+    assert result.returncode == 0, result.stderr
+    assert "ended after" not in result.stderr and "WARNING" not in result.stderr
+    result = run("detect", "--reference", image, "--current", image, "--no-picture", "-v")
+    assert "ended after 1 of the 5 frames" in result.stderr
+
+
 def test_a_corrupt_oni_is_refused_before_the_native_library_sees_it(tmp_path):
     good = tmp_path / "good.oni"
     write_oni(good, [np.full((48, 64), 900, np.uint16)])

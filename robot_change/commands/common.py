@@ -84,10 +84,15 @@ def _print_json(payload: dict[str, Any]) -> None:
     print(json.dumps(payload, indent=None, sort_keys=False))
 
 
+class DefaultFrames(int):
+    """A ``--frames`` the user did not give (the command's default): a source shorter than it,
+    such as one image or one cloud, is used as it is without a warning."""
+
+
 def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
-    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter).  The
-    camera's model, when the source names one, is kept in ``_CAMERA_MODEL[uri]`` (the
-    ``auto`` noise profile)."""
+    """Up to ``frames`` frames from a depth URI (fewer when a recording is shorter: a warning
+    when ``frames`` was asked for, not a :class:`DefaultFrames`).  The camera's model, when
+    the source names one, is kept in ``_CAMERA_MODEL[uri]`` (the ``auto`` noise profile)."""
     read: list[DepthFrame] = []
     with open_depth(uri) as source:
         _CAMERA_MODEL[uri] = (getattr(source, "info", None) or {}).get("name") or None
@@ -98,8 +103,9 @@ def _read_frames(uri: str, frames: int) -> list[DepthFrame]:
     if not read:
         raise InputError(f"{uri}: the source delivered no frame")
     if len(read) < frames:
-        log.warning("%s ended after %d of the %d frames asked for (--frames); using %d", uri,
-                    len(read), frames, len(read))
+        level = logging.INFO if isinstance(frames, DefaultFrames) else logging.WARNING
+        log.log(level, "%s ended after %d of the %d frames asked for (--frames); using %d",
+                uri, len(read), frames, len(read))
     return read
 
 
