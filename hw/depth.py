@@ -1,9 +1,9 @@
 """Depth frames, the DepthSource interface, and ``open_depth(uri)``.
 
-Every depth backend (a live OpenNI2 or RealSense camera, an ``.oni`` or RealSense recording, a
-folder of 16-bit images, a ROS bag's depth topic, organized PCD clouds) delivers the same thing:
-:class:`DepthFrame` objects through the :class:`DepthSource` interface.  The rest of the project
-never knows which backend it is reading from.
+Every depth backend (a live OpenNI2 or RealSense camera, an ``.oni``, RealSense or Azure Kinect
+recording, a folder of 16-bit images, a ROS bag's depth topic, organized PCD clouds) delivers
+the same thing: :class:`DepthFrame` objects through the :class:`DepthSource` interface.  The
+rest of the project never knows which backend it is reading from.
 
 URIs (python-can / pyserial style; the backend module is imported only when used)::
 
@@ -24,6 +24,8 @@ URIs (python-can / pyserial style; the backend module is imported only when used
                                 metadata.yaml works too
     pcd:path/to/cloud.pcd       an organized PCD (or a folder of them): z -> depth; a bare
                                 .pcd path works too
+    mkv:path/to/recording.mkv   an Azure Kinect recording (k4arecorder); a bare .mkv path
+                                works too
 
 Options may follow a ``?`` as ``key=value`` pairs (``images:tum/depth?scale=5000``) or be
 passed as keyword arguments to :func:`open_depth`; keyword arguments win.
@@ -235,6 +237,7 @@ class DepthSource(abc.ABC):
 _BACKENDS: dict[str, str] = {
     "images": "hw.images:open_images",
     "pcd": "hw.pcd:open_pcd",
+    "mkv": "hw.azure_kinect:open_mkv",
     "rosbag": "hw.rosbag:open_rosbag",
     "oni": "hw.openni2:open_recording",
     "openni2": "hw.openni2:open_device",
@@ -245,6 +248,7 @@ _BACKENDS: dict[str, str] = {
 _INSTALL_HINTS: dict[str, str] = {
     "images": "numpy (pip install numpy)",
     "pcd": "pypcd4 (pip install pypcd4)",
+    "mkv": "numpy (pip install numpy)",
     "rosbag": "rosbags (pip install rosbags)",
     "oni": "Debian's libopenni2-0 (apt-get install libopenni2-0) and the 'openni' binding "
     "(pip install openni)",
@@ -260,8 +264,8 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
 
     A bare path is given the scheme its ending implies (``.oni`` -> ``oni``; ``.bag``,
     ``.db3``, ``.mcap`` or a folder holding ``metadata.yaml`` -> ``rosbag``; ``.pcd`` ->
-    ``pcd``; an image or another folder -> ``images``).  Raises :class:`UriError` for an
-    unknown scheme or an empty target.
+    ``pcd``; ``.mkv`` -> ``mkv``; an image or another folder -> ``images``).  Raises
+    :class:`UriError` for an unknown scheme or an empty target.
     """
     if not isinstance(uri, str) or not uri.strip():
         raise UriError(f"depth URI {uri!r}: expected e.g. 'openni2://', 'oni:file.oni' or "
@@ -280,7 +284,7 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
         raise UriError(
             f"depth URI {uri!r}: unknown scheme {scheme!r}; known schemes are "
             + ", ".join(f"'{name}:'" for name in sorted(_BACKENDS))
-            + " (a bare path ending in .oni, .bag, .db3, .mcap, .pcd, .png or .tif, or a "
+            + " (a bare path ending in .oni, .bag, .db3, .mcap, .pcd, .mkv, .png or .tif, or a "
             "folder, works too)"
         )
     if scheme not in ("openni2", "realsense") and not rest:
@@ -290,7 +294,7 @@ def parse_uri(uri: str) -> tuple[str, str, dict[str, str]]:
 
 #: Bare-path endings and the scheme they imply (images and folders aside).
 _SUFFIX_SCHEMES = {".oni": "oni", ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
-                   ".pcd": "pcd"}
+                   ".pcd": "pcd", ".mkv": "mkv"}
 
 
 def _scheme_of_path(path: str) -> str:
@@ -304,10 +308,11 @@ def _scheme_of_path(path: str) -> str:
     if suffix in (".ply", ".npz", ".npy", ".xyz"):
         raise UriError(f"{path}: a {suffix} file is not a depth source; depth sources are 16-bit "
                        "depth images (PNG, TIFF), folders of them, .oni recordings, ROS bags, "
-                       "organized .pcd clouds and openni2:// cameras")
+                       "organized .pcd clouds, Azure Kinect .mkv recordings and openni2:// "
+                       "cameras")
     raise UriError(
         f"depth URI {path!r}: cannot tell the backend from the file name; use 'oni:{path}', "
-        f"'rosbag:{path}', 'pcd:{path}' or 'images:{path}'"
+        f"'rosbag:{path}', 'pcd:{path}', 'mkv:{path}' or 'images:{path}'"
     )
 
 

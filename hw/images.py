@@ -10,7 +10,6 @@ from __future__ import annotations
 import datetime
 import decimal
 import fnmatch
-import math
 import re
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ import numpy as np
 from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, UriError
 from hw.imagefile import decode_image, read_file
-from hw.options import Pacer, flag, positive
+from hw.options import Pacer, flag, intrinsics_option, positive
 
 #: Frame period (µs) assumed when file names carry no time: 30 Hz, as OpenNI cameras.
 DEFAULT_PERIOD_US = 1_000_000 // 30
@@ -278,13 +277,7 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
     rate_value = None if rate is None or rate == "" else positive(
         "images", "rate", rate, "frames per second; leave it out to read as fast as possible")
     loop_value = flag("images", "loop", loop)
-    if isinstance(intrinsics, str) and not intrinsics.strip():
-        intrinsics = None
-    if isinstance(intrinsics, str):
-        _check_four_numbers(intrinsics)
-    elif intrinsics is not None and not isinstance(intrinsics, Intrinsics):
-        raise UriError(f"images option intrinsics={intrinsics!r}: expected an Intrinsics or "
-                       "'fx,fy,cx,cy' text")
+    intrinsics = intrinsics_option("images", intrinsics)
     if pattern is not None and not isinstance(pattern, str):
         raise UriError(f"images option pattern={pattern!r}: expected a glob such as "
                        "'*_depth.png'")
@@ -300,13 +293,3 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
     return ImageFolderSource(files, scale=scale_value, rate=rate_value, loop=loop_value,
                              intrinsics=intrinsics)
 
-
-def _check_four_numbers(text: str) -> None:
-    parts = text.split(",")
-    try:
-        ok = len(parts) == 4 and all(math.isfinite(float(part)) for part in parts)
-    except ValueError:
-        ok = False
-    if not ok:
-        raise UriError(f"images option intrinsics={text!r}: expected four numbers "
-                       "'fx,fy,cx,cy' in pixels, e.g. '525,525,319.5,239.5'")

@@ -52,7 +52,7 @@ from hw.atomic import commit_folder
 from hw.compressed_depth import COMPRESSED_TYPE, decode_compressed_depth, depth_format
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, UriError
-from hw.options import Pacer, flag, positive
+from hw.options import LapClock, Pacer, flag, intrinsics_option, positive
 from hw.realsense_bag import (
     camera_info_topics,
     depth_units_m,
@@ -118,11 +118,8 @@ class RosbagSource(DepthSource):
         self._messages: Iterator[tuple[Any, int, bytes]] | None = None
         self._pending: tuple[Any, int] | None = None  # the next image message and its log time
         self._position = 0
-        self._lap = 0
-        self._lap_frames = 0
-        self._first_stamp = self._last_stamp = 0
+        self._clock = LapClock()
         self._last_seq: int | None = None
-        self._first_lap_frames = 0
         self._taken = 0  # image messages of this lap taken by read()
         self._compressed = False
         self._realsense = False
@@ -164,7 +161,8 @@ class RosbagSource(DepthSource):
         except BaseException:
             self.close()
             raise
-        self._position = self._lap = self._lap_frames = 0
+        self._position = 0
+        self._clock.reset()
         self._last_seq = None
         self._pacer.reset()
 
@@ -191,11 +189,8 @@ class RosbagSource(DepthSource):
             raise DeviceError(f"{self!r} is not open: call open() or use it in a 'with' block")
         if self._pending is None:
             self._peek()
-            if self._pending is None and self.loop and self._lap_frames:
-                if self._lap == 0:
-                    self._first_lap_frames = self._lap_frames
-                self._lap += 1
-                self._lap_frames = 0
+            if self._pending is None and self.loop and self._clock.lap_frames:
+                self._clock.next_lap()
                 self._restart()
                 self._peek()
             if self._pending is None:
@@ -212,15 +207,10 @@ class RosbagSource(DepthSource):
         finally:
             self._taken += 1
         stamp = _stamp_us(message.header.stamp) or log_time // 1000
-        if self._lap == 0:
-            if self._lap_frames == 0:
-                self._first_stamp = stamp
-            self._last_stamp = stamp
         self._count_gaps(getattr(message.header, "seq", None))
-        self._lap_frames += 1
         index = self._position
         self._position += 1
-        frame = DepthFrame(depth, stamp + self._lap * self._lap_span(), index, self.intrinsics)
+        frame = DepthFrame(depth, self._clock.stamp(stamp), index, self.intrinsics)
         self.stats.delivered += 1
         return frame
 
@@ -404,17 +394,10 @@ class RosbagSource(DepthSource):
                                  f"{self._intrinsics.height}")
 
     def _count_gaps(self, seq: int | None) -> None:
-        if seq is not None and self._last_seq is not None and self._lap_frames and \
+        if seq is not None and self._last_seq is not None and self._clock.lap_frames and \
                 seq > self._last_seq + 1:
             self.stats.dropped += seq - self._last_seq - 1
         self._last_seq = seq
-
-    def _lap_span(self) -> int:
-        """µs one lap of a looped bag adds to the timestamps: its span and one frame period."""
-        span = self._last_stamp - self._first_stamp
-        frames = self._first_lap_frames
-        period = span // (frames - 1) if frames > 1 else 1_000_000 // 30
-        return span + max(period, 1)
 
 
 def open_bag(path: Path) -> Any:
@@ -539,17 +522,7 @@ def open_rosbag(target: str, *, topic: Any = None, info: Any = None, intrinsics:
     rate_value = None if rate is None or rate == "" else positive(
         "rosbag", "rate", rate, "frames per second; leave it out to read as fast as possible")
     rectified_value = None if rectified is None else flag("rosbag", "rectified", rectified)
-    if isinstance(intrinsics, str) and not intrinsics.strip():
-        intrinsics = None
-    if isinstance(intrinsics, str):
-        try:
-            Intrinsics.parse(intrinsics)
-        except FrameError:
-            raise UriError(f"rosbag option intrinsics={intrinsics!r}: expected four numbers "
-                           "'fx,fy,cx,cy' in pixels, e.g. '525,525,319.5,239.5'") from None
-    elif intrinsics is not None and not isinstance(intrinsics, Intrinsics):
-        raise UriError(f"rosbag option intrinsics={intrinsics!r}: expected an Intrinsics or "
-                       "'fx,fy,cx,cy' text")
+    intrinsics = intrinsics_option("rosbag", intrinsics)
     path = Path(target)
     if not path.exists():
         raise DepthFileError(f"{target}: no such file or folder (expected a .bag file, a ROS 2 "

@@ -26,7 +26,7 @@ says where it comes from and under which licence), never copied into the reposit
   (``rtabmap-kinect-lab-2views``): beyond the promised range, so ``not_at_station`` or
   ``no_change``;
 * ``azure``: the one real Azure Kinect (time-of-flight) frame (``azure-kinect-tof-1capture``,
-  read by :mod:`sim_fixtures.azure_mkv`, 640 x 576 NFOV unbinned) against itself re-rendered
+  read by :mod:`hw.azure_kinect`, 640 x 576 NFOV unbinned) against itself re-rendered
   from a camera 3 cm and 5 cm to the side (``sim_fixtures.tabletop.seen_from``: what the
   first camera did not see stays a hole): within range.  The same readings on both sides, so
   this checks the time-of-flight picture (holes, multipath, 1 mm steps, a hexagonal field of
@@ -270,12 +270,13 @@ def _rtabmap(name: str, data_dir: Path | None) -> StaticPair:
 
 
 def _azure(name: str, data_dir: Path | None) -> StaticPair:
-    from sim_fixtures.azure_mkv import depth_intrinsics, read_depth_frames
+    from hw.depth import open_depth
     from sim_fixtures.tabletop import seen_from
 
     folder = _folder(_AZURE, data_dir)
-    depth = read_depth_frames(folder / "recording.mkv")[0]
-    camera = depth_intrinsics(folder / "calibration.json")
+    with open_depth(f"mkv:{folder / 'recording.mkv'}") as source:
+        frame = source.read()
+    depth, camera = frame.depth, frame.intrinsics
     offset_m = int(name.removeprefix("azure-seen-").removesuffix("cm")) / 100.0
     T_new_from_old = np.eye(4)
     T_new_from_old[0, 3] = -offset_m  # the camera moved +x (to its right)

@@ -112,7 +112,7 @@ class CameraConfig(_Section):
     NAME: ClassVar[str] = "camera"
     source: str = _key("openni2://", _depth_uri,
                        "depth URI: openni2:// (first camera), openni2://SERIAL, oni:FILE.oni, "
-                       "images:DIR/, rosbag:BAG, pcd:FILE.pcd")
+                       "realsense://, images:DIR/, rosbag:BAG, pcd:FILE.pcd, mkv:FILE.mkv")
     fuse_frames: int = _key(PARAM_BY_NAME["fuse_frames"].default, _param("fuse_frames"),
                             "depth frames fused (per-pixel median) per reference or check")
     min_valid_fraction: float = _key(_SCENE.min_valid_fraction, _scene("min_valid_fraction"),
