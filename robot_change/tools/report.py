@@ -301,13 +301,13 @@ def _leader_line(axis, spot: np.ndarray, box: np.ndarray, colour) -> None:
     axis.plot(ends[:, 0], ends[:, 1], color=colour, linewidth=1.0, zorder=4)
 
 
-def _label_regions(axis, renderer, regions, rectangles: list, colour, legend,
+def _label_regions(axis, renderer, regions, first: int, rectangles: list, colour, legend,
                    max_full_labels: int) -> list[int]:
     """Label a panel's regions without overlaps: the ``max_full_labels`` largest (by points)
     get a full label (beside the box, else joined to it by a leader line), the others a
-    number tag where one fits beside the box.  Labels stay inside the image and off the
-    legend.  ``rectangles``: each region's from :func:`_region_rectangle`.  Returns the
-    indices of the regions that got a full label."""
+    number tag where one fits beside the box; ``regions[i]`` is number ``first + i``.  Labels
+    stay inside the image and off the legend.  ``rectangles``: each region's from
+    :func:`_region_rectangle`.  Returns the indices of the regions that got a full label."""
     limits = np.array([axis.get_xlim(), axis.get_ylim()]).T.ravel()  # (u0, v0, u1, v1)
     image = _to_display(axis, limits)
     taken = [np.array(legend.get_window_extent(renderer).extents)]
@@ -322,7 +322,7 @@ def _label_regions(axis, renderer, regions, rectangles: list, colour, legend,
         if len(labelled) >= max_full_labels:
             tag_only.append(i)
             continue
-        text = (f"{region.kind} {i + 1}: {region.n_points} points, "
+        text = (f"{region.kind} {first + i}: {region.n_points} points, "
                 f"{max(region.extent) * 100.0:.0f} cm, {region.centroid[2]:.2f} m away")
         spot = _text_at_spot(axis, renderer, text, colour, 8, 1.5, LABEL_GID, boxes[i], image,
                              taken, all_boxes, search_image=True)
@@ -332,7 +332,7 @@ def _label_regions(axis, renderer, regions, rectangles: list, colour, legend,
             labelled.append(i)
             _leader_line(axis, spot, boxes[i], colour)
     for i in tag_only:
-        _text_at_spot(axis, renderer, str(i + 1), colour, 6.5, 1.0, TAG_GID, boxes[i], image,
+        _text_at_spot(axis, renderer, str(first + i), colour, 6.5, 1.0, TAG_GID, boxes[i], image,
                       taken, all_boxes, search_image=False)
     return labelled
 
@@ -377,15 +377,18 @@ def change_figure(
     from matplotlib.patches import Patch
 
     figure, axes = plt.subplots(1, 2, figsize=(15, 5.8), constrained_layout=True)
+    # a region's number is its place in ``changes.regions`` (appeared, then disappeared), as
+    # the CLI, report.json and Foxglove count them
     panels = (
         (axes[0], reference_depth, changes.disappeared_mask, tuple(changes.disappeared),
-         changes.disappeared_mixture, DISAPPEARED_COLOUR, "reference: what disappeared"),
+         changes.disappeared_mixture, DISAPPEARED_COLOUR, "reference: what disappeared",
+         len(changes.appeared) + 1),
         (axes[1], current_depth, changes.appeared_mask, tuple(changes.appeared),
-         changes.appeared_mixture, APPEARED_COLOUR, "current: what appeared"),
+         changes.appeared_mixture, APPEARED_COLOUR, "current: what appeared", 1),
     )
     try:
         to_label = []
-        for axis, depth, mask, regions, mixture, colour, caption in panels:
+        for axis, depth, mask, regions, mixture, colour, caption, first in panels:
             picture = _grey(depth)
             if mask is not None and mask.shape == depth.shape:
                 picture[mask] = 0.35 * picture[mask] + 0.65 * np.array(colour)
@@ -416,15 +419,17 @@ def change_figure(
             axis.set_ylim(depth.shape[0] - 1, 0)
             axis.set_xticks([])
             axis.set_yticks([])
-            to_label.append((axis, regions, rectangles, colour, legend, caption, mixture_line))
+            to_label.append((axis, regions, first, rectangles, colour, legend, caption,
+                             mixture_line))
         verdict = "CHANGED" if changes.changed else "no change"
         figure.suptitle(f"{title}  —  {verdict}" if title else verdict)
         figure.canvas.draw()  # lays the figure out; labels are placed in its display pixels
         figure.set_layout_engine("none")
         renderer = figure.canvas.get_renderer()
-        for axis, regions, rectangles, colour, legend, caption, mixture_line in to_label:
-            labelled = _label_regions(axis, renderer, regions, rectangles, colour, legend,
-                                      max_full_labels)
+        for axis, regions, first, rectangles, colour, legend, caption, mixture_line in \
+                to_label:
+            labelled = _label_regions(axis, renderer, regions, first, rectangles, colour,
+                                      legend, max_full_labels)
             axis.set_title(_panel_title(caption, regions, labelled, mixture_line), fontsize=10)
     except BaseException:
         plt.close(figure)
