@@ -2,10 +2,12 @@
 too), as ``k4arecorder`` writes them (and Orbbec's Femto cameras through their K4A wrapper).
 
 The DEPTH track's frames (millimetres, 0 = no reading; 640 x 576 in the NFOV unbinned mode) are
-delivered with their time in the recording.  Intrinsics: ``?intrinsics=fx,fy,cx,cy``, else the
-factory calibration the recorder attaches (``calibration.json``) for the depth mode the file
-names (``K4A_DEPTH_MODE``, else the one of the frames' size), converted as the SDK converts it;
-the lens distortion is left out (a pinhole model, as for every camera here).  ``rate=`` paces
+delivered with their time in the recording.  Intrinsics: ``?intrinsics=fx,fy,cx,cy`` (the
+frames then taken as they are), else the factory calibration the recorder attaches
+(``calibration.json``) for the depth mode the file names (``K4A_DEPTH_MODE``, else the one of
+the frames' size), converted as the SDK converts it, and the frames undistorted by its lens
+model into that pinhole camera (the rest of the project reads pinhole depth: the NFOV lens
+moves a reading up to ~80 px from where a pinhole puts it).  ``rate=`` paces
 delivery, ``loop=1`` starts again after the last frame (timestamps keep increasing).  The
 source's ``info`` names the camera ("Azure Kinect", the ``auto`` noise profile's key), its
 serial number and depth mode.  Read with :mod:`hw.mkv_format`, frame by frame from the file.
@@ -13,17 +15,22 @@ serial number and depth mode.  Read with :mod:`hw.mkv_format`, frame by frame fr
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from hw.depth import DepthFrame, DepthSource, Intrinsics
 from hw.errors import DepthFileError, DeviceError, FrameError, UriError
 from hw.mkv_format import DepthBlock, MkvFile, MkvTrack
 from hw.options import LapClock, Pacer, flag, intrinsics_option, positive
 
-__all__ = ["DEPTH_MODES", "AzureRecordingSource", "depth_intrinsics", "open_mkv"]
+__all__ = ["DEPTH_MODES", "AzureRecordingSource", "DepthCalibration", "depth_calibration",
+           "open_mkv", "undistort", "undistortion_table"]
 
 _OPTIONS = ("intrinsics", "rate", "loop")
 
@@ -38,17 +45,30 @@ DEPTH_MODES = {
 }
 
 
-def depth_intrinsics(calibration: str | bytes, mode: str, where: str) -> Intrinsics:
-    """The depth camera's pinhole intrinsics for a depth ``mode`` (a :data:`DEPTH_MODES` key)
-    from the text of an Azure Kinect ``calibration.json`` (``where`` names it in errors).
+@dataclasses.dataclass(frozen=True)
+class DepthCalibration:
+    """The depth camera in one mode: its pinhole ``intrinsics``, the lens's Brown-Conrady
+    ``distortion`` (k1, k2, k3, k4, k5, k6, p1, p2: a rational radial model and tangential
+    terms, OpenCV's order aside) and ``metric_radius`` (beyond it, in the z = 1 plane, the
+    model is not valid)."""
+
+    intrinsics: Intrinsics
+    distortion: tuple[float, ...]
+    metric_radius: float
+
+
+def depth_calibration(calibration: str | bytes, mode: str, where: str) -> DepthCalibration:
+    """The depth camera's calibration for a depth ``mode`` (a :data:`DEPTH_MODES` key) from the
+    text of an Azure Kinect ``calibration.json`` (``where`` names it in errors).
 
     The factory calibration (``Cameras`` -> ``CALIBRATION_CameraLocationD0``) holds
-    Brown-Conrady parameters cx, cy, fx, fy, k1-k6, codx, cody, p2, p1, the first four
-    normalised to the 1024 x 1024 sensor with (0, 0) the top-left corner of the top-left
-    pixel.  As the SDK converts them to a mode: scale by the mode's binned sensor size,
-    subtract the mode's crop offset, and subtract half a pixel (pixel centres at integer
-    coordinates, as :class:`Intrinsics` counts them).  Raises :class:`DepthFileError` for
-    another file and :class:`UriError` for an unknown mode."""
+    Brown-Conrady parameters cx, cy, fx, fy, k1-k6, codx, cody, p2, p1 (the centre of
+    distortion only for another model), the first four normalised to the 1024 x 1024 sensor
+    with (0, 0) the top-left corner of the top-left pixel.  As the SDK converts them to a
+    mode: scale by the mode's binned sensor size, subtract the mode's crop offset, and
+    subtract half a pixel (pixel centres at integer coordinates, as :class:`Intrinsics` counts
+    them).  Raises :class:`DepthFileError` for another file and :class:`UriError` for an
+    unknown mode."""
     if mode not in DEPTH_MODES:
         raise UriError(f"{where}: unknown depth mode {mode!r}; known: {', '.join(DEPTH_MODES)}")
     try:
@@ -58,21 +78,58 @@ def depth_intrinsics(calibration: str | bytes, mode: str, where: str) -> Intrins
             raise KeyError("no CALIBRATION_CameraLocationD0 camera")
         cam = depth[0]
         model = cam["Intrinsics"]["ModelType"]
-        cx, cy, fx, fy = (float(v) for v in cam["Intrinsics"]["ModelParameters"][:4])
+        values = [float(v) for v in cam["Intrinsics"]["ModelParameters"][:14]]
+        cx, cy, fx, fy, k1, k2, k3, k4, k5, k6, _codx, _cody, p2, p1 = values
         sensor = (int(cam["SensorWidth"]), int(cam["SensorHeight"]))
+        radius = float(cam.get("MetricRadius", 0.0))
     except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
         raise DepthFileError(f"{where}: not an Azure Kinect calibration: {exc}") from None
     if model != "CALIBRATION_LensDistortionModelBrownConrady" or sensor != (1024, 1024):
         raise DepthFileError(f"{where}: depth camera model {model!r} on a {sensor[0]} x "
                              f"{sensor[1]} sensor; expected Brown-Conrady on the 1024 x 1024 "
                              "sensor")
+    if not all(math.isfinite(v) for v in values) or not math.isfinite(radius):
+        raise DepthFileError(f"{where}: the depth camera's calibration holds a value that is "
+                             "not a number")
     m = DEPTH_MODES[mode]
     (bw, bh), (ox, oy), (w, h) = m["binned"], m["crop"], m["size"]
     try:
-        return Intrinsics(w, h, fx * bw, fy * bh, cx * bw - ox - 0.5, cy * bh - oy - 0.5)
+        intrinsics = Intrinsics(w, h, fx * bw, fy * bh, cx * bw - ox - 0.5, cy * bh - oy - 0.5)
     except FrameError as exc:
         raise DepthFileError(f"{where}: the depth camera's calibration makes no sense: {exc}") \
             from None
+    return DepthCalibration(intrinsics, (k1, k2, k3, k4, k5, k6, p1, p2),
+                            radius if radius > 0 else math.inf)
+
+
+def undistortion_table(calibration: DepthCalibration) -> np.ndarray:
+    """(H * W,) int64: for each pixel of the pinhole image (``calibration.intrinsics``), the
+    flat index of the recorded pixel its ray falls on (nearest), or H * W where it falls
+    outside the recorded image or beyond the metric radius.  ``undistort`` with it."""
+    K = calibration.intrinsics
+    k1, k2, k3, k4, k5, k6, p1, p2 = calibration.distortion
+    v, u = np.mgrid[0:K.height, 0:K.width].astype(np.float64)
+    x, y = (u - K.cx) / K.fx, (v - K.cy) / K.fy
+    r2 = x * x + y * y
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    ud = np.rint(xd * K.fx + K.cx)
+    vd = np.rint(yd * K.fy + K.cy)
+    inside = (ud >= 0) & (ud < K.width) & (vd >= 0) & (vd < K.height) & \
+        (r2 < calibration.metric_radius ** 2)
+    table = np.full(K.width * K.height, K.width * K.height, np.int64)
+    table[inside.ravel()] = (vd * K.width + ud)[inside].astype(np.int64)
+    return table
+
+
+def undistort(recorded: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(H, W) uint16: a recorded depth image seen through a pinhole (nearest reading, so no
+    depth is mixed across an edge; 0 where no recorded pixel falls), by
+    :func:`undistortion_table`.  An Azure Kinect's depth is z along the optical axis, which
+    moving a reading to another pixel leaves true."""
+    flat = np.append(recorded.ravel(), np.uint16(0))
+    return flat[table].reshape(recorded.shape)
 
 
 class AzureRecordingSource(DepthSource):
@@ -98,6 +155,7 @@ class AzureRecordingSource(DepthSource):
         self._track: MkvTrack | None = None
         self._blocks: Iterator[DepthBlock] | None = None
         self._pending: DepthBlock | None = None
+        self._undistortion: np.ndarray | None = None
         self._position = 0
         self._clock = LapClock()
 
@@ -163,6 +221,8 @@ class AzureRecordingSource(DepthSource):
         assert self._track is not None
         try:
             depth = self._file.frame(block, self._track)
+            if self._undistortion is not None:
+                depth = undistort(depth, self._undistortion)
         except DepthFileError:
             self.stats.dropped += 1
             self._blocks = None  # the walk ends at a broken block
@@ -190,10 +250,12 @@ class AzureRecordingSource(DepthSource):
         return track
 
     def _find_intrinsics(self, tags: dict[str, str]) -> Intrinsics:
-        """``?intrinsics=``, else the attached calibration for the file's depth mode."""
+        """``?intrinsics=`` (the frames taken as they are), else the attached calibration for
+        the file's depth mode (the frames undistorted by it)."""
         assert self._file is not None and self._track is not None
         size = (self._track.width, self._track.height)
         given = self._given_intrinsics
+        self._undistortion = None
         if given is not None:
             intrinsics = Intrinsics.parse(given, *size) if isinstance(given, str) else given
             if (intrinsics.width, intrinsics.height) != size:
@@ -212,7 +274,9 @@ class AzureRecordingSource(DepthSource):
         if calibration is None:
             raise self._file.fail(f"no {name} attached (the factory calibration); give the "
                                   "camera's ?intrinsics=fx,fy,cx,cy")
-        return depth_intrinsics(calibration, mode, f"{self.path} ({name})")
+        camera = depth_calibration(calibration, mode, f"{self.path} ({name})")
+        self._undistortion = undistortion_table(camera)
+        return camera.intrinsics
 
     def _peek(self) -> None:
         """The next DEPTH block, or None at the end of the walk (a broken one: raised once,
