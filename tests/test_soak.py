@@ -3,8 +3,10 @@ office_box_added/reference.oni at 30 fps for 60 s, the simulated base on a pty p
 SIGTERM.  The figures come from bench/bench_service.py (``soak_daemon``, the same code as
 ``bench_service.py --only soak-daemon --soak-seconds 600``, the full 10-minute soak):
 
-* RSS of the daemon (and of its OpenNI2 reader child) from the end of a 10 s warm-up to the
-  end grows by <= 5 %;
+* RSS of the daemon (and of its OpenNI2 reader child) from the end of a 20 s warm-up to the
+  end grows by <= 5 % (the first seconds of a WATCH add ~11 MB at once, 266 -> 277 MB, then
+  it is flat: that step came within 6 s on a quiet machine, but once after 10 s in a full test
+  run, where a 10 s warm-up read it as 5.2 % of growth);
 * no stall: no gap between the module's heartbeats (every 0.1 s) above 1 s;
 * every frame accounted for: received == processed + dropped + queued, and received == the
   frames the OpenNI2 source itself delivered (counts the daemon writes when it stops);
@@ -21,7 +23,7 @@ import time
 from bench.bench_service import soak_daemon
 
 SECONDS = 60.0
-WARMUP = 10.0
+WARMUP = 20.0
 MAX_RSS_GROWTH_PCT = 5.0
 MAX_HEARTBEAT_GAP_S = 1.0
 
