@@ -67,9 +67,9 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 
 def _helper_share() -> None:
     """The helper process's share: the registration's kernels (the same argument types as a
-    check: a read-only reference image, a writable current one) and the transport's (the
-    greedy EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check
-    path)."""
+    check: a read-only reference image, a writable current one), two kernels only a check
+    reaches (:func:`_check_only_kernels`) and the transport's (the greedy EMD on
+    mixture-sized problems; the exact :func:`emd` alone is on no capture or check path)."""
     from robot_change.change import registration
     from robot_change.change.transport import greedy_emd, ground_distance
 
@@ -79,6 +79,7 @@ def _helper_share() -> None:
         reference.setflags(write=False)
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
+    _check_only_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -89,6 +90,29 @@ def _helper_share() -> None:
         candidates = np.zeros(k + 2, dtype=bool)
         candidates[k:] = True
         greedy_emd(weights_a, weights_b, cost, candidates, 2)
+
+
+def _check_only_kernels() -> None:
+    """Two kernels of a check that the synthetic room does not reach before the whole path
+    (the core's read-through at the turned poses, the moved objects' counterparts), called
+    on empty inputs with the argument types a check gives them (read-only depth images and
+    sigma tables, an int64 sensing window), so that they are compiled here, not on the
+    whole path after both shares."""
+    from robot_change.change.free_space import _read_through_kernel
+    from robot_change.change.objects import _counterparts_kernel
+
+    depth = readonly_view(np.zeros((4, 4), np.uint16))
+    labels = np.full((4, 4), -1, np.int32)
+    window = np.array([0, 0, 4, 4], np.int64)
+    noise = readonly_view(np.ones(8))
+    normals = np.zeros((1, 1, 3), np.float32)
+    _counterparts_kernel(labels, 0, depth, np.eye(3), np.zeros(3), 1.0, 1.0, 2.0, 2.0, window,
+                         0.1, 5.0, depth, readonly_view(labels), np.zeros(0, np.bool_), 1,
+                         normals, normals, 4, noise, 3.0, 0.01, 0.9, 2, 0.5, labels.copy(), 0)
+    flat = depth.ravel()
+    _read_through_kernel(flat, np.zeros(0, np.int64), np.eye(3)[None].copy(), np.zeros((1, 3)),
+                         1.0, 1.0, 2.0, 2.0, 4, window, 0.1, 5.0, np.zeros(16, np.uint16),
+                         np.zeros(16, np.uint16), flat, noise, 3.0, 0.01, 0.0)
 
 
 def _free_space_kernels(cam: Intrinsics, rooms) -> None:

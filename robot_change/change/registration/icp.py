@@ -203,8 +203,10 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
     trans = np.empty(3)
     inc = np.eye(4)
     for _ in range(iterations):
-        rot[:, :] = T[:3, :3]
-        trans[:] = T[:3, 3]
+        for a in range(3):  # element by element: a slice copy compiles numba's shape error
+            for b in range(3):
+                rot[a, b] = T[a, b]
+            trans[a] = T[a, 3]
         n = _associate(cur_v, cur_n, ref_v, ref_n, rot, trans, fx, fy, cx, cy, max_dist,
                        min_cos, res, jac, zs)
         if n < 6:
@@ -219,8 +221,11 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
             length = math.sqrt((step[0] ** 2 + step[1] ** 2 + step[2] ** 2) * radius * radius
                                + (step[3] ** 2 + step[4] ** 2 + step[5] ** 2))
         n_it += 1
-        inc[:3, :3] = exp_so3(step[:3])
-        inc[:3, 3] = step[3:]
+        turn = exp_so3(step[:3])
+        for a in range(3):
+            for b in range(3):
+                inc[a, b] = turn[a, b]
+            inc[a, 3] = step[3 + a]
         T = inc @ T
         if length < tol_m:
             return T, n_it, True, lam_n, vec, A, has_system
