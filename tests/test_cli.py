@@ -383,6 +383,11 @@ def test_calibrate_measures_a_still_view_and_capture_keeps_the_profile(tmp_path)
     missing = run("calibrate", "--source", str(scene / "reference.oni"), "--out",
                   str(tmp_path / "none" / "camera.json"))
     assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    # one image looped: the same frame 30 times, no noise to measure
+    looped = run("calibrate", "--source", "sim_fixtures/frames/room_vga.png?loop=1", "--out",
+                 str(tmp_path / "looped.json"))
+    assert looped.returncode == 2 and "frames are identical" in looped.stderr, looped.stderr
+    assert not (tmp_path / "looped.json").exists()
 
 
 def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):

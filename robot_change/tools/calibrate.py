@@ -32,8 +32,8 @@ def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 
     """Read ``frames`` frames of ``source`` (opened here, closed by its owner), measure them
     against the built-in ``base`` and write the profile to ``out``.  Returns (the profile, the
     measurement, seconds spent).  Raises :class:`InputError` when fewer than 2 frames come,
-    when no depth is read in every frame, or when the frames differ so much that the camera or
-    the scene moved."""
+    when they are all the same frame, when no depth is read in every frame, or when the frames
+    differ so much that the camera or the scene moved."""
     t0 = time.perf_counter()
     source.open()
     stack = []
@@ -46,6 +46,10 @@ def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 
     if len(stack) < 2:
         raise InputError(f"{uri}: {len(stack)} frame(s) read; calibrating needs at least 2 of "
                          "a still view (a recording that ended, or a camera that stopped?)")
+    if all(np.array_equal(stack[0], depth) for depth in stack[1:]):
+        raise InputError(f"{uri}: the {len(stack)} frames are identical, so there is no noise "
+                         "to measure (one image or frame looped, or a camera repeating its "
+                         "last frame); calibrate on the camera's own frames of a still view")
     profile, noise = profile_from_frames(np.stack(stack), base, uri)
     near = [s / float(base.sigma(z)) for z, s, _ in noise.bins if 1.0 <= z <= 3.0]
     if near and float(np.median(near)) > MOVED_FACTOR:
