@@ -7,10 +7,10 @@ frames then taken as they are), else the factory calibration the recorder attach
 (``calibration.json``) for the depth mode the file names (``K4A_DEPTH_MODE``, else the one of
 the frames' size), converted as the SDK converts it, and the frames undistorted by its lens
 model into that pinhole camera (the rest of the project reads pinhole depth: the NFOV lens
-moves a reading up to ~80 px from where a pinhole puts it).  ``rate=`` paces
-delivery, ``loop=1`` starts again after the last frame (timestamps keep increasing).  The
-source's ``info`` names the camera ("Azure Kinect", the ``auto`` noise profile's key), its
-serial number and depth mode.  Read with :mod:`hw.mkv_format`, frame by frame from the file.
+moves a reading up to ~80 px from where a pinhole puts it).  ``rate=`` paces delivery,
+``loop=1`` starts again after the last frame (timestamps keep increasing).  The source's
+``info`` names the camera ("Azure Kinect", the ``auto`` noise profile's key), its serial number
+and depth mode.  Read with :mod:`hw.mkv_format`, frame by frame from the file.
 """
 
 from __future__ import annotations
