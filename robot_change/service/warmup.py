@@ -1,13 +1,13 @@
 """Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY.
 
 On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
-process (``python -m robot_change.service.warmup --helper``) compiles the registration's and
-the transport's kernels into the cache while this process compiles the cloud's, the
-mixture's, the free-space check's, the regions' and the depth decoders' (the two shares take
-about as long: ~19 s each on the 2-core test machine); then the whole capture-and-check path
-runs here once, loading what the helper left.  A kernel the helper did not leave (another
-argument type, or the helper failed) is compiled here then: the split only saves time, it is
-never needed.
+process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
+transport's and two only a check reaches into the cache while this process compiles the
+cloud's, the mixture's, the free-space check's, the regions' and the depth decoders' (the two
+shares take about as long: ~25 s each on the 2-core test VM of 2026-12-07); then the whole
+capture-and-check path runs here once, loading what the shares left (it compiles none).  A
+kernel the helper did not leave (another argument type, or the helper failed) is compiled here
+then: the split only saves time, it is never needed.
 The helper is started only when this process's share is still running after
 ``HELPER_AFTER_S`` (a cold cache): with a warm cache everything loads here in about a second.
 """
