@@ -22,8 +22,9 @@ import numpy as np
 
 from hw.errors import DepthFileError
 
-__all__ = ["DEPTH_TOPIC", "camera_info_topics", "depth_units_m", "float32_decimal",
-           "is_realsense_depth", "lenient_ros1", "stream_fps", "to_millimetres"]
+__all__ = ["DEPTH_TOPIC", "camera_info_topics", "depth_units_m", "device_info",
+           "float32_decimal", "is_realsense_depth", "lenient_ros1", "stream_fps",
+           "to_millimetres"]
 
 #: A librealsense recording's depth image topic (raw, or compressedDepth since 2.59).
 DEPTH_TOPIC = re.compile(r"^(/device_\d+/sensor_\d+)/Depth_\d+/image/data(/compressedDepth)?$")
@@ -80,6 +81,32 @@ def stream_fps(reader: Any, topic: str) -> float:
         return 30.0
     found = re.search(r"(?:^|;)fps=(\d+(?:\.\d+)?)", text)
     return float(found.group(1)) if found and float(found.group(1)) > 0 else 30.0
+
+
+def device_info(reader: Any, topic: str) -> dict[str, str]:
+    """The camera a recording names for the depth ``topic``'s device (``/device_<d>/info``):
+    ``{"name": "Intel RealSense D435", "serial": "..."}`` as librealsense's playback reports
+    them (the ``auto`` noise profile's key), from a 2.59+ recording's string
+    (``Name=...;Serial Number=...``) or an older one's KeyValue messages; ``{}`` when it names
+    none or cannot be read."""
+    match = DEPTH_TOPIC.match(topic)
+    info = reader.topics.get(match.group(1).rsplit("/", 1)[0] + "/info") if match else None
+    if info is None:
+        return {}
+    pairs: dict[str, str] = {}
+    try:
+        for connection, _, raw in reader.messages(connections=info.connections):
+            message = reader.deserialize(raw, connection.msgtype)
+            if info.msgtype == "std_msgs/msg/String":
+                for part in str(message.data).split(";"):
+                    key, _, value = part.partition("=")
+                    pairs.setdefault(key.strip(), value.strip())
+            elif info.msgtype == "diagnostic_msgs/msg/KeyValue":
+                pairs.setdefault(str(message.key).strip(), str(message.value).strip())
+    except Exception:  # noqa: BLE001 - a damaged info message names no camera
+        return {}
+    return {field: pairs[key] for field, key in (("name", "Name"), ("serial", "Serial Number"))
+            if pairs.get(key)}
 
 
 def to_millimetres(samples: np.ndarray, mm_per_sample: float) -> np.ndarray:

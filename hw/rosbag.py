@@ -56,6 +56,7 @@ from hw.options import LapClock, Pacer, flag, intrinsics_option, positive
 from hw.realsense_bag import (
     camera_info_topics,
     depth_units_m,
+    device_info,
     float32_decimal,
     is_realsense_depth,
     lenient_ros1,
@@ -124,6 +125,8 @@ class RosbagSource(DepthSource):
         self._compressed = False
         self._realsense = False
         self._scale = 1.0  # millimetres per sample
+        #: the camera a RealSense recording names ("name", "serial"; the ``auto`` profile's)
+        self.info: dict[str, str] = {}
 
     def __repr__(self) -> str:
         return f"<RosbagSource {self.path} {self.topic or '(no topic yet)'}>"
@@ -236,6 +239,7 @@ class RosbagSource(DepthSource):
         self._realsense = is_realsense_depth(self.topic)  # a librealsense recording's depth
         self._scale = (depth_units_m(self._reader, self.topic, str(self.path)) * 1000.0
                        if self._realsense else 1.0)
+        self.info = device_info(self._reader, self.topic) if self._realsense else {}
 
     def _image_topic(self) -> str:
         """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""

@@ -76,8 +76,25 @@ def test_a_ros1_recording_of_older_librealsense_plays_as_the_bag_backend_reads_i
         with open_depth(uri) as source:
             frames = list(source)
             assert source.intrinsics == Intrinsics(64, 48, 57.6, 57.6, 31.5, 23.5), uri
+            assert source.info["name"] == "Intel RealSense D435", uri  # the auto profile's key
+            assert source.info["serial"] == "000000000002", uri
         assert [f.index for f in frames] == list(range(len(expected))), uri
         assert all(np.array_equal(f.depth, d) for f, d in zip(frames, expected, strict=True)), uri
+
+
+def test_both_backends_name_the_camera_a_recording_names(tmp_path, twelve):
+    """The bag backend reads the device a 2.59+ recording names, as librealsense's playback
+    reports it, so that ``auto`` picks that camera's noise profile through either."""
+    from robot_change.noise.profile import resolve_profile
+
+    path = tmp_path / "d455.db3"
+    write_realsense_recording(path, frames_of(twelve[:2]), name="Intel RealSense D455",
+                              serial="123")
+    for uri in (f"realsense:{path}", str(path)):
+        with open_depth(uri) as source:
+            assert (source.info["name"], source.info["serial"]) == (
+                "Intel RealSense D455", "123"), uri
+            assert resolve_profile("auto", camera=source.info["name"]).name == "realsense_d455"
 
 
 def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
