@@ -180,7 +180,7 @@ class AzureRecordingSource(DepthSource):
         try:
             tags = self._file.tags()
             self._track = self._depth_track()
-            self._intrinsics = self._find_intrinsics(tags)
+            self._intrinsics, self._undistortion = self._camera(tags)
             self.info = {"name": "Azure Kinect", "serial": tags.get("K4A_DEVICE_SERIAL_NUMBER"),
                          "depth_mode": tags.get("K4A_DEPTH_MODE")}
             self._blocks = self._file.blocks(self._track)
@@ -249,20 +249,20 @@ class AzureRecordingSource(DepthSource):
             raise self._file.fail("the DEPTH track has no picture size")
         return track
 
-    def _find_intrinsics(self, tags: dict[str, str]) -> Intrinsics:
-        """``?intrinsics=`` (the frames taken as they are), else the attached calibration for
-        the file's depth mode (the frames undistorted by it)."""
+    def _camera(self, tags: dict[str, str]) -> tuple[Intrinsics, np.ndarray | None]:
+        """(intrinsics, undistortion table): ``?intrinsics=`` and None (the frames taken as
+        they are), else the attached calibration for the file's depth mode and its
+        :func:`undistortion_table`."""
         assert self._file is not None and self._track is not None
         size = (self._track.width, self._track.height)
         given = self._given_intrinsics
-        self._undistortion = None
         if given is not None:
             intrinsics = Intrinsics.parse(given, *size) if isinstance(given, str) else given
             if (intrinsics.width, intrinsics.height) != size:
                 raise FrameError(f"{self.path}: the depth frames are {size[0]}x{size[1]} but "
                                  f"the intrinsics given are for {intrinsics.width}x"
                                  f"{intrinsics.height}")
-            return intrinsics
+            return intrinsics, None
         by_size = [name for name, m in DEPTH_MODES.items() if m["size"] == size]
         mode = tags.get("K4A_DEPTH_MODE") or (by_size[0] if by_size else "")
         if not mode or mode not in DEPTH_MODES or DEPTH_MODES[mode]["size"] != size:
@@ -275,8 +275,7 @@ class AzureRecordingSource(DepthSource):
             raise self._file.fail(f"no {name} attached (the factory calibration); give the "
                                   "camera's ?intrinsics=fx,fy,cx,cy")
         camera = depth_calibration(calibration, mode, f"{self.path} ({name})")
-        self._undistortion = undistortion_table(camera)
-        return camera.intrinsics
+        return camera.intrinsics, undistortion_table(camera)
 
     def _peek(self) -> None:
         """The next DEPTH block, or None at the end of the walk (a broken one: raised once,
