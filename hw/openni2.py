@@ -190,7 +190,7 @@ class _OpenNI2Feed(FrameFeed):
             "width": mode.resolutionX, "height": mode.resolutionY, "fps": mode.fps,
             "pixel_format": int(mode.pixelFormat),
             "frames": int(self.stream.get_number_of_frames()),
-            **self._fov(), "uri": path, "vendor": "", "name": "recording", "serial": None,
+            **self._fov(), "uri": path, "vendor": "", "name": "", "serial": None,  # names no camera
             "mode_note": "",
         }
 

@@ -49,9 +49,10 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     at 0; ``codec`` ``"16zt"`` (lossless, about 4x smaller than raw on Kinect depth), ``"16z"``
     (lossless, for unquantised depth) or ``"none"``.  ``rosbag2``: ``out_path`` is the bag's
     folder (it must not exist yet), header stamps are the frames' timestamps as they are
-    (:func:`hw.rosbag.write_rosbag2`); ``realsense``: ``out_path`` ends in ``.db3``, frame
-    numbers and timestamps as they are; ``codec`` ``"png"`` (librealsense's compressedDepth) or
-    ``"none"`` (raw Images).  ``progress(frames, seconds,
+    (:func:`hw.rosbag.write_rosbag2`), the camera's name and serial in its metadata;
+    ``realsense``: ``out_path`` ends in ``.db3``, frame numbers and timestamps as they are;
+    ``codec`` ``"png"`` (librealsense's compressedDepth) or ``"none"`` (raw Images).  ``.oni``
+    keeps no camera name (OpenNI2's playback names none).  ``progress(frames, seconds,
     bytes)`` is called after every frame.  Opens the source if needed; the caller closes it.
     The recording appears only when complete (written atomically); on an error nothing is
     left.
@@ -75,7 +76,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
         if format == "rosbag2":
             from hw.rosbag import write_rosbag2
 
-            return write_rosbag2(out_path, everything, on_frame=tell)
+            return write_rosbag2(out_path, everything, camera=getattr(source, "info", None),
+                                 on_frame=tell)
         fps = int(getattr(source, "info", {}).get("fps") or 30)
         if format == "realsense":
             from hw.realsense_record import write_realsense_recording

@@ -42,7 +42,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +85,9 @@ PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "none", "",
 #: What :func:`write_rosbag2` names things, as the openni2_camera / realsense ROS drivers do.
 DEFAULT_TOPIC = "/camera/depth/image_raw"
 DEFAULT_FRAME_ID = "camera_depth_optical_frame"
+#: The camera a bag :func:`write_rosbag2` wrote names, in its metadata's ``custom_data``: the
+#: source's ``info`` field -> the key.
+CAMERA_KEYS = {"name": "camera_name", "serial": "camera_serial"}
 #: Message types for ROS 2 bags without type definitions (db3 bags of Humble and before).
 _TYPESTORE = Stores.ROS2_HUMBLE
 _OPTIONS = ("topic", "info", "intrinsics", "rectified", "rate", "loop")
@@ -125,7 +128,8 @@ class RosbagSource(DepthSource):
         self._compressed = False
         self._realsense = False
         self._scale = 1.0  # millimetres per sample
-        #: the camera a RealSense recording names ("name", "serial"; the ``auto`` profile's)
+        #: the camera the recording names ("name", "serial"; the ``auto`` profile's): a
+        #: RealSense recording's device info, or a bag's custom_data (:data:`CAMERA_KEYS`)
         self.info: dict[str, str] = {}
 
     def __repr__(self) -> str:
@@ -239,7 +243,8 @@ class RosbagSource(DepthSource):
         self._realsense = is_realsense_depth(self.topic)  # a librealsense recording's depth
         self._scale = (depth_units_m(self._reader, self.topic, str(self.path)) * 1000.0
                        if self._realsense else 1.0)
-        self.info = device_info(self._reader, self.topic) if self._realsense else {}
+        self.info = (device_info(self._reader, self.topic) if self._realsense
+                     else recorded_camera(self._reader))
 
     def _image_topic(self) -> str:
         """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""
@@ -421,6 +426,19 @@ def open_bag(path: Path) -> Any:
     return reader
 
 
+def recorded_camera(reader: Any) -> dict[str, str]:
+    """The camera a ROS 2 bag's metadata names in its ``custom_data`` (:data:`CAMERA_KEYS`, as
+    :func:`write_rosbag2` writes them): ``{"name": ..., "serial": ...}``, the fields it has;
+    ``{}`` for a ROS 1 bag, a bare storage file, or none named."""
+    found: dict[str, str] = {}
+    for bag in getattr(reader, "readers", ()):  # rosbags keeps it with the storage's metadata
+        custom = getattr(getattr(getattr(bag, "storage", None), "metadata", None), "custom", None)
+        if isinstance(custom, dict):
+            found.update({field: custom[key].strip() for field, key in CAMERA_KEYS.items()
+                          if isinstance(custom.get(key), str) and custom[key].strip()})
+    return found
+
+
 def image_to_depth(message: Any, where: str, mono16: bool = False) -> np.ndarray:
     """A sensor_msgs/Image in 16UC1 (mm) or 32FC1 (m) -> (H, W) uint16 millimetres, 0 = no
     reading; ``mono16``: a mono16 image is depth too (a librealsense recording's).  Rows are
@@ -539,13 +557,17 @@ def open_rosbag(target: str, *, topic: Any = None, info: Any = None, intrinsics:
 # --- writing ----------------------------------------------------------------------------------
 def write_rosbag2(path: str | os.PathLike[str], frames: Iterable[DepthFrame], *,
                   topic: str = DEFAULT_TOPIC, frame_id: str = DEFAULT_FRAME_ID,
+                  camera: Mapping[str, Any] | None = None,
                   on_frame: Callable[[int, int], None] | None = None) -> int:
     """Write depth frames to a new ROS 2 bag folder ``path`` with MCAP storage (zstd-compressed
     chunks, lossless), as ``ros2 bag record -s mcap -o path`` would: ``path/<name>.mcap`` and
     ``metadata.yaml``.  Each frame becomes a sensor_msgs/msg/Image in 16UC1 on ``topic`` and a
     sensor_msgs/msg/CameraInfo (plumb_bob, zero distortion, ``K`` and ``P`` from the frame's
     intrinsics) on the ``camera_info`` beside it, both stamped with the frame's timestamp and
-    ``frame_id``.  Returns the number of frames.  The folder appears only when complete (built
+    ``frame_id``.  ``camera``: the source's ``info`` (its ``name`` and ``serial``, when it
+    gives them, go to the bag's ``custom_data`` as :data:`CAMERA_KEYS` say, so reading the bag
+    names the camera and ``auto`` picks its noise profile).  Returns the number of frames.  The
+    folder appears only when complete (built
     under a temporary name, then renamed); ``path`` must not exist.  ``on_frame(frames, bytes)``
     is called after each frame.  Raises :class:`DepthFileError` when it cannot be written,
     :class:`FrameError` for no frames or a negative timestamp.
@@ -574,6 +596,10 @@ def write_rosbag2(path: str | os.PathLike[str], frames: Iterable[DepthFrame], *,
     try:
         writer = Writer(staged, version=9, storage_plugin=StoragePlugin.MCAP)
         writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        for field, key in CAMERA_KEYS.items():
+            value = (camera or {}).get(field)
+            if isinstance(value, str) and value:
+                writer.set_custom_data(key, value)
         with writer:
             images = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
             infos = writer.add_connection(info_topic, INFO_TYPE, typestore=store)

@@ -407,6 +407,51 @@ def test_a_bag_recorded_from_a_bag_keeps_its_stamps(tmp_path, depth_frames):
     assert [f.timestamp_us for f in frames] == [(s + 500) // 1000 for s in STAMPS_NS]
 
 
+def test_a_bag_recorded_from_a_camera_names_it_so_auto_picks_its_profile(tmp_path):
+    """``record`` keeps the source's camera in the bag's metadata (custom_data, read back by
+    rosbags' own reader), so the bag names it as the camera did and ``auto`` picks its noise
+    profile: a RealSense D435's recording (librealsense 2.56's, read by the bag backend)
+    copied to a ROS 2 bag is still a D435."""
+    from rosbags.rosbag2 import Reader
+
+    from robot_change.noise.profile import resolve_profile
+
+    original = SIM_FIXTURES / "realsense" / "d435_ros1.bag"
+    with open_depth(f"rosbag:{original}") as source:
+        assert source.info["name"] == "Intel RealSense D435"
+        record(source, tmp_path / "copy", format="rosbag2")
+    with Reader(tmp_path / "copy") as reader:
+        assert reader.storage.metadata.custom == {"camera_name": "Intel RealSense D435",
+                                          "camera_serial": "000000000002"}
+    with open_depth(f"rosbag:{tmp_path / 'copy'}") as copy:
+        assert copy.info == {"name": "Intel RealSense D435", "serial": "000000000002"}
+        assert resolve_profile("auto", camera=copy.info["name"]).name == "realsense_d435"
+    # a source that names no camera leaves no custom_data, and the bag names none
+    with open_depth(f"oni:{SCENE / 'current.oni'}") as source:
+        record(source, tmp_path / "anon", format="rosbag2")
+    with Reader(tmp_path / "anon") as reader:
+        assert not reader.storage.metadata.custom
+    with open_depth(f"rosbag:{tmp_path / 'anon'}") as anon:
+        assert anon.info == {}
+
+
+@pytest.mark.parametrize("custom", ["[1, 2]", "{camera_name: 7, camera_serial: ''}",
+                                    "not a mapping", "{camera_name: {a: 1}}", "null"])
+def test_a_bag_whose_custom_data_is_not_a_camera_reads_and_names_none(tmp_path, depth_frames,
+                                                                      custom):
+    from hw.rosbag import write_rosbag2
+
+    frames = [DepthFrame(d, k, 1_000 + k * 33_333, CAMERA) for k, d in enumerate(depth_frames)]
+    write_rosbag2(tmp_path / "bag", frames, camera={"name": "Intel RealSense D455"})
+    meta = tmp_path / "bag" / "metadata.yaml"
+    written = "  custom_data:\n    camera_name: Intel RealSense D455\n"
+    assert written in meta.read_text()
+    meta.write_text(meta.read_text().replace(written, f"  custom_data: {custom}\n"))
+    with open_depth(f"rosbag:{tmp_path / 'bag'}") as source:
+        assert source.info == {}
+        assert len(list(source)) == len(frames)
+
+
 def test_write_rosbag2_refuses_what_it_must_not_write_and_leaves_nothing(tmp_path, depth_frames):
     from hw.rosbag import write_rosbag2
 
