@@ -6,6 +6,7 @@ read again by the bag backend; no hardware is needed, so a live camera is only s
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -95,6 +96,27 @@ def test_both_backends_name_the_camera_a_recording_names(tmp_path, twelve):
             assert (source.info["name"], source.info["serial"]) == (
                 "Intel RealSense D455", "123"), uri
             assert resolve_profile("auto", camera=source.info["name"]).name == "realsense_d455"
+
+
+@pytest.mark.parametrize("damage", [b"", b"\x00\x01\x00\x00\xff\xff\xff\x7f",
+                                    b"\x00\x01\x00\x00\x05\x00\x00\x00Na"])
+def test_the_bag_backend_reads_a_recording_whose_device_info_is_damaged(tmp_path, twelve,
+                                                                        damage):
+    """A damaged ``/device_0/info`` message (empty, a length past its end, cut short) names
+    no camera (``auto`` then takes the default profile) and the frames still read."""
+    import sqlite3
+
+    path = tmp_path / "d455.db3"
+    write_realsense_recording(path, frames_of(twelve[:2]), name="Intel RealSense D455",
+                              serial="123")
+    with contextlib.closing(sqlite3.connect(path)) as db, db:
+        (topic,), = db.execute("SELECT id FROM topics WHERE name = '/device_0/info'")
+        assert db.execute("UPDATE messages SET data = ? WHERE topic_id = ?",
+                          (damage, topic)).rowcount >= 1
+    with open_depth(str(path)) as source:
+        assert source.info == {}
+        frames = list(source)
+    assert [f.depth.tolist() for f in frames] == [d.tolist() for d in twelve[:2]]
 
 
 def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
