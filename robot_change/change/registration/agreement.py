@@ -139,29 +139,14 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_
                    margin_m, margin_per_m2):
     """For each pose (``rots`` (n, 3, 3), ``transs`` (n, 3) m: other-from-own), the cells of
     ``own_v`` (h, w, 3) m (z = 0: none) that ``other_v`` (intrinsics fx, fy, cx, cy) sees
-    through: they land on a reading of it farther than their depth by more than the margin
-    (:func:`agreement_counts`' through, for many poses in one call).  Returns (n,) int64."""
-    n = rots.shape[0]
-    out = np.zeros(n, dtype=np.int64)
-    h = other_v.shape[0]
-    w = other_v.shape[1]
-    for m in range(n):
-        rot = rots[m]
-        trans = transs[m]
-        count = 0
-        for i in range(own_v.shape[0]):
-            for j in range(own_v.shape[1]):
-                if own_v[i, j, 2] <= 0.0:
-                    continue
-                px, py, pz, u, v = land(own_v[i, j, 0], own_v[i, j, 1], own_v[i, j, 2], rot,
-                                        trans, fx, fy, cx, cy, h, w)
-                if u < 0:
-                    continue
-                rz = other_v[v, u, 2]
-                if rz > 0.0 and rz > pz + floored_margin_at(noise, pz, through_sigmas, margin_m,
-                                                            margin_per_m2):
-                    count += 1
-        out[m] = count
+    through: :func:`agreement_counts`' through, for many poses in one call (no pairs counted,
+    so no normals are read).  Returns (n,) int64."""
+    out = np.zeros(rots.shape[0], dtype=np.int64)
+    never = np.zeros(own_v.shape[0], np.int64)
+    for m in range(rots.shape[0]):
+        out[m] = _counts_until(own_v, own_v, other_v, other_v, rots[m], transs[m], fx, fy, cx,
+                               cy, 0.0, 1.0, noise, 0.0, through_sigmas, margin_m,
+                               margin_per_m2, False, -np.inf, never)[2]
     return out
 
 
@@ -232,6 +217,17 @@ def best_pose(rl: Level, cl: Level, poses: list[np.ndarray], params: Registratio
               min_cos: float) -> int:
     """The index of the first best-scoring of ``poses`` (:func:`score_poses`, one way)."""
     return int(np.argmax(score_poses(rl, cl, poses, params, min_cos, prune=True)))
+
+
+def better_end(rl: Level, cl: Level, T: np.ndarray, ends: list[np.ndarray],
+               params: RegistrationParams, min_cos: float) -> int | None:
+    """The index of the best of the (4, 4) ``ends`` on the score taken both ways
+    (:func:`score_poses` with ``table_hole_weight``) when it scores higher than ``T`` by more
+    than ``final_search_margin`` of the two views' cells with a normal; None otherwise."""
+    scores = score_poses(rl, cl, [T] + ends, params, min_cos, True, params.table_hole_weight)
+    best = int(np.argmax(scores[1:]))
+    margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
+    return best if scores[1 + best] > scores[0] + margin else None
 
 
 def slides_along(T: np.ndarray, A: np.ndarray, step_m: float, reach_m: float, n_dirs: int

@@ -218,8 +218,7 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
                            + (step[3] ** 2 + step[4] ** 2 + step[5] ** 2))
         if length > cap:
             step = step * (cap / length)
-            length = math.sqrt((step[0] ** 2 + step[1] ** 2 + step[2] ** 2) * radius * radius
-                               + (step[3] ** 2 + step[4] ** 2 + step[5] ** 2))
+            length = cap
         n_it += 1
         turn = exp_so3(step[:3])
         for a in range(3):

@@ -19,6 +19,15 @@ from robot_change.noise.profile import (
 _num = functools.partial(validate.number, "RegistrationParams")
 _int = functools.partial(validate.whole, "RegistrationParams")
 _bool = functools.partial(validate.flag, "RegistrationParams")
+#: The settings checked alike: shares (0..1); steps (0 < m <= 1) and lengths (0..1 m).
+_SHARES = ("final_search_margin", "station_through_ratio", "station_through_min",
+           "station_through_max", "fine_search_ratio", "restart_end_through",
+           "restart_end_ratio", "table_plane_fraction", "trim_conflict_share",
+           "table_outline_holes", "table_static_share", "slide_support_share",
+           "slide_contested_share", "min_fitness")
+_STEPS_M = ("search_step_m", "fine_search_step_m", "final_search_step_m")
+_REACHES_M = ("fine_search_reach_m", "final_search_reach_m", "restart_step_m", "band_m",
+              "table_object_m")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,49 +247,31 @@ class RegistrationParams:
         for d in self.max_distance_m:
             _num("max_distance_m", d, 0.0, 5.0, low_open=True, unit=" metres")
         _int("search_level", self.search_level, 0, n - 1)
-        _num("search_step_m", self.search_step_m, 0.0, 1.0, low_open=True, unit=" metres")
+        for name in _SHARES:
+            _num(name, getattr(self, name), 0.0, 1.0)
+        for name in _STEPS_M:
+            _num(name, getattr(self, name), 0.0, 1.0, low_open=True, unit=" metres")
+        for name in _REACHES_M:
+            _num(name, getattr(self, name), 0.0, 1.0, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
         _int("search_screw_steps", self.search_screw_steps, 0, 20)
-        _num("fine_search_step_m", self.fine_search_step_m, 0.0, 1.0, low_open=True,
-             unit=" metres")
-        _num("fine_search_reach_m", self.fine_search_reach_m, 0.0, 1.0, unit=" metres")
-        _num("final_search_step_m", self.final_search_step_m, 0.0, 1.0, low_open=True,
-             unit=" metres")
-        _num("final_search_reach_m", self.final_search_reach_m, 0.0, 1.0, unit=" metres")
         _int("final_search_starts", self.final_search_starts, 1, 20)
-        _num("final_search_margin", self.final_search_margin, 0.0, 1.0)
-        _num("station_through_ratio", self.station_through_ratio, 0.0, 1.0)
-        _num("station_through_min", self.station_through_min, 0.0, 1.0)
-        _num("station_through_max", self.station_through_max, 0.0, 1.0)
-        _num("fine_search_ratio", self.fine_search_ratio, 0.0, 1.0)
         _num("wide_cut_m", self.wide_cut_m, 0.0, 5.0, unit=" metres")
-        _num("restart_step_m", self.restart_step_m, 0.0, 1.0, unit=" metres")
         _num("restart_step_deg", self.restart_step_deg, 0.0, 45.0, unit=" degrees")
-        _num("restart_end_through", self.restart_end_through, 0.0, 1.0)
-        _num("restart_end_ratio", self.restart_end_ratio, 0.0, 1.0)
         _int("table_starts", self.table_starts, 0, 20)
-        _num("table_plane_fraction", self.table_plane_fraction, 0.0, 1.0)
         _num("table_max_tilt_deg", self.table_max_tilt_deg, 0.0, 90.0)
         _num("table_max_extent_m", self.table_max_extent_m, 0.0, 100.0, unit=" metres")
         _num("table_cell_m", self.table_cell_m, 0.002, 0.2, unit=" metres")
-        _num("table_object_m", self.table_object_m, 0.0, 1.0, unit=" metres")
         _num("table_yaw_deg", self.table_yaw_deg, 0.0, 45.0)
         _num("table_yaw_step_deg", self.table_yaw_step_deg, 0.0, 45.0, low_open=True)
         _num("table_hole_weight", self.table_hole_weight, 0.0, 100.0)
         _int("trim_rounds", self.trim_rounds, 0, 20)
-        _num("trim_conflict_share", self.trim_conflict_share, 0.0, 1.0)
-        _num("table_outline_holes", self.table_outline_holes, 0.0, 1.0)
-        _num("table_static_share", self.table_static_share, 0.0, 1.0)
-        _num("slide_support_share", self.slide_support_share, 0.0, 1.0)
-        _num("slide_contested_share", self.slide_contested_share, 0.0, 1.0)
         _num("max_normal_angle_deg", self.max_normal_angle_deg, 0.0, 90.0, low_open=True)
-        _num("band_m", self.band_m, 0.0, 1.0, unit=" metres")
         _num("band_slope", self.band_slope, 0.0, 100.0)
         _num("tukey_c", self.tukey_c, 0.0, 100.0, low_open=True)
         _num("inlier_sigmas", self.inlier_sigmas, 0.0, 100.0, low_open=True)
         _num("weak_eigenvalue", self.weak_eigenvalue, 0.0, 1.0)
         _num("tol_m", self.tol_m, 0.0, 1.0, low_open=True, unit=" metres")
-        _num("min_fitness", self.min_fitness, 0.0, 1.0)
         _num("max_seen_through", self.max_seen_through, 0.0, 1.0, low_open=True)
         _num("seen_through_margin_m", self.seen_through_margin_m, 0.0, 10.0, unit=" metres")
         _num("seen_through_margin_per_m2", self.seen_through_margin_per_m2, 0.0, 1.0,

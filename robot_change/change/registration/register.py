@@ -23,6 +23,7 @@ from robot_change.noise.profile import NoiseProfile
 
 from .agreement import (
     best_pose,
+    better_end,
     final_agreement,
     fine_search,
     score_poses,
@@ -274,12 +275,9 @@ def _restarted_end(ref_levels: list[Level], cur_levels: list[Level], start: np.n
     ends = [p for p in passes if p.T is not None]
     if not ends:
         return kept
-    scores = score_poses(rl, cl, [est.T] + [p.T for p in ends], params, min_cos, True,
-                         params.table_hole_weight)
-    best = int(np.argmax(scores[1:]))
-    margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
-    if scores[1 + best] <= scores[0] + margin or final_agreement(
-            rl, cl, ends[best].T, params, min_cos)[4] >= params.restart_end_ratio * judged[4]:
+    best = better_end(rl, cl, est.T, [p.T for p in ends], params, min_cos)
+    if best is None or final_agreement(rl, cl, ends[best].T, params, min_cos)[4] >= \
+            params.restart_end_ratio * judged[4]:
         return kept
     return _finished(ref_levels, cur_levels, ends[best]._replace(iterations=iterations),
                      params, min_cos, start)
@@ -322,13 +320,8 @@ def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarra
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
     pairs = Pairs(cl)
     ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
-    if not ends:
-        return None
-    scores = score_poses(rl, cl, [T] + [e[0] for e in ends], params, min_cos, True,
-                         params.table_hole_weight)
-    best = int(np.argmax(scores[1:]))
-    margin = params.final_search_margin * (rl.n_normals + cl.n_normals)
-    if scores[1 + best] <= scores[0] + margin:
+    best = better_end(rl, cl, T, [e[0] for e in ends], params, min_cos) if ends else None
+    if best is None:
         return None
     end = ends[best]
     return (end[0], sum(e[1] for e in ends), *end[2:])  # every start's iterations counted
