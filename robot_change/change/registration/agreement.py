@@ -373,20 +373,17 @@ def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationPar
     that the other sees through; the fraction of the current's cells that lie behind a nearer
     reading of the reference)."""
     n_cells = cl.n_normals
-    through_share = 0.0
-    fit = rmse = behind_share = 0.0
-    inliers = 0
     max_dist, min_cos = fitness_pairing(cl, params, min_cos)
-    for own, other, M, count_pairs in ((cl, rl, T, True), (rl, cl, invert(T), False)):
-        k, sq_sum, through, compared, _, behind = agreement_counts(
-            own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
-            M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
-            min_cos, *params.noise_args(), count_pairs)
-        through_share = max(through_share, through / compared if compared else 0.0)
-        if own is cl:
-            inliers = k
-            fit = k / n_cells if n_cells else 0.0
-            rmse = math.sqrt(sq_sum / k) if k else 0.0
-            cells = int(np.count_nonzero(own.vertex[:, :, 2] > 0))
-            behind_share = behind / cells if cells else 0.0
-    return fit, rmse, inliers, n_cells, through_share, behind_share
+
+    def counts(own: Level, other: Level, M: np.ndarray, count_pairs: bool) -> tuple:
+        return agreement_counts(own.vertex, own.normal, other.vertex, other.normal,
+                                M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
+                                other.cy, max_dist, min_cos, *params.noise_args(), count_pairs)
+
+    k, sq_sum, through, compared, _, behind = counts(cl, rl, T, True)
+    _, _, back, back_compared, _, _ = counts(rl, cl, invert(T), False)  # the reference's cells
+    cells = int(np.count_nonzero(cl.vertex[:, :, 2] > 0))
+    return (k / n_cells if n_cells else 0.0, math.sqrt(sq_sum / k) if k else 0.0, k, n_cells,
+            max(through / compared if compared else 0.0,
+                back / back_compared if back_compared else 0.0),
+            behind / cells if cells else 0.0)

@@ -177,6 +177,13 @@ class Level:
     cx: float
     cy: float
 
+    def without(self, drop: np.ndarray, *, points: bool) -> Level:
+        """This level with the cells ``drop`` (h, w) bool emptied (``points``: no reading, so
+        they are not counted) or without their normals (ICP pairs none of them)."""
+        field = "vertex" if points else "normal"
+        return dataclasses.replace(self, **{field: np.where(
+            drop[:, :, None], 0.0, getattr(self, field)).astype(np.float32)})
+
     @property
     def n_normals(self) -> int:
         """Cells with a normal (the cells that can be paired)."""

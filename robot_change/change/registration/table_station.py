@@ -21,7 +21,6 @@ floor and the walls do not.  So here
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import weakref
 
@@ -162,18 +161,8 @@ def structure_levels(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
     objects = station_objects(ref_levels, cur_levels, T, params)
     if objects is None:
         return None
-    return (_without(ref_levels[-1], objects[0], points=False),
-            _without(cur_levels[-1], objects[1], points=False))
-
-
-def _without(level: Level, drop: np.ndarray, *, points: bool) -> Level:
-    """``level`` with the cells ``drop`` (h, w) bool emptied (``points``: no reading, so they
-    are not counted) or without their normals (ICP pairs none of them)."""
-    if points:
-        return dataclasses.replace(level, vertex=np.where(drop[:, :, None], 0.0,
-                                                          level.vertex).astype(np.float32))
-    return dataclasses.replace(level, normal=np.where(drop[:, :, None], 0.0,
-                                                      level.normal).astype(np.float32))
+    return (ref_levels[-1].without(objects[0], points=False),
+            cur_levels[-1].without(objects[1], points=False))
 
 
 def _coarser(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -239,7 +228,7 @@ def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
         return None
     obj_r, obj_c = objects
     rl, cl, li = ref_levels[-1], cur_levels[-1], len(ref_levels) - 1
-    rs, cs = _without(rl, obj_r, points=True), _without(cl, obj_c, points=True)
+    rs, cs = rl.without(obj_r, points=True), cl.without(obj_c, points=True)
     cells = rl.n_normals + cl.n_normals
     at_T = int(_structure_through(rs, cs, rl, cl, [T], params)[0])
     least = params.station_through_min * cells  # the least gain worth a move
@@ -247,13 +236,13 @@ def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
         return None
     # ICP on the structure alone from T: its slide is the structure's weakest direction,
     # which the moved objects may have turned the estimate's away from
-    rn, cn = _without(rl, obj_r, points=False), _without(cl, obj_c, points=False)
+    rn, cn = rl.without(obj_r, points=False), cl.without(obj_c, points=False)
     pairs = Pairs(cn)
     first = icp_level(rn, cn, T, params, li, min_cos, pairs)
     T0, A0 = first[0], first[5]
     # along that slide at the middle level (a cell an object when any of its finer ones is)
     rm, cm = ref_levels[params.search_level], cur_levels[params.search_level]
-    rms, cms = (_without(L, _coarser(obj, L.vertex.shape[:2]), points=True)
+    rms, cms = (L.without(_coarser(obj, L.vertex.shape[:2]), points=True)
                 for L, obj in ((rm, obj_r), (cm, obj_c)))
     poses = _in_reach(T0, A0 if A0 is not None else A, params)
     counts = _structure_through(rms, cms, rm, cm, poses, params)

@@ -49,20 +49,14 @@ _EVERY_CELL = np.zeros(3)
 _PLANES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _kept_dominant_plane(level: Level) -> tuple[np.ndarray, float, float]:
-    """:func:`_dominant_plane` of ``level``, made once per level object."""
+def _dominant_plane(level: Level) -> tuple[np.ndarray, float, float]:
+    """The plane holding most cells of ``level``, :func:`planes_of`'s first, made once per
+    level object; (n, d, 0) with fraction 0 when there are too few cells."""
     out = _PLANES.get(level)
     if out is None:
-        out = _PLANES[level] = _dominant_plane(level)
+        planes = planes_of(level, 1)
+        out = _PLANES[level] = planes[0] if planes else (np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
     return out
-
-
-def _dominant_plane(level: Level, max_dist_m: float = ON_PLANE_M, min_cos: float = 0.95,
-                    n_seeds: int = 64) -> tuple[np.ndarray, float, float]:
-    """The plane holding most cells of ``level``: :func:`planes_of`'s first; (n, d, 0) with
-    fraction 0 when there are too few cells."""
-    planes = planes_of(level, 1, max_dist_m, min_cos, n_seeds)
-    return planes[0] if planes else (np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
 
 
 def planes_of(level: Level, k: int, max_dist_m: float = ON_PLANE_M, min_cos: float = 0.95,
@@ -182,7 +176,7 @@ def table_planes(ref_levels: list[Level], cur_levels: list[Level],
     revisit displaced sideways sees less of the table and more of what lies beyond it."""
     planes = []
     for level in (ref_levels[0], cur_levels[0]):
-        n, d, frac = _kept_dominant_plane(level)
+        n, d, frac = _dominant_plane(level)
         if frac == 0.0 or (not planes and frac < params.table_plane_fraction):
             return None
         if planes and float(n @ planes[0].frame[:3, 2]) < math.cos(
@@ -317,11 +311,9 @@ def without_changed_objects(rl: Level, cl: Level, planes: tuple[TablePlane, Tabl
     only the table and the objects that stayed put."""
     out = []
     for own, other, M, plane in ((rl, cl, invert(T), planes[0]), (cl, rl, T, planes[1])):
-        drop = _changed_objects(own, other, M, plane, params, params.max_distance_m[li],
-                                min_cos)
-        normal = own.normal.copy()
-        normal[drop] = 0.0
-        out.append(dataclasses.replace(own, normal=normal))
+        out.append(own.without(_changed_objects(own, other, M, plane, params,
+                                                params.max_distance_m[li], min_cos),
+                               points=False))
     return out[0], out[1]
 
 
