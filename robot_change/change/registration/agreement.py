@@ -143,10 +143,11 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_
     so no normals are read).  Returns (n,) int64."""
     out = np.zeros(rots.shape[0], dtype=np.int64)
     never = np.zeros(own_v.shape[0], np.int64)
+    no_pairs = np.bool_(False)  # a bool, not the literal False: no third compile of the kernel
     for m in range(rots.shape[0]):
         out[m] = _counts_until(own_v, own_v, other_v, other_v, rots[m], transs[m], fx, fy, cx,
                                cy, 0.0, 1.0, noise, 0.0, through_sigmas, margin_m,
-                               margin_per_m2, False, -np.inf, never)[2]
+                               margin_per_m2, no_pairs, -np.inf, never)[2]
     return out
 
 
