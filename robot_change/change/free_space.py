@@ -421,10 +421,11 @@ def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
     r0, r1 = max(rows[0] - radius, 0), min(rows[-1] + radius + 1, h)
     c0, c1 = max(cols[0] - radius, 0), min(cols[-1] + radius + 1, w)
     part = mask[r0:r1, c0:c1]
-    inside = np.ascontiguousarray(~part, dtype=np.uint16)
+    # read-only, as other_views' image: the kernel compiles for one argument type
+    inside = readonly_view(np.ascontiguousarray(~part, dtype=np.uint16))
     core = _window_filter(inside, radius, False) == 0  # eroded: every pixel around is in mask
-    out[r0:r1, c0:c1] = _window_filter(np.ascontiguousarray(core, dtype=np.uint16), radius,
-                                       False) > 0
+    out[r0:r1, c0:c1] = _window_filter(
+        readonly_view(np.ascontiguousarray(core, dtype=np.uint16)), radius, False) > 0
     return out
 
 

@@ -194,8 +194,10 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     intr = epoch.intrinsics
     cells = level_segments(level, params.object_fold_deg)
     max_step, max_off = SEGMENT_STEP / level.fx, SEGMENT_OFF / level.fx
-    return _pixels_kernel(epoch.depth, epoch.pixel_voxel, cells, level.vertex, level.normal, f,
-                          intr.fx, intr.fy, intr.cx, intr.cy, max_step, max_off, SEGMENT_SPAN)
+    # read-only whichever epoch it is (a reference's are, a current's not): one compile
+    return _pixels_kernel(readonly_view(epoch.depth), readonly_view(epoch.pixel_voxel), cells,
+                          level.vertex, level.normal, f, intr.fx, intr.fy, intr.cx, intr.cy,
+                          max_step, max_off, SEGMENT_SPAN)
 
 
 def _segment_pixels(epoch: Epoch, params: ChangeParams

@@ -138,7 +138,7 @@ def _primal(m, n, a, b, cost, bi, bj, tol_c, bland_after, tree, link, net, pot, 
         fresh = False
         _pivot(m, n, np.int64(p), np.int64(q), best, bland, np.int64(-1), bi, bj, tree, pot,
                x, order)  # typed ints: no literal specialisation of _pivot to compile
-    _tree_flows(m, n, a, b, tree, net, x, False)
+    _tree_flows(m, n, a, b, tree, net, x, np.bool_(False))  # a bool: one compile for both
     return _OK, pivots
 
 
@@ -236,7 +236,7 @@ def _dual(m, n, a, b, cost, bi, bj, cutoff, bland_after, ws_i, link, net, pot, x
             return _NO_ENTERING, pivots
         _pivot(m, n, np.int64(p), np.int64(q), cost[p, q] - pot[p] - pot[m + q], bland,
                np.int64(z), bi, bj, tree, pot, x, order)
-        _tree_flows(m, n, a, b, tree, net, x, False)
+        _tree_flows(m, n, a, b, tree, net, x, np.bool_(False))
         _tree_potentials(m, bi, bj, cost, tree, pot)
 
 

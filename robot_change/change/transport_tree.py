@@ -171,7 +171,7 @@ def _build_tree(m, n, bi, bj, a, b, cost, tree, link, net, pot, x):
         return False  # not connected
     thread[prev] = 0
     rev[0] = prev
-    _tree_flows(m, n, a, b, tree, net, x, True)
+    _tree_flows(m, n, a, b, tree, net, x, np.bool_(True))  # a bool, not a literal: one compile
     return True
 
 

@@ -140,7 +140,7 @@ def _free_space_kernels(cam: Intrinsics, rooms) -> None:
 def _region_kernels() -> None:
     """The regions' kernels, with the argument type a cloud gives them (read-only int64 voxel
     keys), and the object completion's surface segments (float32 vertex and normal maps) and
-    their pixels (a reference's read-only depth image, a current's writable one)."""
+    their pixels (read-only depth and pixel maps, as every epoch's are passed)."""
     from robot_change.change.objects import _pixels_kernel
     from robot_change.change.regions import label_voxel_components
     from robot_change.change.registration.surfaces import cell_segments
@@ -153,9 +153,8 @@ def _region_kernels() -> None:
     labels = readonly_view(cell_segments(cells, -cells, 0.9, 0.03, 0.01, 2))  # as kept
     depth = np.full((24, 24), 1000, np.uint16)
     pixel_voxel = np.zeros((24, 24), np.int32)
-    for image, points in ((depth, pixel_voxel), (readonly_view(depth), readonly_view(pixel_voxel))):
-        _pixels_kernel(image, points, labels, cells, -cells, 4, 500.0, 500.0, 12.0, 12.0, 0.03,
-                       0.01, 2)
+    _pixels_kernel(readonly_view(depth), readonly_view(pixel_voxel), labels, cells, -cells, 4,
+                   500.0, 500.0, 12.0, 12.0, 0.03, 0.01, 2)
 
 
 def _decoder_kernels() -> None:

@@ -143,7 +143,7 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_
     so no normals are read).  Returns (n,) int64."""
     out = np.zeros(rots.shape[0], dtype=np.int64)
     never = np.zeros(own_v.shape[0], np.int64)
-    no_pairs = np.bool_(False)  # a bool, not the literal False: no third compile of the kernel
+    no_pairs = np.bool_(False)  # a bool, not the literal False: the kernel compiles once
     for m in range(rots.shape[0]):
         out[m] = _counts_until(own_v, own_v, other_v, other_v, rots[m], transs[m], fx, fy, cx,
                                cy, 0.0, 1.0, noise, 0.0, through_sigmas, margin_m,
@@ -172,6 +172,7 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
     back = np.empty(3)
     best = -np.inf
     prune = prune and not both_ways
+    pairs = np.bool_(True)  # a bool, not the literal True: the kernel compiles once
     pairable_after = np.zeros(cur_v.shape[0], np.int64)  # cells with a normal below row i
     for i in range(cur_v.shape[0] - 2, -1, -1):
         pairable_after[i] = pairable_after[i + 1]
@@ -183,7 +184,7 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
         t = transs[m]
         inliers_cur, _, through_cur, _, holes_cur, _, whole = _counts_until(
             cur_v, cur_n, ref_v, ref_n, rot, t, fx, fy, cx, cy, max_dist, min_cos, noise, sigmas,
-            through_sigmas, margin_m, margin_per_m2, True, best if prune else -np.inf,
+            through_sigmas, margin_m, margin_per_m2, pairs, best if prune else -np.inf,
             pairable_after)
         if prune and (not whole or inliers_cur - through_cur - hole_weight * holes_cur < best):
             out[m] = -np.inf
@@ -332,6 +333,7 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     along them, and their many cells can give the normal equations a little information
     along it; the surfaces facing along it are what decides it.  Returns (fit, contradict)."""
     fit = contradict = 0
+    direction = np.ascontiguousarray(direction)  # as every caller's: one compile
     for own, other, M, d in ((cl, rl, T, T[:3, :3].T @ direction),
                              (rl, cl, invert(T), direction)):
         states = cell_states(own.vertex, own.normal, other.vertex, other.normal,
