@@ -20,10 +20,10 @@ from robot_change.service.config import Config
 from robot_change.service import warmup
 class Listener(event.Listener):
     def __init__(self):
-        self.compiled = set()
+        self.compiled = []  # one entry per compile: a kernel twice is two argument types
     def on_start(self, ev):
         f = ev.data["dispatcher"].py_func
-        self.compiled.add(f.__module__ + "." + f.__qualname__)
+        self.compiled.append(f.__module__ + "." + f.__qualname__)
     def on_end(self, ev):
         pass
 """
@@ -54,7 +54,9 @@ def test_the_two_shares_leave_the_kernels_the_whole_path_loads(tmp_path):
     """After the helper's share has filled an empty cache (in its own process), this
     process's share compiles none of the helper's kernels, and the capture-and-check path
     then compiles no kernel at all: the shares left exactly what it needs (same argument
-    types).  No kernel of any copies an array into a slice."""
+    types).  No kernel of any copies an array into a slice, and none is compiled for two
+    argument types (a literal bool, a read-only array beside a writable one: each another
+    compile of the whole kernel)."""
     cache = tmp_path / "cache"
     cache.mkdir()
     helper_run = _python(["-c", _HELPER_COMPILES], cache)
@@ -75,6 +77,9 @@ def test_the_two_shares_leave_the_kernels_the_whole_path_loads(tmp_path):
     # an array-to-slice copy in a kernel costs ~2 s of compile for its shape-error message
     slices = [name for name in helper + own + whole if "raise_with_shape_context" in name]
     assert slices == [], "a kernel copies an array into a slice"
+    twice = sorted({name for names in (ours(helper), ours(own + whole)) for name in names
+                    if names.count(name) > 1})
+    assert twice == [], f"kernels compiled for more than one argument type: {twice}"
 
 
 def test_the_helper_ends_when_its_parent_is_gone(tmp_path):
