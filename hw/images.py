@@ -1,8 +1,10 @@
 """Depth images on disk as a depth source: a 16-bit PNG/TIFF file, or a folder of them.
 
 ``open_depth("images:tum/depth?scale=5000&rate=30&loop=1")`` reaches :func:`open_images`.
-Frames come in natural name order (``frame_2`` before ``frame_10``), one file decoded per
-:meth:`ImageFolderSource.read` (:mod:`hw.imagefile`, Pillow), converted to uint16 millimetres.
+Frames come in natural name order (``frame_2`` before ``frame_10``); of a folder that mixes
+depth images with others, those named depth (:func:`depth_named`; ``pattern=`` picks
+otherwise).  One file is decoded per :meth:`ImageFolderSource.read` (:mod:`hw.imagefile`,
+Pillow), converted to uint16 millimetres.
 """
 
 from __future__ import annotations
@@ -130,6 +132,15 @@ def list_images(folder: Path, pattern: str | None = None,
         raise DepthFileError(f"{folder}: no depth images in this folder (looked for "
                              f"{looked_for})")
     return sorted(files, key=lambda path: natural_key(path.name))
+
+
+def depth_named(files: list[Path]) -> list[Path]:
+    """The ones of ``files`` named depth (any case) when some are and some are not: a
+    dataset's folder of depth frames beside colour frames or labels (SUN3D and 7-Scenes
+    ``frame-N.depth.png`` and ``.color.png``, PCL's grabber ``*_depth.tiff`` and ``*_rgb.tiff``,
+    OSD's ``*_depth_mm.png`` and ``*_label.png``); all of them otherwise."""
+    depth = [path for path in files if "depth" in path.name.lower()]
+    return depth or files
 
 
 class ImageFolderSource(DepthSource):
@@ -265,7 +276,8 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
     ``target``: an image file or a folder of them.  Options (Python values, or the strings of
     a URI query): ``scale`` raw units per metre (1000 = mm, 5000 = TUM); ``rate`` Hz to pace
     delivery at; ``loop`` (1/0, true/false, yes/no); ``intrinsics`` an :class:`Intrinsics` or
-    ``"fx,fy,cx,cy"``; ``pattern`` a glob the file names must match (e.g. ``*_depth.tiff``).
+    ``"fx,fy,cx,cy"``; ``pattern`` a glob the file names must match (e.g. ``*_depth.tiff``;
+    without one, a folder's files named depth when some are: :func:`depth_named`).
     Raises :class:`UriError` for bad or unknown options and :class:`DepthFileError` when the
     target is missing or holds no images.  The source is returned unopened.
     """
@@ -285,6 +297,8 @@ def open_images(target: str, *, scale: Any = 1000.0, rate: Any = None, loop: Any
     path = Path(target)
     if path.is_dir():
         files = list_images(path, pattern or None)
+        if not pattern:
+            files = depth_named(files)
     elif path.is_file():
         files = [path]
     else:

@@ -14,6 +14,7 @@ from hw.depth import Intrinsics, open_depth
 from hw.imagefile import write_png
 from hw.images import (
     ImageFolderSource,
+    depth_named,
     natural_key,
     open_images,
     read_depth_image,
@@ -235,8 +236,31 @@ def test_pattern_and_hidden_files(tmp_path):
                                    ".partial_depth.png"])
     with open_images(str(tmp_path / "seq"), pattern="*_depth.png") as source:
         assert len(list(source)) == 2
-    with open_images(str(tmp_path / "seq")) as source:
+    with open_images(str(tmp_path / "seq"), pattern="*.png") as source:
         assert len(list(source)) == 3
+    with open_images(str(tmp_path / "seq")) as source:  # the files named depth, as below
+        assert len(list(source)) == 2
+
+
+def test_a_folder_of_depth_beside_colour_reads_the_depth(tmp_path):
+    """A dataset's frames folder holds colour beside depth (7-Scenes, SUN3D:
+    ``frame-N.color.png`` and ``frame-N.depth.png``): the depth ones are read, in order;
+    ``pattern=`` still picks what it names (here the colour images, refused as not depth)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    depths = [depth_image(base=900 + 100 * k) for k in range(3)]
+    for k, depth in enumerate(depths):
+        write_png(folder / f"frame-{k:06d}.depth.png", depth)
+        Image.fromarray(np.zeros((6, 8, 3), np.uint8)).save(folder / f"frame-{k:06d}.color.png")
+        (folder / f"frame-{k:06d}.pose.txt").write_text("1 0 0 0\n")
+    with open_depth(str(folder)) as source:
+        frames = list(source)
+    assert [f.depth.tolist() for f in frames] == [d.tolist() for d in depths]
+    with pytest.raises(errors.DepthFileError, match="RGB PNG is not a depth image"):
+        with open_depth(f"images:{folder}?pattern=*.color.png") as source:
+            list(source)
+    assert depth_named([folder / "a.png", folder / "b.png"]) == [folder / "a.png",
+                                                                 folder / "b.png"]
 
 
 # --------------------------------------------------------------------- bad input
@@ -314,8 +338,10 @@ def test_real_pcl_grabber_folder(shared_data):
         np.testing.assert_array_equal(frame.depth, np.array(Image.open(path)))
     gaps = np.diff([f.timestamp_us for f in frames])
     assert np.all((gaps > 200_000) & (gaps < 300_000))  # frames ~0.25 s apart
-    with pytest.raises(errors.DepthFileError, match="RGB TIFF"):  # rgb files among them
-        with open_depth(f"images:{folder}") as source:
+    with open_depth(f"images:{folder}") as source:  # without a pattern: the depth ones too
+        assert [f.depth.tolist() for f in source] == [f.depth.tolist() for f in frames]
+    with pytest.raises(errors.DepthFileError, match="RGB TIFF"):  # rgb files named
+        with open_depth(f"images:{folder}?pattern=*.tiff") as source:
             list(source)
 
 
