@@ -187,11 +187,23 @@ def test_the_frames_of_a_still_camera_give_its_noise():
     np.testing.assert_allclose([b[1] for b in got.bins], 0.01, rtol=0.1)
     assert got.flicker_valid == pytest.approx(2 * 0.02 * 0.98 / (1 - 0.02 ** 2), rel=0.15)
     assert got.step_per_m == 0.0  # millimetre readings
+    assert got.drift == pytest.approx(1.0, abs=0.05)  # noise alone
     stepped = measure_frames(_wall_frames(4, 0.002, rng, step_per_m=2.85e-3))
     assert stepped.step_per_m == pytest.approx(2.85e-3, rel=0.1)
     assert stepped.flicker_step > 0.05  # readings that jump a whole step between frames
+    assert stepped.drift == pytest.approx(1.0, abs=0.1)
     with pytest.raises(InputError, match="at least 2"):
         measure_frames(_wall_frames(1, 0.01, rng))
+
+
+def test_frames_that_drift_are_told_from_noise():
+    """A view that creeps 2 mm a frame (under half the 5 mm noise of one reading) over 30
+    frames: the first and last frames lie ~10 times as far apart as consecutive ones."""
+    rng = np.random.default_rng(5)
+    assert measure_frames(_wall_frames(30, 0.005, rng)).drift == pytest.approx(1.0, abs=0.05)
+    creep = 2 * np.arange(30, dtype=np.uint16)[:, None, None]
+    drifted = measure_frames(_wall_frames(30, 0.005, rng) + creep)
+    assert 7.0 < drifted.drift < 13.0
 
 
 def test_calibrating_replaces_the_sigma_with_the_measured_one():

@@ -212,7 +212,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         return 0
     print(f"wrote {out}: {profile.name} from {noise.n_frames} frames in {seconds:.1f} s; step "
           f"{noise.step_per_m * 1e3:.2f} mm/m^2, flicker {noise.flicker_valid:.2%} (valid) "
-          f"{noise.flicker_step:.2%} (steps), flying pixels {noise.edge_px} px from an edge")
+          f"{noise.flicker_step:.2%} (steps), flying pixels {noise.edge_px} px from an edge, "
+          f"drift {noise.drift:.2f} (still: about 1)")
     print("depth m   sigma mm   built-in mm   pixels")
     for row in summary["bins"]:
         print(f"{row['depth_m']:7.2f} {row['sigma_mm']:10.2f} {row['builtin_sigma_mm']:13.2f} "

@@ -43,7 +43,11 @@ class FrameNoise:
     either); ``flicker_step``: the share of pixels read in both whose reading moved by at
     least one quantisation step (a whole step; readings 1 mm apart count at 2 mm);
     ``edge_px``: how far from a depth edge readings still lie between the two surfaces
-    (flying pixels), pixels; ``flying_share``: the share of pixels next to an edge that do.
+    (flying pixels), pixels; ``flying_share``: the share of pixels next to an edge that do;
+    ``drift``: how far the last frame lies from the first against how far each lies from the
+    one before (mean absolute differences over the pixels read in every frame, off any edge):
+    1 where the frames differ by noise alone, whatever their number; a camera or scene that
+    moves steadily takes it towards N - 1 (the per-pixel variances then hold the motion).
     """
 
     n_frames: int
@@ -53,6 +57,7 @@ class FrameNoise:
     flicker_step: float
     edge_px: int
     flying_share: float
+    drift: float
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)
@@ -163,6 +168,7 @@ def measure_frames(frames) -> FrameNoise:
         lo += BIN_M
     step = float(np.median(steps)) if steps else 0.0
     toggles = either = jumped = compared = 0
+    consecutive = 0.0  # summed |frame k - frame k-1| over the pixels used, mm
     for k in range(1, n):  # consecutive frames, a pair at a time
         before, after = stack[k - 1], stack[k]
         was, now = before > 0, after > 0
@@ -174,11 +180,14 @@ def measure_frames(frames) -> FrameNoise:
         moved = np.abs(z - before * 1e-3) >= 0.999 * whole_step
         jumped += int(np.count_nonzero(moved & both))
         compared += int(np.count_nonzero(both))
+        consecutive += float(np.abs(after[use].astype(np.int64) - before[use]).sum())
+    first_to_last = float(np.abs(stack[-1][use].astype(np.int64) - stack[0][use]).sum())
     edge_px, flying = _flying(median)
     return FrameNoise(
         n_frames=n, bins=tuple(bins), step_per_m=step,
         flicker_valid=float(toggles / max(either, 1)),
-        flicker_step=float(jumped / max(compared, 1)), edge_px=edge_px, flying_share=flying)
+        flicker_step=float(jumped / max(compared, 1)), edge_px=edge_px, flying_share=flying,
+        drift=first_to_last * (n - 1) / consecutive if consecutive > 0 else 0.0)
 
 
 def profile_from_frames(frames, base: NoiseProfile, source: str) -> tuple[NoiseProfile,

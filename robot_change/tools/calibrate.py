@@ -25,6 +25,14 @@ __all__ = ["calibrate", "calibration_summary"]
 #: A measurement this many times noisier than the built-in profile at 1-3 m says the camera or
 #: the scene moved rather than that the camera is that noisy: refused.
 MOVED_FACTOR = 20.0
+#: Of at least DRIFT_FRAMES frames, a :attr:`FrameNoise.drift` above MAX_DRIFT says the view
+#: moved steadily, which per-pixel variances take for noise: refused.  Still views measure
+#: 0.98-1.00 (rendered Kinect and RealisticKinect noise, 5 and 30 frames); the SUN3D Xtion
+#: carried by hand, ~1 cm a frame: 3.5 over 5 frames, 9.1 over 30 (sigma 15-20 times the
+#: Xtion's, under MOVED_FACTOR).  Slower drift, a tenth of the noise a frame over 30 frames,
+#: stays under it and adds up to a third to sigma.
+MAX_DRIFT = 2.5
+DRIFT_FRAMES = 5
 
 
 def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 30,
@@ -56,6 +64,11 @@ def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 
         raise InputError(f"{uri}: the frames differ {float(np.median(near)):.0f} times more "
                          f"than a {base.name} camera's noise at 1-3 m: the camera or the scene "
                          "moved while they were read; keep both still and calibrate again")
+    if noise.n_frames >= DRIFT_FRAMES and noise.drift > MAX_DRIFT:
+        raise InputError(f"{uri}: the last frame lies {noise.drift:.1f} times as far from the "
+                         f"first as frames from the one before (noise alone: about 1): the "
+                         f"camera or the scene moved steadily while they were read; keep both "
+                         f"still and calibrate again")
     profile.save(out)
     return profile, noise, time.perf_counter() - t0
 
@@ -72,5 +85,5 @@ def calibration_summary(profile: NoiseProfile, base: NoiseProfile, noise: FrameN
                  for z, s, n in noise.bins],
         "step_per_m": round(noise.step_per_m, 6), "flicker_valid": round(noise.flicker_valid, 4),
         "flicker_step": round(noise.flicker_step, 4), "edge_px": noise.edge_px,
-        "flying_share": round(noise.flying_share, 4),
+        "flying_share": round(noise.flying_share, 4), "drift": round(noise.drift, 3),
     }
