@@ -73,17 +73,18 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
         tell = None if progress is None else (
             lambda count, size: progress(count, time.monotonic() - started, size))
         everything = itertools.chain([first], stream)
+        info = getattr(source, "info", None) or {}  # the camera it names, its fps
         if format == "rosbag2":
             from hw.rosbag import write_rosbag2
 
-            return write_rosbag2(out_path, everything, camera=getattr(source, "info", None),
-                                 on_frame=tell)
-        fps = int(getattr(source, "info", {}).get("fps") or 30)
+            return write_rosbag2(out_path, everything, camera=info, on_frame=tell)
+        fps = int(info.get("fps") or 30)
         if format == "realsense":
             from hw.realsense_record import write_realsense_recording
 
             return write_realsense_recording(out_path, everything, fps=fps, on_frame=tell,
-                                             name=getattr(source, "info", {}).get("name"),
+                                             name=info.get("name"),
+                                             serial=str(info.get("serial") or "000000000001"),
                                              compress=codec != "none")
         return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell)
 

@@ -98,6 +98,19 @@ def test_both_backends_name_the_camera_a_recording_names(tmp_path, twelve):
             assert resolve_profile("auto", camera=source.info["name"]).name == "realsense_d455"
 
 
+def test_record_keeps_the_camera_a_recording_names(tmp_path):
+    """``record --format realsense`` of a D435's recording (librealsense 2.56's ROS 1 bag)
+    names that camera and its serial, as librealsense's playback reports them."""
+    from hw.record import record
+
+    out = tmp_path / "copy.db3"
+    with open_depth(f"rosbag:{SIM_FIXTURES / 'realsense' / 'd435_ros1.bag'}") as source:
+        record(source, out, format="realsense")
+    with open_depth(f"realsense:{out}") as copy:
+        assert (copy.info["name"], copy.info["serial"]) == ("Intel RealSense D435",
+                                                            "000000000002")
+
+
 @pytest.mark.parametrize("damage", [b"", b"\x00\x01\x00\x00\xff\xff\xff\x7f",
                                     b"\x00\x01\x00\x00\x05\x00\x00\x00Na"])
 def test_the_bag_backend_reads_a_recording_whose_device_info_is_damaged(tmp_path, twelve,
