@@ -29,8 +29,8 @@ MOVED_FACTOR = 20.0
 #: moved steadily, which per-pixel variances take for noise: refused.  Still views measure
 #: 0.98-1.00 (rendered Kinect and RealisticKinect noise, 5 and 30 frames); the SUN3D Xtion
 #: carried by hand, ~1 cm a frame: 3.5 over 5 frames, 9.1 over 30 (sigma 15-20 times the
-#: Xtion's, under MOVED_FACTOR).  Slower drift, a tenth of the noise a frame over 30 frames,
-#: stays under it and adds up to a third to sigma.
+#: Xtion's, under MOVED_FACTOR).  A drift under a tenth of one reading's sigma a frame stays
+#: under it over 30 frames (simulated: 2.58 at a tenth) and adds up to a third to sigma.
 MAX_DRIFT = 2.5
 DRIFT_FRAMES = 5
 

@@ -26,7 +26,7 @@ _SHARES = ("final_search_margin", "station_through_ratio", "station_through_min"
            "table_outline_holes", "table_static_share", "slide_support_share",
            "slide_contested_share", "min_fitness")
 _STEPS_M = ("search_step_m", "fine_search_step_m", "final_search_step_m")
-_REACHES_M = ("fine_search_reach_m", "final_search_reach_m", "restart_step_m", "band_m",
+_LENGTHS_M = ("fine_search_reach_m", "final_search_reach_m", "restart_step_m", "band_m",
               "table_object_m")
 
 
@@ -251,7 +251,7 @@ class RegistrationParams:
             _num(name, getattr(self, name), 0.0, 1.0)
         for name in _STEPS_M:
             _num(name, getattr(self, name), 0.0, 1.0, low_open=True, unit=" metres")
-        for name in _REACHES_M:
+        for name in _LENGTHS_M:
             _num(name, getattr(self, name), 0.0, 1.0, unit=" metres")
         _num("search_reach_m", self.search_reach_m, 0.0, 5.0, unit=" metres")
         _int("search_screw_steps", self.search_screw_steps, 0, 20)
