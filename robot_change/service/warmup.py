@@ -4,7 +4,7 @@ On a cold cache the compile takes most of a minute on one core, so it is shared 
 process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
 transport's and two only a check reaches into the cache while this process compiles the
 cloud's, the mixture's, the free-space check's, the regions' and the depth decoders' (the two
-shares take about as long: ~25 s each on the 2-core test VM of 2026-12-07); then the whole
+shares take about as long: 21 and 25 s alone on the 2-core test VM of 2026-12-07); then the whole
 capture-and-check path runs here once, loading what the shares left (it compiles none).  A
 kernel the helper did not leave (another argument type, or the helper failed) is compiled here
 then: the split only saves time, it is never needed.
