@@ -17,7 +17,7 @@ from robot_change.noise.kernels import floored_margin_at, sigma_at
 from .icp import land, pair
 from .params import RegistrationParams
 from .pyramid import Level
-from .rigid import exp_so3, invert
+from .rigid import exp_so3, invert, rigid
 
 
 @numba.njit(cache=True, nogil=True)
@@ -154,7 +154,7 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_
 @numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
                  noise, sigmas, through_sigmas, margin_m, margin_per_m2, both_ways, hole_weight,
-                 prune):
+                 prune, pairable_after):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
     metres): per pose, the current's inlier pairs (:func:`agreement_counts`; with ``both_ways``
     those of the reference's cells moved into the current view too) minus the cells of either
@@ -166,19 +166,14 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
     With ``prune`` (and not ``both_ways``), for a caller that wants the best pose alone: the
     reference's side only subtracts, so a pose whose current side, with every cell still to
     come counted as an inlier, already scores below the best so far is not counted further
-    and scores -inf (the first best pose is the same).
+    and scores -inf (the first best pose is the same); ``pairable_after`` (h,) int64: the
+    current's cells with a normal in the rows below each row (:func:`rows_after`).
     Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
     best = -np.inf
     prune = prune and not both_ways
     pairs = np.bool_(True)  # a bool, not the literal True: the kernel compiles once
-    pairable_after = np.zeros(cur_v.shape[0], np.int64)  # cells with a normal below row i
-    for i in range(cur_v.shape[0] - 2, -1, -1):
-        pairable_after[i] = pairable_after[i + 1]
-        for j in range(cur_v.shape[1]):
-            if cur_n[i + 1, j, 0] != 0.0 or cur_n[i + 1, j, 1] != 0.0 or cur_n[i + 1, j, 2] != 0.0:
-                pairable_after[i] += 1
     for m in range(rots.shape[0]):
         rot = rots[m]
         t = transs[m]
@@ -212,7 +207,13 @@ def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: Registrat
     transs = np.array([T[:3, 3] for T in poses])
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, *params.noise_args(),
-                        bool(both_ways), float(hole_weight), bool(prune))
+                        bool(both_ways), float(hole_weight), bool(prune), rows_after(cl))
+
+
+def rows_after(level: Level) -> np.ndarray:
+    """(h,) int64: the cells of ``level`` with a normal in the rows below each row."""
+    rows = np.count_nonzero(level.normal.any(axis=2), axis=1)
+    return np.append(np.cumsum(rows[::-1])[-2::-1], 0)
 
 
 def best_pose(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,
@@ -272,10 +273,7 @@ def weak_search(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray,
         screw = params.search_step_m * np.arange(1, params.search_screw_steps + 1)
         for d in (vecs6[:, 0] / s, vecs6[:, 1] / s):
             for st in np.concatenate([-screw[::-1], screw]):
-                inc = np.eye(4)
-                inc[:3, :3] = exp_so3(st * d[:3])
-                inc[:3, 3] = st * d[3:]
-                poses.append(inc @ T)
+                poses.append(rigid(exp_so3(st * d[:3]), st * d[3:]) @ T)
     best = best_pose(rl, cl, poses, params, min_cos)
     return None if best == 0 else poses[best]  # the first of equal scores: T wins ties
 
@@ -336,9 +334,7 @@ def slide_support(rl: Level, cl: Level, T: np.ndarray, direction: np.ndarray,
     direction = np.ascontiguousarray(direction)  # as every caller's: one compile
     for own, other, M, d in ((cl, rl, T, T[:3, :3].T @ direction),
                              (rl, cl, invert(T), direction)):
-        states = cell_states(own.vertex, own.normal, other.vertex, other.normal,
-                             M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                             other.cy, params.max_distance_m[-1], min_cos,
+        states = cell_states(*own.onto(other, M), params.max_distance_m[-1], min_cos,
                              *params.noise_args(), d, 0.5)
         fit += int(np.count_nonzero(states == 1))
         contradict += int(np.count_nonzero(states == 2))
@@ -378,13 +374,10 @@ def final_agreement(rl: Level, cl: Level, T: np.ndarray, params: RegistrationPar
     n_cells = cl.n_normals
     max_dist, min_cos = fitness_pairing(cl, params, min_cos)
 
-    def counts(own: Level, other: Level, M: np.ndarray, count_pairs: bool) -> tuple:
-        return agreement_counts(own.vertex, own.normal, other.vertex, other.normal,
-                                M[:3, :3].copy(), M[:3, 3].copy(), other.fx, other.fy, other.cx,
-                                other.cy, max_dist, min_cos, *params.noise_args(), count_pairs)
-
-    k, sq_sum, through, compared, _, behind = counts(cl, rl, T, True)
-    _, _, back, back_compared, _, _ = counts(rl, cl, invert(T), False)  # the reference's cells
+    k, sq_sum, through, compared, _, behind = agreement_counts(
+        *cl.onto(rl, T), max_dist, min_cos, *params.noise_args(), True)
+    _, _, back, back_compared, _, _ = agreement_counts(  # the reference's cells
+        *rl.onto(cl, invert(T)), max_dist, min_cos, *params.noise_args(), False)
     cells = int(np.count_nonzero(cl.vertex[:, :, 2] > 0))
     return (k / n_cells if n_cells else 0.0, math.sqrt(sq_sum / k) if k else 0.0, k, n_cells,
             max(through / compared if compared else 0.0,

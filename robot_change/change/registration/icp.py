@@ -234,13 +234,8 @@ def _icp_iterations(cur_v, cur_n, ref_v, ref_n, T, fx, fy, cx, cy, max_dist, min
 def weak_names(lam_n: np.ndarray, vec: np.ndarray, weak_eigenvalue: float) -> tuple[str, ...]:
     """The :data:`AXES` names nearest to the eigenvectors (``vec`` (6, 6), columns) whose
     eigenvalues per unit weight (``lam_n`` (6,)) are below ``weak_eigenvalue``."""
-    names = []
-    for i in range(6):
-        if lam_n[i] < weak_eigenvalue:
-            axis = AXES[int(np.argmax(np.abs(vec[:, i])))]
-            if axis not in names:
-                names.append(axis)
-    return tuple(names)
+    return tuple(dict.fromkeys(AXES[int(np.argmax(np.abs(vec[:, i])))] for i in range(6)
+                               if lam_n[i] < weak_eigenvalue))
 
 
 class Pairs:
@@ -264,3 +259,8 @@ def icp_level(rl: Level, cl: Level, T: np.ndarray, params: RegistrationParams, l
         min_cut_m, params.weak_eigenvalue, params.iterations[li], params.tol_m, pairs.res,
         pairs.jac, pairs.zs, params.noise_args()[0])
     return T, n_it, converged, lam_n, vec, (A if has_system else None)
+
+
+def best_of(ends: list[tuple], best: int) -> tuple:
+    """:func:`icp_level`'s tuple of ``ends[best]`` with the iterations of every end."""
+    return (ends[best][0], sum(e[1] for e in ends), *ends[best][2:])

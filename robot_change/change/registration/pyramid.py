@@ -184,11 +184,17 @@ class Level:
         return dataclasses.replace(self, **{field: np.where(
             drop[:, :, None], 0.0, getattr(self, field)).astype(np.float32)})
 
+    def onto(self, other: Level, M: np.ndarray) -> tuple:
+        """The agreement kernels' first arguments for this level's cells moved by ``M`` (4, 4,
+        other-from-own) into the image of ``other``: (vertex, normal, other's vertex and
+        normal, rot (3, 3), trans (3,), other's fx, fy, cx, cy)."""
+        return (self.vertex, self.normal, other.vertex, other.normal, M[:3, :3].copy(),
+                M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy)
+
     @property
     def n_normals(self) -> int:
         """Cells with a normal (the cells that can be paired)."""
-        n = self.normal
-        return int(np.count_nonzero((n[:, :, 0] != 0) | (n[:, :, 1] != 0) | (n[:, :, 2] != 0)))
+        return int(np.count_nonzero(self.normal.any(axis=2)))
 
 
 def levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams

@@ -31,11 +31,11 @@ from .agreement import (
     slide_support,
     weak_search,
 )
-from .icp import Pairs, icp_level, weak_names
+from .icp import Pairs, best_of, icp_level, weak_names
 from .params import RegistrationParams
 from .pyramid import Level, check_depth, kept_levels
 from .result import AXES, Registration, identity_registration
-from .rigid import invert, rotation_angle_deg, rpy_deg_to_rotation
+from .rigid import invert, rigid, rotation_angle_deg, rpy_deg_to_rotation
 from .table_station import structure_levels, structure_search
 from .table_top import (
     TablePlane,
@@ -243,15 +243,11 @@ def _restart_starts(start: np.ndarray, params: RegistrationParams) -> list[np.nd
     for axis in range(3):
         for sign in (-1.0, 1.0):
             if params.restart_step_m > 0:
-                M = np.eye(4)
-                M[axis, 3] = sign * params.restart_step_m
-                starts.append(start @ M)
+                starts.append(start @ rigid(t=sign * params.restart_step_m * np.eye(3)[axis]))
             if params.restart_step_deg > 0:
                 angles = [0.0, 0.0, 0.0]
                 angles[axis] = sign * params.restart_step_deg
-                M = np.eye(4)
-                M[:3, :3] = rpy_deg_to_rotation(*angles)
-                starts.append(start @ M)
+                starts.append(start @ rigid(rpy_deg_to_rotation(*angles)))
     return starts
 
 
@@ -321,10 +317,7 @@ def _final_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarra
     pairs = Pairs(cl)
     ends = [icp_level(rl, cl, st, params, li, min_cos, pairs) for st in starts]
     best = better_end(rl, cl, T, [e[0] for e in ends], params, min_cos) if ends else None
-    if best is None:
-        return None
-    end = ends[best]
-    return (end[0], sum(e[1] for e in ends), *end[2:])  # every start's iterations counted
+    return None if best is None else best_of(ends, best)
 
 
 def _slide(rl: Level, cl: Level, T: np.ndarray, A: np.ndarray | None,

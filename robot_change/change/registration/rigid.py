@@ -9,13 +9,19 @@ import numba
 import numpy as np
 
 
+def rigid(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+    """(4, 4) the rigid transform of rotation ``R`` (3, 3) (none by default) and translation
+    ``t`` (3,) m (none by default)."""
+    out = np.eye(4)
+    out[:3, :3] = np.eye(3) if R is None else R
+    out[:3, 3] = 0.0 if t is None else t
+    return out
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """(4, 4) inverse of a rigid transform."""
-    out = np.eye(4)
     R = T[:3, :3]
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
-    return out
+    return rigid(R.T, -R.T @ T[:3, 3])
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -29,12 +29,12 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from .agreement import slides_along, through_counts
-from .icp import Pairs, icp_level
+from .icp import Pairs, best_of, icp_level
 from .params import RegistrationParams
 from .pyramid import Level
 from .rigid import invert
 from .surfaces import level_segments
-from .table_top import ON_PLANE_M, plane_frame, planes_of
+from .table_top import ON_PLANE_M, first_distinct, plane_frame, planes_of
 
 #: The reference's table plane per level object, and what stands on its table per finest
 #: level object (a station's reference keeps its pyramid: made once, not every check).
@@ -198,13 +198,10 @@ def _structure_through(rs: Level, cs: Level, rl: Level, cl: Level,
     (T_ref_from_cur)."""
     if not poses:
         return np.zeros(0, dtype=np.int64)
-    Ts = np.array(poses)
-    inv = np.array([invert(T) for T in poses])
-    margins = params.through_args()
-    return (through_counts(cs.vertex, rl.vertex, Ts[:, :3, :3].copy(), Ts[:, :3, 3].copy(),
-                           rl.fx, rl.fy, rl.cx, rl.cy, *margins)
-            + through_counts(rs.vertex, cl.vertex, inv[:, :3, :3].copy(), inv[:, :3, 3].copy(),
-                             cl.fx, cl.fy, cl.cx, cl.cy, *margins))
+    return sum(through_counts(own.vertex, other.vertex, Ms[:, :3, :3].copy(), Ms[:, :3, 3].copy(),
+                              other.fx, other.fy, other.cx, other.cy, *params.through_args())
+               for own, other, Ms in ((cs, rl, np.array(poses)),
+                                      (rs, cl, np.array([invert(T) for T in poses]))))
 
 
 def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.ndarray,
@@ -246,18 +243,13 @@ def structure_search(ref_levels: list[Level], cur_levels: list[Level], T: np.nda
                 for L, obj in ((rm, obj_r), (cm, obj_c)))
     poses = _in_reach(T0, A0 if A0 is not None else A, params)
     counts = _structure_through(rms, cms, rm, cm, poses, params)
-    starts: list[np.ndarray] = []  # the lowest, apart from T0 and from each other
-    for i in np.argsort(counts, kind="stable"):
-        if all(np.linalg.norm(poses[i][:3, 3] - other[:3, 3]) > _DISTINCT_M
-               for other in starts + [T0]):
-            starts.append(poses[i])
-            if len(starts) == _STARTS:
-                break
+    starts = first_distinct([T0] + [poses[i] for i in np.argsort(counts, kind="stable")],
+                            1 + _STARTS, lambda a, b: np.linalg.norm(a[:3, 3] - b[:3, 3])
+                            > _DISTINCT_M)[1:]  # the lowest, apart from T0 and each other
     ends = [first] + [icp_level(rn, cn, start, params, li, min_cos, pairs) for start in starts]
     scores = _structure_through(rs, cs, rl, cl, [e[0] for e in ends], params)
     best = int(np.argmin(scores))
     if scores[best] > params.station_through_max * cells or at_T - scores[best] < least or \
             scores[best] >= params.station_through_ratio * at_T:
         return None
-    end = ends[best]
-    return (end[0], sum(e[1] for e in ends), *end[2:])
+    return best_of(ends, best)

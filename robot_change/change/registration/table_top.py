@@ -27,6 +27,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import weakref
+from collections.abc import Callable
+from typing import Any
 
 import numba
 import numpy as np
@@ -36,7 +38,7 @@ from .agreement import agreement_counts, cell_states
 from .params import RegistrationParams
 from .pyramid import Level
 from .result import AXES
-from .rigid import invert
+from .rigid import invert, rigid
 
 #: A cell within this distance of a view's table plane is on it (metres).
 ON_PLANE_M = 0.01
@@ -68,10 +70,8 @@ def planes_of(level: Level, k: int, max_dist_m: float = ON_PLANE_M, min_cos: flo
     out, and the next plane is looked for among the cells left, while they are at least
     3 ``n_seeds``.  Each is (n (3,) unit normal, d m, fraction of the cells with a normal
     supporting it), n . p + d = 0 on the plane and d >= 0 (the camera on the positive side)."""
-    v = level.vertex.reshape(-1, 3)
-    nm = level.normal.reshape(-1, 3)
-    ok = (nm[:, 0] != 0) | (nm[:, 1] != 0) | (nm[:, 2] != 0)
-    p, q = v[ok], nm[ok]
+    ok = level.normal.any(axis=2)
+    p, q = level.vertex[ok], level.normal[ok]
     total = len(p)
     out = []
     while len(out) < k and len(p) >= 3 * n_seeds:
@@ -219,9 +219,7 @@ def table_starts(ref_levels: list[Level], cur_levels: list[Level],
     k = params.table_starts
     peaks = []  # (score, yaw, shift_x, shift_y)
     for yaw in yaws:
-        Rz = np.eye(4)
-        Rz[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-        M = Rz @ to_c
+        M = _in_plane(yaw, 0.0, 0.0) @ to_c
         cc = np.fft.irfft2(G * np.conj(np.fft.rfft2(_plane_grid(
             cl.vertex, M[:3, :3].copy(), M[:3, 3].copy(), *args))), s=(rows, cols))
         flat = cc.ravel()
@@ -234,20 +232,27 @@ def table_starts(ref_levels: list[Level], cur_levels: list[Level],
             sc = c - cols if c > cols // 2 else c
             peaks.append((float(flat[f]), float(yaw), (sr + dr_) * cell, (sc + dc_) * cell))
     peaks.sort(key=lambda t: -t[0])
-    chosen: list[tuple[float, float, float, float]] = []
-    for pk in peaks:
-        if all(abs(pk[1] - o[1]) > math.radians(2.5 * params.table_yaw_step_deg)
-               or math.hypot(pk[2] - o[2], pk[3] - o[3]) > 3 * cell for o in chosen):
-            chosen.append(pk)
-            if len(chosen) == k:
+    chosen = first_distinct(peaks, k, lambda a, b: abs(a[1] - b[1]) > math.radians(
+        2.5 * params.table_yaw_step_deg) or math.hypot(a[2] - b[2], a[3] - b[3]) > 3 * cell)
+    return [Fr @ _in_plane(yaw, sx, sy) @ to_c for _score, yaw, sx, sy in chosen]
+
+
+def first_distinct(items: list, k: int, apart: Callable[[Any, Any], bool]) -> list:
+    """Up to ``k`` of ``items``, in their order, each ``apart`` from every one taken before."""
+    out: list = []
+    for item in items:
+        if all(apart(item, other) for other in out):
+            out.append(item)
+            if len(out) == k:
                 break
-    out = []
-    for _score, yaw, sx, sy in chosen:
-        M = np.eye(4)
-        M[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-        M[0, 3], M[1, 3] = sx, sy
-        out.append(Fr @ M @ to_c)
     return out
+
+
+def _in_plane(yaw: float, x: float, y: float) -> np.ndarray:
+    """(4, 4) a turn by ``yaw`` (radians) about a plane's normal (z) and a shift (``x``, ``y``,
+    m) along it."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return rigid(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), (x, y, 0.0))
 
 
 # --------------------------------------------------------------------------- trimming the change
@@ -262,9 +267,8 @@ def _object_states(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
     group of cells standing more than ``table_object_m`` above ``plane``."""
     objects, n = ndimage.label((own.vertex[:, :, 2] > 0)
                                & (plane.heights(own.vertex) > params.table_object_m))
-    states = cell_states(own.vertex, own.normal, other.vertex, other.normal, M[:3, :3].copy(),
-                         M[:3, 3].copy(), other.fx, other.fy, other.cx, other.cy, max_dist,
-                         min_cos, *params.noise_args(), _EVERY_CELL, 0.0)
+    states = cell_states(*own.onto(other, M), max_dist, min_cos, *params.noise_args(),
+                         _EVERY_CELL, 0.0)
     return objects, n, states
 
 
@@ -309,12 +313,10 @@ def without_changed_objects(rl: Level, cl: Level, planes: tuple[TablePlane, Tabl
     """The two views of level ``li`` (reference, current) with the normals of their changed
     objects' cells (:func:`_changed_objects`, judged at ``T``) set to zero, so ICP pairs
     only the table and the objects that stayed put."""
-    out = []
-    for own, other, M, plane in ((rl, cl, invert(T), planes[0]), (cl, rl, T, planes[1])):
-        out.append(own.without(_changed_objects(own, other, M, plane, params,
-                                                params.max_distance_m[li], min_cos),
-                               points=False))
-    return out[0], out[1]
+    return tuple(own.without(_changed_objects(own, other, M, plane, params,
+                                              params.max_distance_m[li], min_cos), points=False)
+                 for own, other, M, plane in ((rl, cl, invert(T), planes[0]),
+                                                  (cl, rl, T, planes[1])))
 
 
 def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
@@ -323,10 +325,8 @@ def _table_holes(own: Level, other: Level, M: np.ndarray, plane: TablePlane,
     image of ``other`` when moved by ``M`` (4, 4) other-from-own, the share that land on no
     reading there (:func:`~.agreement.agreement_counts`' holes)."""
     on = (own.vertex[:, :, 2] > 0) & (np.abs(plane.heights(own.vertex)) < ON_PLANE_M)
-    table = np.where(on[:, :, None], own.vertex, 0.0)
     _, _, _, compared, holes, _ = agreement_counts(
-        table, own.normal, other.vertex, other.normal, M[:3, :3].copy(), M[:3, 3].copy(),
-        other.fx, other.fy, other.cx, other.cy, 0.0, 1.0, *params.noise_args(0.0), False)
+        *own.without(~on, points=True).onto(other, M), 0.0, 1.0, *params.noise_args(0.0), False)
     return holes / (holes + compared) if holes + compared else 0.0
 
 
