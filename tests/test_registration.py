@@ -404,15 +404,10 @@ def test_pose_scores_match_numpy(office_pair, both_ways, hole_weight):
     transs = T[:3, 3] + np.array([[0, 0, 0], [0.1, 0, 0], [-0.2, 0, 0.05], [0, 0.1, -0.1]])
     args = (cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy, rl.cx,
             rl.cy, 0.1, 0.8, NOISE, 3.0, 3.0, 0.03, 0.004, both_ways, hole_weight)
-    # the current's cells with a normal in the rows below each row (the most inliers to come)
-    after = np.array([sum(int(np.any(cl.normal[k, j])) for k in range(i + 1, cl.normal.shape[0])
-                          for j in range(cl.normal.shape[1]))
-                      for i in range(cl.normal.shape[0])], dtype=np.int64)
-    got = agreement._pose_scores(*args, False, after)
+    got = agreement._pose_scores(*args, False)
     # pruned (for the best alone): the same first best; a pose is either scored as it was
     # or -inf, and then below the best
-    pruned = agreement._pose_scores(*args, True, after)
-    np.testing.assert_array_equal(agreement.rows_after(cl), after)
+    pruned = agreement._pose_scores(*args, True)
     assert np.argmax(pruned) == np.argmax(got)
     kept = np.isfinite(pruned)
     np.testing.assert_array_equal(pruned[kept], got[kept])

@@ -154,7 +154,7 @@ def through_counts(own_v, other_v, rots, transs, fx, fy, cx, cy, noise, through_
 @numba.njit(cache=True, nogil=True)
 def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_dist, min_cos,
                  noise, sigmas, through_sigmas, margin_m, margin_per_m2, both_ways, hole_weight,
-                 prune, pairable_after):
+                 prune):
     """Scores of candidate poses ``T_ref_from_cur`` (``rots`` (n, 3, 3), ``transs`` (n, 3)
     metres): per pose, the current's inlier pairs (:func:`agreement_counts`; with ``both_ways``
     those of the reference's cells moved into the current view too) minus the cells of either
@@ -166,14 +166,19 @@ def _pose_scores(cur_v, cur_n, ref_v, ref_n, rots, transs, fx, fy, cx, cy, max_d
     With ``prune`` (and not ``both_ways``), for a caller that wants the best pose alone: the
     reference's side only subtracts, so a pose whose current side, with every cell still to
     come counted as an inlier, already scores below the best so far is not counted further
-    and scores -inf (the first best pose is the same); ``pairable_after`` (h,) int64: the
-    current's cells with a normal in the rows below each row (:func:`rows_after`).
+    and scores -inf (the first best pose is the same).
     Returns (n,) float64."""
     out = np.empty(rots.shape[0])
     back = np.empty(3)
     best = -np.inf
     prune = prune and not both_ways
     pairs = np.bool_(True)  # a bool, not the literal True: the kernel compiles once
+    pairable_after = np.zeros(cur_v.shape[0], np.int64)  # cells with a normal below row i
+    for i in range(cur_v.shape[0] - 2, -1, -1):
+        pairable_after[i] = pairable_after[i + 1]
+        for j in range(cur_v.shape[1]):
+            if cur_n[i + 1, j, 0] != 0.0 or cur_n[i + 1, j, 1] != 0.0 or cur_n[i + 1, j, 2] != 0.0:
+                pairable_after[i] += 1
     for m in range(rots.shape[0]):
         rot = rots[m]
         t = transs[m]
@@ -207,13 +212,7 @@ def score_poses(rl: Level, cl: Level, poses: list[np.ndarray], params: Registrat
     transs = np.array([T[:3, 3] for T in poses])
     return _pose_scores(cl.vertex, cl.normal, rl.vertex, rl.normal, rots, transs, rl.fx, rl.fy,
                         rl.cx, rl.cy, params.search_step_m, min_cos, *params.noise_args(),
-                        bool(both_ways), float(hole_weight), bool(prune), rows_after(cl))
-
-
-def rows_after(level: Level) -> np.ndarray:
-    """(h,) int64: the cells of ``level`` with a normal in the rows below each row."""
-    rows = np.count_nonzero(level.normal.any(axis=2), axis=1)
-    return np.append(np.cumsum(rows[::-1])[-2::-1], 0)
+                        bool(both_ways), float(hole_weight), bool(prune))
 
 
 def best_pose(rl: Level, cl: Level, poses: list[np.ndarray], params: RegistrationParams,

@@ -116,7 +116,7 @@ def objects_on_table(level: Level, plane: tuple[np.ndarray, float],
     # an object's foot, lower than table_object_m, is told by its normal: it faces sideways
     sideways = np.abs(level.normal @ n) < _FOOT_COS
     above = (z > 0) & ((height > params.table_object_m)
-                       | (sideways & (height > -ON_PLANE_M) & level.normal.any(axis=2)))
+                       | (sideways & (height > -ON_PLANE_M) & level.has_normal))
     out[above] = np.all(flat[above].astype(np.float64) @ hull.equations[:, :2].T
                         + hull.equations[:, 2] <= -_OUTLINE_MARGIN_M, axis=1)
     segment = level_segments(level, _FOLD_DEG)

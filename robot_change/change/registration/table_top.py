@@ -70,7 +70,7 @@ def planes_of(level: Level, k: int, max_dist_m: float = ON_PLANE_M, min_cos: flo
     out, and the next plane is looked for among the cells left, while they are at least
     3 ``n_seeds``.  Each is (n (3,) unit normal, d m, fraction of the cells with a normal
     supporting it), n . p + d = 0 on the plane and d >= 0 (the camera on the positive side)."""
-    ok = level.normal.any(axis=2)
+    ok = level.has_normal
     p, q = level.vertex[ok], level.normal[ok]
     total = len(p)
     out = []
