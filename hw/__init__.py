@@ -14,6 +14,7 @@ from hw.errors import (
     FrameError,
     FrameTimeout,
     HwError,
+    NotDepthImageError,
     PortError,
     UriError,
 )
@@ -30,6 +31,7 @@ __all__ = [
     "FrameTimeout",
     "HwError",
     "Intrinsics",
+    "NotDepthImageError",
     "PortError",
     "SourceStats",
     "UriError",

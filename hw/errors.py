@@ -48,6 +48,10 @@ class DepthFileError(HwError, OSError):
     """
 
 
+class NotDepthImageError(DepthFileError):
+    """An image that decodes but holds no depth: colour, palette, 8-bit, floating point."""
+
+
 class FrameError(HwError, ValueError):
     """A frame or intrinsics that make no sense.
 

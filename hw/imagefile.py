@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from hw.atomic import write_atomically
-from hw.errors import DepthFileError, FrameError
+from hw.errors import DepthFileError, FrameError, NotDepthImageError
 from hw.png16 import decode_png16
 
 __all__ = ["decode_image", "read_file", "read_image", "write_png"]
@@ -83,8 +83,8 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
                                          "depth image")
                 mode = image.mode
                 if mode not in _GRAY:
-                    raise DepthFileError(f"{name}: {_WHAT.get(mode, mode)} {kind} is not a "
-                                         "depth image; depth images are 16-bit grayscale")
+                    raise NotDepthImageError(f"{name}: {_WHAT.get(mode, mode)} {kind} is not "
+                                             "a depth image; depth images are 16-bit grayscale")
                 image.load()
                 samples = np.array(image)
     except DepthFileError:
@@ -98,8 +98,8 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
     dtype = _GRAY[mode]
     if dtype is None:  # 32-bit integer samples: depth only when they fit 16 bits
         if samples.size and (samples.min() < 0 or samples.max() > 0xFFFF):
-            raise DepthFileError(f"{name}: 32-bit {kind} samples beyond 0..65535 are not a "
-                                 "depth image")
+            raise NotDepthImageError(f"{name}: 32-bit {kind} samples beyond 0..65535 are not "
+                                     "a depth image")
         dtype = np.uint16
     return np.ascontiguousarray(samples.astype(dtype, copy=False))
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from hw.depth import IMAGE_SUFFIXES, DepthFrame, DepthSource, Intrinsics
-from hw.errors import DepthFileError, DeviceError, FrameError, UriError
+from hw.errors import DepthFileError, DeviceError, FrameError, NotDepthImageError, UriError
 from hw.imagefile import decode_image, read_file
 from hw.options import Pacer, flag, intrinsics_option, positive
 
@@ -44,8 +44,8 @@ def read_depth_image(path: str | Path, scale: float = 1000.0) -> np.ndarray:
     name = str(path)
     raw = decode_image(read_file(path), name)
     if raw.dtype != np.uint16:
-        raise DepthFileError(f"{name}: 8-bit grayscale image is not a depth image; depth "
-                             "images are 16-bit (millimetres, or raw units with a scale)")
+        raise NotDepthImageError(f"{name}: 8-bit grayscale image is not a depth image; depth "
+                                 "images are 16-bit (millimetres, or raw units with a scale)")
     return to_millimetres(raw, scale)
 
 
@@ -259,7 +259,14 @@ class ImageFolderSource(DepthSource):
         return frame
 
     def _decode(self, path: Path) -> np.ndarray:
-        return read_depth_image(path, self.scale)
+        try:
+            return read_depth_image(path, self.scale)
+        except NotDepthImageError as exc:
+            if len(self.files) == 1:
+                raise
+            raise NotDepthImageError(
+                f"{exc}; the folder holds other images beside the depth ones: pick those with "
+                "?pattern= (e.g. images:DIR?pattern=*_depth.png)") from None
 
     def _timestamp_us(self, lap: int, slot: int, index: int) -> int:
         if self._stamps is None:

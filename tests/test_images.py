@@ -256,11 +256,29 @@ def test_a_folder_of_depth_beside_colour_reads_the_depth(tmp_path):
     with open_depth(str(folder)) as source:
         frames = list(source)
     assert [f.depth.tolist() for f in frames] == [d.tolist() for d in depths]
-    with pytest.raises(errors.DepthFileError, match="RGB PNG is not a depth image"):
+    with pytest.raises(errors.NotDepthImageError, match="RGB PNG is not a depth image"):
         with open_depth(f"images:{folder}?pattern=*.color.png") as source:
             list(source)
     assert depth_named([folder / "a.png", folder / "b.png"]) == [folder / "a.png",
                                                                  folder / "b.png"]
+
+
+def test_a_folder_mixing_depth_with_unnamed_others_names_pattern(tmp_path):
+    """Depth frames beside colour ones, neither named depth: the first colour file stops the
+    folder with the typed error and the option that picks the depth ones; one colour file
+    alone gets the error without it."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    write_png(folder / "0001_d.png", depth_image())
+    Image.fromarray(np.zeros((6, 8, 3), np.uint8)).save(folder / "0001_rgb.png")
+    with pytest.raises(errors.NotDepthImageError, match=r"RGB PNG .*\?pattern="):
+        with open_depth(str(folder)) as source:
+            list(source)
+    with open_depth(f"images:{folder}?pattern=*_d.png") as source:
+        assert len(list(source)) == 1
+    with pytest.raises(errors.NotDepthImageError, match="RGB PNG is not a depth image") as info:
+        open_depth(str(folder / "0001_rgb.png")).open()
+    assert "pattern" not in str(info.value)
 
 
 # --------------------------------------------------------------------- bad input
