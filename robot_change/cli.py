@@ -197,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     warm = commands.add_parser("warm-up", help="compile the numba kernels into the cache now "
-                               "(a cold first start otherwise spends a minute or more on it)")
+                               "(a cold first start otherwise spends about half a minute on it)")
     warm.set_defaults(func=cmd_warm_up)
 
     bench = commands.add_parser("bench", help="speed of each stage on a bundled VGA frame")
