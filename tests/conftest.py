@@ -1,7 +1,8 @@
-"""Shared test fixtures: where the repository and the shared real data are."""
+"""Shared test fixtures: where the repository and the shared real data are; a strict JSON reader."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -58,3 +59,10 @@ def small_tmpfs(tmp_path):
     yield mount
     for folder in mounted:
         subprocess.run(["umount", str(folder)], capture_output=True, check=False)
+
+
+def strict_loads(text: str):
+    """json.loads that refuses NaN and the infinities, as JavaScript's JSON.parse does."""
+    def refuse(name: str):
+        raise ValueError(f"not JSON: {name}")
+    return json.loads(text, parse_constant=refuse)

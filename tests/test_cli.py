@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, strict_loads
 
 from hw.imagefile import read_image, write_png
 from hw.oni import write_oni
@@ -318,6 +318,39 @@ def test_capture_then_detect_against_the_saved_reference_on_an_unchanged_scene(t
     result = run("detect", "--reference", str(saved), "--current", str(scene / "current.oni"))
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("no change")
+
+
+def test_detect_compares_two_saved_scenes_and_writes_strict_json(tmp_path):
+    """Both sides may be saved scenes (the README's detect): each carries its intrinsics.  A
+    no-change check's report.json and --json line hold no bare NaN (its greedy EMD has
+    nothing to move): strict parsers (JSON.parse, jq) read them."""
+    scene = SCENES / "office_no_change"
+    saved = {}
+    for side in ("reference", "current"):
+        saved[side] = tmp_path / f"{side}.scene.npz"
+        result = run("capture", "--source", str(scene / f"{side}.oni"), "--out",
+                     str(saved[side]))
+        assert result.returncode == 0, result.stderr
+    out = tmp_path / "check"
+    result = run("detect", "--reference", str(saved["reference"]), "--current",
+                 str(saved["current"]), "--json", "--out", str(out), "--no-picture")
+    assert result.returncode == 0, result.stderr
+    line = strict_loads(result.stdout)
+    assert line["outcome"] == "no_change" and line["current"] == str(saved["current"])
+    assert strict_loads((out / "report.json").read_text())["outcome"] == "no_change"
+
+
+def test_detect_json_of_a_check_with_nothing_to_move_is_strict(shared_data):
+    """Two frames of the SUN3D study room 1.2 cm apart: no novelty, so the appeared side's
+    greedy EMD has nothing to move (NaN); the --json line says null, as JSON allows."""
+    frames = shared_data / "sun3d-studyroom-xtion-50f-pose" / "frames"
+    given = "?intrinsics=570.342205,570.342205,320,240"
+    result = run("detect", "--reference", f"{frames / 'frame-003160.depth.png'}{given}",
+                 "--current", f"{frames / 'frame-003161.depth.png'}{given}", "--json")
+    assert result.returncode == 0, result.stderr
+    line = strict_loads(result.stdout)
+    assert line["outcome"] == "no_change"
+    assert None in line["greedy_appeared"]["emd_after"] + line["greedy_disappeared"]["emd_after"]
 
 
 def test_a_killed_capture_leaves_a_temp_file_the_next_one_removes(tmp_path):

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -14,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from hw.depth import DepthFrame, Intrinsics, open_depth
+from robot_change import json_text
 from robot_change.errors import InputError
 
 log = logging.getLogger("robot_change.cli")  # the CLI's log lines keep their logger's name
@@ -81,7 +81,7 @@ def _cloud_params(args: argparse.Namespace):
 
 
 def _print_json(payload: dict[str, Any]) -> None:
-    print(json.dumps(payload, indent=None, sort_keys=False))
+    print(json_text.dumps(payload, indent=None, sort_keys=False))
 
 
 class DefaultFrames(int):

@@ -5,7 +5,6 @@ point files and summaries they write."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -15,6 +14,7 @@ import numpy as np
 
 from hw.depth import open_depth
 from hw.pointfile import write_points
+from robot_change import json_text
 from robot_change.change.mount import CameraMount
 from robot_change.commands.common import (
     _CAMERA_MODEL,
@@ -148,19 +148,20 @@ def _reference_scene(args: argparse.Namespace):
 
 
 def _current_input(args: argparse.Namespace, reference):
-    """The current epoch: a saved SceneModel, or the fused depth of a URI's frames and the
-    intrinsics to read it with."""
+    """The current epoch: (a saved SceneModel, its depth, its intrinsics, None), or (the fused
+    depth of a URI's frames, that depth, the intrinsics to read it with, those again): the
+    last is what the detector is told (a SceneModel carries its own)."""
     from robot_change.change.scene import SceneModel
     from robot_change.cloud.fusion import fuse_depth
 
     if _is_scene_file(args.current):
         scene = SceneModel.load(args.current)
-        return scene, scene.depth, scene.intrinsics
+        return scene, scene.depth, scene.intrinsics, None
     frames = _read_frames(args.current, args.frames)
     camera = _camera(frames, args.intrinsics)
     stack = np.stack([frame.depth for frame in frames])
     depth = fuse_depth(stack, min_valid=reference.params.min_valid(len(frames)))
-    return depth, depth, camera
+    return depth, depth, camera, camera
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
@@ -251,11 +252,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
         sdk()  # without foxglove-sdk, say so before the work
     reference = _reference_scene(args)
-    current, current_depth, camera = _current_input(args, reference)
+    current, current_depth, camera, told = _current_input(args, reference)
     detector = {"novelty": detect_changes, "plain": baselines.detect_plain,
                 "geometric": baselines.detect_geometric, "nn": baselines.detect_nn_threshold}
     mount = _detect_mount(args, reference)
-    changes = detector[args.method](reference, current, intrinsics=camera)
+    changes = detector[args.method](reference, current, intrinsics=told)
     seconds = time.perf_counter() - started
     summary = changes.summary(mount)
     summary.update({
@@ -284,7 +285,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         if args.mcap:
             summary["files"].append(str(args.mcap))
         write_atomically(out / "report.json",
-                         (json.dumps(summary, indent=2) + "\n").encode("utf-8"))
+                         (json_text.dumps(summary, indent=2) + "\n").encode("utf-8"))
     if args.mcap:
         _write_check_mcap(args.mcap, reference, current_depth, changes, mount, summary, stamp_ns)
         if not args.out:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from robot_change import json_text
 from robot_change.change.epoch import as_epoch
 from robot_change.change.mount import BODY_FROM_OPTICAL, CameraMount
 from robot_change.change.registration import invert, rpy_deg_to_rotation
@@ -360,7 +361,7 @@ class CheckChannels:
     def log(self, topic: str, message: Any, stamp_ns: int) -> None:
         """Log one message of :func:`check_messages` (log time ``stamp_ns``)."""
         if TOPICS[topic] == "json":
-            message = json.dumps(message).encode()
+            message = json_text.dumps(message).encode()
         self.channels[topic].log(message, log_time=int(stamp_ns))
 
     def log_all(self, messages: list[tuple[str, Any]], stamp_ns: int) -> None:

@@ -33,6 +33,8 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+from robot_change import json_text
+
 __all__ = ["READ_ONLY_REQUESTS", "Topics", "change_message", "check_message", "decode",
            "encode", "envelope", "parse_request", "utc_text"]
 
@@ -113,7 +115,7 @@ def change_message(head: dict[str, Any], report: dict[str, Any]) -> dict[str, An
 
 def encode(message: dict[str, Any]) -> bytes:
     """A message as compact UTF-8 JSON."""
-    return json.dumps(message, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    return json_text.dumps(message, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
 
 
 def decode(payload: bytes) -> dict[str, Any]:

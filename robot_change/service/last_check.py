@@ -4,14 +4,13 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from hw.atomic import write_atomically
-from robot_change import npzfile
+from robot_change import json_text, npzfile
 from robot_change.change.results import ChangeSet
 from robot_change.change.results import Region as ChangeRegion
 from robot_change.change.scene import SceneModel
@@ -49,7 +48,7 @@ def write_last_check(folder: Path | str | None, config: Config, station: str,
             "region_boxes": boxes, "region_kinds": kinds}, {"station": station})
         report = check_report(station, changes, config.camera.mount())
         write_atomically(Path(folder) / f"{station}.last-check.json",
-                         (json.dumps(report, indent=1) + "\n").encode())
+                         (json_text.dumps(report, indent=1) + "\n").encode())
     except Exception:  # noqa: BLE001 -- a picture for people is never worth a fault
         log.warning("could not write the last check of %s to %s", station, folder,
                     exc_info=True)

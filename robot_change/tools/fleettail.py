@@ -4,12 +4,12 @@ one JSON object a line with ``--json``), for operators and tests
 
 from __future__ import annotations
 
-import json
 import sys
 import threading
 import time
 from typing import Any, TextIO
 
+from robot_change import json_text
 from robot_change.fleet.connection import BrokerSettings
 from robot_change.fleet.receiver import Incoming, Receiver
 
@@ -73,7 +73,7 @@ def describe(m: Incoming) -> str:
         return _describe(m)
     except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
         return (f"{m.robot} {m.kind}: unexpected message on {m.topic} ({type(exc).__name__}: "
-                f"{exc}): {json.dumps(m.payload)[:200]}")
+                f"{exc}): {json_text.dumps(m.payload)[:200]}")
 
 
 def _describe(m: Incoming) -> str:
@@ -101,7 +101,7 @@ def run_fleet_tail(settings: BrokerSettings, *, prefix: str, robot: str, checks:
 
     def show(m: Incoming) -> None:
         if as_json:
-            line = json.dumps({"topic": m.topic, "robot": m.robot, "kind": m.kind,
+            line = json_text.dumps({"topic": m.topic, "robot": m.robot, "kind": m.kind,
                                "station": m.station, "message": m.payload,
                                **({"error": m.error} if m.error else {})})
         else:

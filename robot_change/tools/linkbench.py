@@ -41,7 +41,6 @@ figures are the protocol's, not the scheduler's.
 
 from __future__ import annotations
 
-import json as _json
 import os
 import random
 import select
@@ -53,6 +52,7 @@ from collections import deque
 from typing import Any, TextIO
 
 from hw.serial_port import open_port
+from robot_change import json_text
 from robot_change.errors import InputError, LinkError
 from robot_change.link.protocol import (
     VERSION,
@@ -210,7 +210,7 @@ def run_link_bench(corrupt: float = 0.1, count: int = 200, baud: int = 115200, j
         for fd in fds:
             os.close(fd)
     if json:
-        print(_json.dumps(result), file=out)
+        print(json_text.dumps(result), file=out)
     else:
         print(_summary(result), file=out)
     return result
