@@ -447,6 +447,21 @@ def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):
                  "--intrinsics", "500,500,320,240")
     assert result.returncode == 2
     assert "intrinsics" in result.stderr and "Traceback" not in result.stderr
+    # the reference's intrinsics told to the digit: passing them is accepted
+    odd = tmp_path / "odd.scene.npz"
+    assert run("capture", "--source", str(scene / "reference.oni"), "--intrinsics",
+               "570.342205,570.342205,320.25,240", "--out", str(odd)).returncode == 0
+    result = run("detect", "--reference", str(odd), "--current", str(scene / "current.oni"))
+    told = result.stderr.split("pass --intrinsics ")[1].split()[0]
+    assert result.returncode == 2 and told == "570.342205,570.342205,320.25,240"
+    assert run("detect", "--reference", str(odd), "--current", str(scene / "current.oni"),
+               "--intrinsics", told).returncode == 0
+    # another image size: no intrinsics would do, none is suggested
+    small = tmp_path / "small.png"
+    write_png(small, np.full((240, 320), 2000, np.uint16))
+    result = run("detect", "--reference", str(saved), "--current", str(small))
+    assert result.returncode == 2 and "images differ" in result.stderr, result.stderr
+    assert "--intrinsics" not in result.stderr
 
 
 def test_detect_refuses_a_truncated_reference_file(tmp_path):

@@ -497,12 +497,16 @@ def check_compatible(reference: SceneModel, current) -> None:
     current) and the fix."""
     cam_diff, params_diff = scene_differences(reference, current)
     parts = []
-    if cam_diff:
-        r = reference.intrinsics
+    r = reference.intrinsics
+    if cam_diff and cam_diff[0].startswith("image size"):
+        parts.append(f"the images differ ({cam_diff[0]}): another camera or mode; capture the "
+                     "reference again with this one")
+    elif cam_diff:
+        # each the shortest text that reads back as the same float (570.342205, 525)
+        exact = ",".join(repr(float(v)).removesuffix(".0") for v in (r.fx, r.fy, r.cx, r.cy))
         parts.append(
             f"intrinsics differ ({'; '.join(cam_diff)}): recapture the reference with this "
-            f"camera and mode, or pass --intrinsics {r.fx:g},{r.fy:g},{r.cx:g},{r.cy:g} if "
-            f"it is the reference's camera (a {r.width}x{r.height} image)")
+            f"camera and mode, or pass --intrinsics {exact} if it is the reference's camera")
     if params_diff:
         parts.append(
             f"cloud parameters differ ({'; '.join(params_diff)}): recapture the reference with "
