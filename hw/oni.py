@@ -78,6 +78,8 @@ from hw.oni_format import (
     OLDEST_VERSION,
     ONI_PIXEL_FORMAT_DEPTH_1_MM,
     PLAYER_MAX_FRAME_BYTES,
+    PROP_CAMERA,
+    PROP_INTRINSICS,
     REC_END,
     REC_GENERAL_PROPERTY,
     REC_INT_PROPERTY,
@@ -121,11 +123,13 @@ __all__ = [
 class OniWriter:
     """Write depth frames to an OpenNI2 ``.oni`` recording, atomically.
 
-    ``OniWriter(path, width, height, fps=30, codec="none", intrinsics=None)`` -- frames are
-    (height, width) uint16 depth in millimetres; ``codec`` is ``"none"`` (raw), ``"16z"``
-    (lossless, values <= 32767 mm) or ``"16zt"`` (lossless, the smallest on quantised depth,
-    <= 32768 distinct values per frame); ``intrinsics`` (default
-    :meth:`Intrinsics.openni_default`) are stored as the stream's field of view.  The file
+    ``OniWriter(path, width, height, fps=30, codec="none", intrinsics=None, camera="")`` --
+    frames are (height, width) uint16 depth in millimetres; ``codec`` is ``"none"`` (raw),
+    ``"16z"`` (lossless, values <= 32767 mm) or ``"16zt"`` (lossless, the smallest on quantised
+    depth, <= 32768 distinct values per frame); ``intrinsics`` (default
+    :meth:`Intrinsics.openni_default`) are stored as the stream's field of view (OpenNI's) and
+    whole (robot_change's, :data:`~hw.oni_format.PROP_INTRINSICS`), and so is ``camera``, the
+    camera's name (at most 64 bytes).  The file
     appears at ``path`` only when the writer is closed without an error (temp file, fsync,
     rename)::
 
@@ -142,6 +146,7 @@ class OniWriter:
         fps: int = 30,
         codec: str = "none",
         intrinsics: Intrinsics | None = None,
+        camera: str = "",
     ) -> None:
         self.path = Path(path)
         whole = isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
@@ -164,6 +169,7 @@ class OniWriter:
             )
         self.width, self.height, self.fps, self.codec = int(width), int(height), int(fps), codec
         self.intrinsics = intrinsics
+        self.camera = str(camera).encode("utf-8")[:64].decode("utf-8", "ignore")
         self.frames = 0
         self._index: list[tuple[int, int]] = []  # (timestamp, record position) per frame
         self._last_timestamp: int | None = None
@@ -303,6 +309,10 @@ class OniWriter:
              struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16_BIT)),
             (REC_INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", ONI_PIXEL_FORMAT_DEPTH_1_MM)),
             (REC_GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov)),
+            (REC_GENERAL_PROPERTY, PROP_INTRINSICS, struct.pack(
+                "<dddd", self.intrinsics.fx, self.intrinsics.fy, self.intrinsics.cx,
+                self.intrinsics.cy)),
+            (REC_GENERAL_PROPERTY, PROP_CAMERA, self.camera.encode("utf-8")),
             (REC_INT_PROPERTY, "Cropping", struct.pack("<Q", 1)),
             # XnCropping: enabled (32-bit bool), x offset, y offset, width, height (uint16)
             (REC_GENERAL_PROPERTY, "xnCropping", struct.pack("<iHHHH", 0, 0, 0, w, h)),
@@ -342,9 +352,11 @@ def write_oni(
     codec: str = "none",
     intrinsics: Intrinsics | None = None,
     on_frame: Callable[[int, int], None] | None = None,
+    camera: str = "",
 ) -> int:
     """Write depth images ((H, W) uint16 mm arrays, or :class:`DepthFrame` objects whose
-    timestamps and intrinsics are kept) to ``path`` atomically.  Returns the number of frames.
+    timestamps and intrinsics are kept) to ``path`` atomically, naming ``camera`` (the
+    camera's name, "": none).  Returns the number of frames.
     ``on_frame(frames, bytes)`` is called after each frame with the count so far and the size
     of the file so far."""
     writer: OniWriter | None = None
@@ -358,7 +370,7 @@ def write_oni(
                 if not isinstance(depth, np.ndarray) or depth.ndim != 2:
                     raise FrameError("write_oni expects (H, W) uint16 depth images or DepthFrames")
                 writer = OniWriter(path, depth.shape[1], depth.shape[0], fps=fps, codec=codec,
-                                   intrinsics=intrinsics or own)
+                                   intrinsics=intrinsics or own, camera=camera)
                 first_stamp = stamp
             if stamp is not None and first_stamp is not None:
                 stamp -= first_stamp

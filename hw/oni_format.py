@@ -59,6 +59,12 @@ XN_PIXEL_FORMAT_GRAYSCALE_16_BIT = 4
 DEPTH_NODE_ID = 1
 #: The player's record buffer: 1600 x 1200 x 3 bytes of frame data.
 PLAYER_MAX_FRAME_BYTES = 1600 * 1200 * 3
+#: Properties of the depth stream that robot_change writes besides OpenNI's own (which keep
+#: only the field of view: a principal point off the centre, as an Azure Kinect's or a
+#: SUN3D Xtion's, was lost): the intrinsics (fx, fy, cx, cy as four little-endian doubles) and
+#: the camera's name (UTF-8).  OpenNI2's player passes over properties it does not know.
+PROP_INTRINSICS = "robotChangeIntrinsics"
+PROP_CAMERA = "robotChangeCamera"
 
 
 # --- checking a file --------------------------------------------------------------------------
@@ -69,7 +75,8 @@ class OniInfo:
     ``width``/``height`` pixels, ``fps``, ``codec`` (the four-character id, e.g. ``"NONE"``,
     ``"16zP"``, ``"16zT"``), ``frames`` (NewData records of the depth node), ``first_timestamp_us``
     / ``last_timestamp_us``, ``hfov``/``vfov`` in radians (``None`` when not recorded),
-    ``version`` of the file format, ``node_id`` of the depth node.
+    ``version`` of the file format, ``node_id`` of the depth node; ``stored`` (fx, fy, cx, cy)
+    and ``camera`` the intrinsics and camera name robot_change wrote (None, "" otherwise).
     """
 
     width: int
@@ -83,9 +90,14 @@ class OniInfo:
     vfov: float | None
     version: tuple[int, int, int, int]
     node_id: int = DEPTH_NODE_ID
+    stored: tuple[float, float, float, float] | None = None
+    camera: str = ""
 
     def intrinsics(self) -> Intrinsics:
-        """Intrinsics from the recorded field of view, else OpenNI's defaults for the size."""
+        """The stored intrinsics, else those of the recorded field of view, else OpenNI's
+        defaults for the size."""
+        if self.stored is not None:
+            return Intrinsics(self.width, self.height, *self.stored)
         return intrinsics_from_fov(self.width, self.height, self.hfov, self.vfov)
 
 
@@ -189,6 +201,12 @@ def _walk_records(f: BinaryIO, p: Path, size: int, header_size: int,
                     depth_nodes[node]["mode"] = struct.unpack("<III", data)
                 elif name == "xnFOV" and len(data) == 16:
                     depth_nodes[node]["fov"] = struct.unpack("<dd", data)
+                elif name == PROP_INTRINSICS and len(data) == 32:
+                    stored = struct.unpack("<dddd", data)
+                    if all(math.isfinite(v) for v in stored) and min(stored[:2]) > 0:
+                        depth_nodes[node]["stored"] = stored
+                elif name == PROP_CAMERA:
+                    depth_nodes[node]["camera"] = data.decode("utf-8", "replace")[:64]
         elif kind == REC_NEW_DATA and node in depth_nodes:
             if len(fields) < 12:
                 raise DepthFileError(f"recording {p} is corrupt: bad frame record at byte {pos}")
@@ -218,7 +236,8 @@ def _walk_records(f: BinaryIO, p: Path, size: int, header_size: int,
     codec = bytes(info["codec"]).decode("ascii", "replace")  # type: ignore[arg-type]
     return OniInfo(int(w), int(h), int(fps), codec, int(info["frames"]),  # type: ignore[call-overload]
                    int(info["first"]), int(info["last"]),  # type: ignore[call-overload]
-                   fov[0], fov[1], version, node_id)  # type: ignore[index]
+                   fov[0], fov[1], version, node_id,  # type: ignore[index]
+                   info.get("stored"), str(info.get("camera", "")))  # type: ignore[arg-type]
 
 
 

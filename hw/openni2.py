@@ -190,7 +190,10 @@ class _OpenNI2Feed(FrameFeed):
             "width": mode.resolutionX, "height": mode.resolutionY, "fps": mode.fps,
             "pixel_format": int(mode.pixelFormat),
             "frames": int(self.stream.get_number_of_frames()),
-            **self._fov(), "uri": path, "vendor": "", "name": "", "serial": None,  # names no camera
+            **self._fov(), "uri": path, "vendor": "", "serial": None,
+            # OpenNI2's player names no camera and gives only the field of view: what
+            # robot_change wrote beside them, read from the header by the parent
+            "name": self.spec.get("camera", ""), "intrinsics": self.spec.get("stored"),
             "mode_note": "",
         }
 
@@ -371,12 +374,16 @@ class OpenNI2Source(SupervisedSource):
         return float(self._header.fps)
 
     def _reader_spec(self) -> dict[str, Any]:
-        return {"lib_dir": self._lib_dir,
-                "frames": self._header.frames if self.kind == "file" else 0}
+        if self.kind != "file":
+            return {"lib_dir": self._lib_dir, "frames": 0}
+        return {"lib_dir": self._lib_dir, "frames": self._header.frames,
+                "camera": self._header.camera, "stored": self._header.stored}
 
     def _intrinsics_from(self, info: dict[str, Any]) -> Intrinsics:
-        """From the stream's field of view (OpenNI's VGA defaults when the driver reports
-        none)."""
+        """Those a recording of robot_change keeps, else from the stream's field of view
+        (OpenNI's VGA defaults when the driver reports none)."""
+        if info.get("intrinsics") is not None:
+            return Intrinsics(int(info["width"]), int(info["height"]), *info["intrinsics"])
         return intrinsics_from_fov(int(info["width"]), int(info["height"]), info.get("hfov"),
                                    info.get("vfov"))
 

@@ -51,16 +51,18 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     folder (it must not exist yet), header stamps are the frames' timestamps as they are
     (:func:`hw.rosbag.write_rosbag2`), the camera's name and serial in its metadata;
     ``realsense``: ``out_path`` ends in ``.db3``, frame numbers and timestamps as they are;
-    ``codec`` ``"png"`` (librealsense's compressedDepth) or ``"none"`` (raw Images).  ``.oni``
-    keeps no camera name (OpenNI2's playback names none).  ``progress(frames, seconds,
+    ``codec`` ``"png"`` (librealsense's compressedDepth) or ``"none"`` (raw Images).  Each
+    keeps the frames' intrinsics and the camera's name.  ``progress(frames, seconds,
     bytes)`` is called after every frame.  Opens the source if needed; the caller closes it.
     The recording appears only when complete (written atomically); on an error nothing is
-    left.
+    left, and none is written over an existing file or folder.
     """
     if frames is not None and frames < 1:
         raise ArgumentError(f"frames={frames}: record at least one frame")
     if format not in FORMATS:
         raise ArgumentError(f"format={format!r}: choose one of {', '.join(FORMATS)}")
+    if format == "oni" and os.path.lexists(out_path):  # the bag and RealSense writers refuse too
+        raise DepthFileError(f"{out_path}: exists; a recording is not written over it")
     stop = threading.Event()
     with _stopped_by_signals(stop):
         source.open()
@@ -86,7 +88,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
                                              name=info.get("name"),
                                              serial=str(info.get("serial") or "000000000001"),
                                              compress=codec != "none")
-        return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell)
+        return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell,
+                         camera=str(info.get("name") or ""))
 
 
 @contextlib.contextmanager

@@ -329,6 +329,24 @@ def test_the_auto_profile_of_a_recording_is_the_azure_kinect_s(shared_data):
     assert resolve_profile("auto", camera=name).name == "azure_kinect"
 
 
+def test_an_azure_kinect_recording_copied_to_an_oni_stays_an_azure_kinect_s(tmp_path,
+                                                                           shared_data):
+    """record --out X.oni kept neither its principal point (cy 348.8 came back 287.5: the
+    cloud's plane 5 cm off) nor its camera (read as a Kinect v1): now both."""
+    from hw.record import record
+    from robot_change.noise.profile import resolve_profile
+
+    out = tmp_path / "azure.oni"
+    with open_depth(str(shared_data / FOLDER / "recording.mkv")) as source:
+        record(source, out)
+        intrinsics = source.intrinsics
+    with open_depth(str(out)) as copy:
+        frame = copy.read()
+        name = copy.info["name"]
+    assert frame.intrinsics == intrinsics and resolve_profile("auto", camera=name).name == \
+        "azure_kinect"
+
+
 def test_the_daemon_reads_an_azure_kinect_recording_as_its_camera(tmp_path, shared_data):
     """A real ``robot-change run`` subprocess with the capture looped as its camera: CAPTURED
     names the Azure Kinect's noise profile (``auto``), and the unchanged room is CLEAR."""

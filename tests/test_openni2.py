@@ -304,6 +304,31 @@ def test_record_copies_a_recording_exactly(tmp_path: Path,
         np.testing.assert_array_equal(frame.depth, original)
 
 
+def test_an_oni_keeps_the_intrinsics_and_the_camera_s_name(tmp_path: Path) -> None:
+    """OpenNI's own properties keep only the field of view (a principal point off the centre
+    came back centred: an Azure Kinect's cy 348.8 as 287.5); robot_change's beside them keep
+    all four and the camera's name, read back through libOpenNI2's player, which passes over
+    them; record() refuses to write over an existing file."""
+    off_centre = Intrinsics(640, 576, 504.608, 504.7, 332.8, 348.8)
+    path = tmp_path / "azure.oni"
+    frames = [np.full((576, 640), 1500 + k, np.uint16) for k in range(3)]
+    write_oni(path, frames, intrinsics=off_centre, camera="Azure Kinect")
+    assert read_oni_header(path).intrinsics() == off_centre
+    with open_depth(str(path)) as source:
+        got = read_all(source)
+        assert source.info["name"] == "Azure Kinect"
+    assert [f.intrinsics for f in got] == [off_centre] * 3
+    assert [f.depth.tolist() for f in got] == [d.tolist() for d in frames]
+    copy = tmp_path / "copy.oni"
+    with open_depth(str(path)) as source:
+        assert record(source, copy) == 3
+    assert read_oni_header(copy).intrinsics() == off_centre
+    assert read_oni_header(copy).camera == "Azure Kinect"
+    with open_depth(str(path)) as source, pytest.raises(DepthFileError, match="exists"):
+        record(source, copy)
+    assert read_oni_header(copy).frames == 3
+
+
 def test_record_a_live_camera_for_n_frames(tmp_path: Path) -> None:
     out = tmp_path / "live.oni"
     with open_depth(DUMMY) as source:
