@@ -74,6 +74,9 @@ class AtomicFile:
                                          "folder", str(self.path))
             raise FileNotFoundError(errno.ENOENT, f"cannot write it: the folder {folder} does "
                                     "not exist", str(self.path))
+        if self.path.is_dir():  # the rename would fail after the writing, naming the temp file
+            raise IsADirectoryError(errno.EISDIR, "is a folder: give a file's name in it",
+                                    str(self.path))
         fd, temp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
                                     dir=folder if str(folder) else ".")
         self.temp_path = Path(temp)

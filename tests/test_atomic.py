@@ -63,6 +63,12 @@ def test_a_missing_folder_is_an_os_error(tmp_path):
         write_atomically(tmp_path / "nowhere" / "x.bin", b"x")
 
 
+def test_a_folder_in_the_way_is_refused_before_writing(tmp_path):
+    with pytest.raises(IsADirectoryError, match="is a folder") as info:
+        write_atomically(tmp_path, b"x")
+    assert info.value.filename == str(tmp_path) and list(tmp_path.iterdir()) == []
+
+
 def fill(folder):
     """Fill the file system of ``folder`` with a file named filler."""
     with open(folder / "filler", "wb", buffering=0) as filler:

@@ -340,6 +340,22 @@ def test_detect_compares_two_saved_scenes_and_writes_strict_json(tmp_path):
     assert strict_loads((out / "report.json").read_text())["outcome"] == "no_change"
 
 
+def test_a_reference_saved_under_any_name_is_read_back_and_a_folder_is_refused(tmp_path):
+    """capture --out writes an .npz under whatever name it is given; detect reads it back as
+    a scene (an .npz is a zip; no depth file is) rather than asking for a backend.  An --out
+    that is a folder is refused naming it, not a temp file."""
+    scene = SCENES / "office_no_change"
+    plain = tmp_path / "kitchen"
+    assert run("capture", "--source", str(scene / "reference.oni"), "--out",
+               str(plain)).returncode == 0
+    result = run("detect", "--reference", str(plain), "--current", str(scene / "current.oni"))
+    assert result.returncode == 0 and result.stdout.startswith("no change"), result.stderr
+    result = run("capture", "--source", str(scene / "reference.oni"), "--out", str(tmp_path))
+    assert result.returncode == 2 and f"{tmp_path}: is a folder" in result.stderr, result.stderr
+    assert ".tmp" not in result.stderr and sorted(p.name for p in tmp_path.iterdir()) == [
+        "kitchen"]
+
+
 def test_detect_json_of_a_check_with_nothing_to_move_is_strict(shared_data):
     """Two frames of the SUN3D study room 1.2 cm apart: no novelty, so the appeared side's
     greedy EMD has nothing to move (NaN); the --json line says null, as JSON allows."""

@@ -125,8 +125,15 @@ def _print_cloud_summary(summary: dict[str, Any]) -> None:
 
 
 def _is_scene_file(target: str) -> bool:
-    """A saved SceneModel (``*.npz``) rather than a depth URI."""
-    return target.lower().endswith(".npz")
+    """A saved SceneModel (``*.npz``, or a file of another name that is a zip, as an .npz is:
+    no depth file is) rather than a depth URI."""
+    if target.lower().endswith(".npz"):
+        return True
+    try:
+        with open(target, "rb") as file:
+            return file.read(4) == b"PK\x03\x04"
+    except OSError:  # a URI, a folder, a missing file: the depth source says what is wrong
+        return False
 
 
 def _scene_params(args: argparse.Namespace):
