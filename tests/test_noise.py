@@ -206,6 +206,20 @@ def test_frames_that_drift_are_told_from_noise():
     assert 7.0 < drifted.drift < 13.0
 
 
+@pytest.mark.parametrize("frames", [3, 4, 5, 30])
+def test_calibrate_s_drift_limit_passes_noise_and_refuses_steady_motion(frames):
+    """Noise alone drifts about 1 over any number of frames; a view moving a reading's sigma
+    a frame drifts beyond the limit (half the frames, at most 2.5); two frames cannot tell."""
+    from robot_change.tools.calibrate import drift_limit
+
+    rng = np.random.default_rng(frames)
+    still = measure_frames(_wall_frames(frames, 0.005, rng)).drift
+    creep = 5 * np.arange(frames, dtype=np.uint16)[:, None, None]  # one sigma (5 mm) a frame
+    moving = measure_frames(_wall_frames(frames, 0.005, rng) + creep).drift
+    assert still < 1.1 < drift_limit(frames) < moving
+    assert drift_limit(2) == float("inf") and drift_limit(frames) == min(2.5, frames / 2)
+
+
 def test_calibrating_replaces_the_sigma_with_the_measured_one():
     rng = np.random.default_rng(4)
     profile, noise = profile_from_frames(_wall_frames(5, 0.004, rng), KINECT, "a wall")
