@@ -69,7 +69,8 @@ def check_depth_scale(depth: np.ndarray, scale: float, name: str) -> None:
             f"{name}: at scale={scale:g} units per metre the median reading is {median:.2f} m "
             f"and {100 * outside // valid.size} % lie outside the {low / 1000:g}-"
             f"{high / 1000:g} m a depth camera reads: the image holds other units; give them "
-            "with ?scale= (e.g. images:DIR?scale=5000 for TUM RGB-D depth)")
+            "with ?scale= (e.g. images:DIR?scale=5000 for TUM RGB-D depth), or it holds no "
+            "depth at all (labels, a mask)")
 
 
 def to_millimetres(raw: np.ndarray, scale: float) -> np.ndarray:
@@ -129,8 +130,13 @@ def list_images(folder: Path, pattern: str | None = None,
         looked_for = ", ".join(f"*{suffix}" for suffix in suffixes)
         if pattern is not None:
             looked_for += f" matching {pattern!r}"
+        hints = []
+        if ".pcd" not in suffixes and any(path.suffix.lower() == ".pcd" for path in entries):
+            hints.append(f"it holds .pcd clouds: read them with pcd:{folder}")
+        hints += [f"its folder {path.name!r} may hold them" for path in entries
+                  if path.is_dir() and "depth" in path.name.lower()]
         raise DepthFileError(f"{folder}: no depth images in this folder (looked for "
-                             f"{looked_for})")
+                             f"{looked_for})" + "".join(f"; {hint}" for hint in hints))
     return sorted(files, key=lambda path: natural_key(path.name))
 
 

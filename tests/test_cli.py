@@ -182,9 +182,15 @@ def test_list_devices_without_a_camera_says_so():
         (["capture", "--source", "sim_fixtures/frames/room_vga.png", "--out",
           "/nonexistent/x.scene.npz"], "the folder /nonexistent does not exist"),
         (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--out", "/dev/null/x"],
-         "/dev/null/x: Not a directory"),
+         "--out /dev/null/x: cannot make the folder"),
         (["detect", "--reference", "{scene}", "--current", "sim_fixtures/frames/room_vga.png",
-          "--out", "/dev/null/x"], "/dev/null/x: Not a directory"),
+          "--out", "/dev/null/x"], "--out /dev/null/x: cannot make the folder"),
+        (["detect", "--reference", "{scene}", "--current", "sim_fixtures/frames/room_vga.png",
+          "--out", "{pcd}"], "cloud.pcd: is a file; this command writes a folder"),
+        (["cloud", "--source", "sim_fixtures/frames/room_vga.png", "--leaf", "0"],
+         "--leaf 0: must be"),
+        (["calibrate", "--source", "sim_fixtures/frames/room_vga.png", "--frames", "1", "--out",
+          "{pcd}.json"], "needs at least 2"),
         (["bench", "--runs", "0"], "--runs: 0: must be at least 1"),
         (["link-bench", "--count", "zero"], "'zero' is not a whole number"),
         (["cloud", "--source", "{pcd}"], "cloud.pcd: not a PCD file"),
@@ -283,7 +289,10 @@ def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tm
     assert result.returncode == 78 and "unknown OpenNI2 option 'lopp'" in result.stderr
     bad.write_text("[camera]\nsource = 'oni:/media/usb/missing.oni'\n[store]\nstate_dir = "
                    + repr(str(tmp_path)) + "\n")
-    assert run("check-config", str(bad)).returncode == 0  # a missing file: a FAULT at run
+    result = run("check-config", str(bad))  # a missing file: a FAULT at run, and a note now
+    assert result.returncode == 0 and "# note: camera.source: /media/usb/missing.oni does not " \
+        "exist now" in result.stdout, result.stdout
+    tomllib.loads(result.stdout)  # the notes are comments: the output still reads back
 
 
 SCENES = REPO / "sim_fixtures" / "scenes"

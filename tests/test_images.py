@@ -299,6 +299,12 @@ def test_folder_without_images_says_what_it_looked_for(tmp_path):
     make_folder(tmp_path, ["a.png"])
     with pytest.raises(errors.DepthFileError, match="matching '\\*_depth.png'"):
         open_images(str(tmp_path), pattern="*_depth.png")
+    # a dataset's top folder: its clouds, or its depth folder, named
+    top = tmp_path / "dataset"
+    (top / "depth").mkdir(parents=True)
+    (top / "view1.pcd").write_text("# .PCD v0.7\n")
+    with pytest.raises(errors.DepthFileError, match=f"pcd:{top}; its folder 'depth' may hold"):
+        open_depth(str(top))
 
 
 @pytest.mark.parametrize("query, complaint", [

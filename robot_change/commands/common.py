@@ -74,10 +74,28 @@ def _camera(frames: list[DepthFrame], intrinsics: str | None) -> Intrinsics:
 def _cloud_params(args: argparse.Namespace):
     from robot_change.cloud.chain import CloudParams
 
-    overrides = {}
-    if getattr(args, "leaf", None) is not None:
-        overrides["leaf_m"] = args.leaf
-    return CloudParams(**overrides)
+    if getattr(args, "leaf", None) is None:
+        return CloudParams()
+    try:
+        return CloudParams(leaf_m=args.leaf)
+    except InputError as exc:  # name the option, not the field
+        raise InputError(f"--leaf {args.leaf:g}: {str(exc).split(': ', 1)[-1]}") from None
+
+
+def _out_folder(text: str | None) -> Path | None:
+    """``--out`` of a command that writes a folder, made now (before the work; None when not
+    given); an :class:`InputError` names a file in the way."""
+    if not text:
+        return None
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file; this command writes a folder of files (give "
+                         "a folder's name; it is made if missing)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot make the folder ({exc.strerror or exc})") from None
+    return out
 
 
 def _print_json(payload: dict[str, Any]) -> None:

@@ -20,6 +20,7 @@ from robot_change.commands.common import (
     _CAMERA_MODEL,
     _camera,
     _cloud_params,
+    _out_folder,
     _print_json,
     _profile,
     _read_depth,
@@ -72,8 +73,9 @@ def cmd_cloud(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
     mount = CameraMount.parse(args.mount) if args.mount else None
-    depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
     params = _cloud_params(args)
+    out_dir = _out_folder(args.out)
+    depth, camera, n_frames = _read_depth(args.source, args.frames, args.intrinsics)
     cloud = clean_cloud(depth, camera, params)
     summary = {
         "source": args.source,
@@ -86,9 +88,7 @@ def cmd_cloud(args: argparse.Namespace) -> int:
         "timings_ms": {key: round(value, 2) for key, value in cloud.timings_ms.items()},
         "seconds": round(time.perf_counter() - started, 3),
     }
-    out_dir = Path(args.out) if args.out else None
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
         summary["files"], summary["frame"] = _write_point_files(
             {out_dir / f"cloud.{args.format}": (cloud.points, None)}, args.format, mount)
         if not args.no_picture:
@@ -258,6 +258,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         from robot_change.export.foxglove import sdk
 
         sdk()  # without foxglove-sdk, say so before the work
+    out = _out_folder(args.out)
     reference = _reference_scene(args)
     current, current_depth, camera, told = _current_input(args, reference)
     detector = {"novelty": detect_changes, "plain": baselines.detect_plain,
@@ -269,9 +270,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     summary.update({
         "reference": args.reference, "current": args.current, "seconds": round(seconds, 3),
     })
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
+    if out is not None:
         known = mount if args.mount or getattr(reference, "mount", None) is not None else None
         summary["files"], summary["points_frame"] = _write_point_files(
             {out / f"appeared.{args.format}": (changes.appeared_points, APPEARED_COLOR),
@@ -295,7 +294,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
                          (json_text.dumps(summary, indent=2) + "\n").encode("utf-8"))
     if args.mcap:
         _write_check_mcap(args.mcap, reference, current_depth, changes, mount, summary, stamp_ns)
-        if not args.out:
+        if out is None:
             summary["files"] = [str(args.mcap)]
     if args.json:
         _print_json(summary)

@@ -42,4 +42,23 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     else:
         print(f"# {args.file}: OK; the effective settings (defaults included):")
         print(config.as_toml(), end="")
+        for note in _absent_now(config):
+            print(f"# note: {note}")
     return 0
+
+
+def _absent_now(config) -> list[str]:
+    """What the configuration names on this machine that is not there now: a recording or
+    folder the camera source reads (the daemon answers CAMERA_LOST until it is), the serial
+    port (it waits for it).  Not errors: a USB adapter or a mounted disk may come later."""
+    from hw.depth import parse_uri
+
+    notes = []
+    scheme, target, _ = parse_uri(config.camera.source)
+    if scheme not in ("openni2", "realsense") and not Path(target).exists():
+        notes.append(f"camera.source: {target} does not exist now (the daemon reports "
+                     "CAMERA_LOST until it does)")
+    port = str(config.serial.port)
+    if "://" not in port and not Path(port).exists():
+        notes.append(f"serial.port: {port} does not exist now (the daemon waits for it)")
+    return notes

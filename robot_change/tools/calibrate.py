@@ -49,6 +49,9 @@ def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 
     measurement, seconds spent).  Raises :class:`InputError` when fewer than 2 frames come,
     when they are all the same frame, when no depth is read in every frame, or when the frames
     differ so much that the camera or the scene moved."""
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 2:
+        raise InputError(f"frames={frames!r}: calibrating measures how frames of a still view "
+                         "differ, so it needs at least 2 (30 by default: a second at 30 fps)")
     t0 = time.perf_counter()
     source.open()
     stack = []
