@@ -127,9 +127,10 @@ class OniWriter:
     frames are (height, width) uint16 depth in millimetres; ``codec`` is ``"none"`` (raw),
     ``"16z"`` (lossless, values <= 32767 mm) or ``"16zt"`` (lossless, the smallest on quantised
     depth, <= 32768 distinct values per frame); ``intrinsics`` (default
-    :meth:`Intrinsics.openni_default`) are stored as the stream's field of view (OpenNI's) and
-    whole (robot_change's, :data:`~hw.oni_format.PROP_INTRINSICS`), and so is ``camera``, the
-    camera's name (at most 64 bytes).  The file
+    :meth:`Intrinsics.openni_default`) are stored as the stream's field of view (OpenNI's) and,
+    where that does not give them back (a principal point off the centre), whole
+    (robot_change's, :data:`~hw.oni_format.PROP_INTRINSICS`), and so is ``camera``, the
+    camera's name (at most 64 bytes; none by default).  The file
     appears at ``path`` only when the writer is closed without an error (temp file, fsync,
     rename)::
 
@@ -309,16 +310,20 @@ class OniWriter:
              struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16_BIT)),
             (REC_INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", ONI_PIXEL_FORMAT_DEPTH_1_MM)),
             (REC_GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov)),
-            (REC_GENERAL_PROPERTY, PROP_INTRINSICS, struct.pack(
-                "<dddd", self.intrinsics.fx, self.intrinsics.fy, self.intrinsics.cx,
-                self.intrinsics.cy)),
-            (REC_GENERAL_PROPERTY, PROP_CAMERA, self.camera.encode("utf-8")),
             (REC_INT_PROPERTY, "Cropping", struct.pack("<Q", 1)),
             # XnCropping: enabled (32-bit bool), x offset, y offset, width, height (uint16)
             (REC_GENERAL_PROPERTY, "xnCropping", struct.pack("<iHHHH", 0, 0, 0, w, h)),
             (REC_INT_PROPERTY, "Mirror", struct.pack("<Q", 1)),
             (REC_INT_PROPERTY, "xnMirror", struct.pack("<Q", 0)),
         ]
+        # robot_change's own, only where they tell more than OpenNI's (a file OpenNI's alone
+        # describes stays byte for byte what it was)
+        K = self.intrinsics
+        if intrinsics_from_fov(w, h, hfov, vfov) != K:
+            props.append((REC_GENERAL_PROPERTY, PROP_INTRINSICS,
+                          struct.pack("<dddd", K.fx, K.fy, K.cx, K.cy)))
+        if self.camera:
+            props.append((REC_GENERAL_PROPERTY, PROP_CAMERA, self.camera.encode("utf-8")))
         for kind, name, data in props:
             fields = _string_field(name) + struct.pack("<I", len(data)) + data
             self._write_record(kind, fields, b"")
