@@ -465,6 +465,19 @@ def test_calibrate_refuses_frames_of_a_camera_carried_by_hand(tmp_path, shared_d
     assert not out.exists()
 
 
+def test_capture_says_when_the_view_moved_while_its_frames_were_taken(tmp_path, shared_data):
+    """The SUN3D frames, an Xtion carried by hand: the capture is written (a robot's base
+    decides) but says its drift (3.5 over 5 frames) and what it did to the reference."""
+    out = tmp_path / "moved.scene.npz"
+    result = run("capture", "--source", str(shared_data / "sun3d-studyroom-xtion-50f-pose"
+                                            / "frames"), "--out", str(out))
+    assert result.returncode == 0 and out.is_file(), result.stderr
+    assert "drift 3.50" in result.stdout and "the view moved while" in result.stderr
+    still = run("capture", "--source", str(SCENES / "office_no_change" / "reference.oni"),
+                "--out", str(tmp_path / "still.scene.npz"))
+    assert "drift 1.00" in still.stdout and "moved" not in still.stderr
+
+
 def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):
     scene = SCENES / "office_box_added"
     result = run("detect", "--reference", str(scene / "reference.oni"),

@@ -210,7 +210,7 @@ def test_frames_that_drift_are_told_from_noise():
 def test_calibrate_s_drift_limit_passes_noise_and_refuses_steady_motion(frames):
     """Noise alone drifts about 1 over any number of frames; a view moving a reading's sigma
     a frame drifts beyond the limit (half the frames, at most 2.5); two frames cannot tell."""
-    from robot_change.tools.calibrate import drift_limit
+    from robot_change.noise.estimate import drift_limit
 
     rng = np.random.default_rng(frames)
     still = measure_frames(_wall_frames(frames, 0.005, rng)).drift
@@ -218,6 +218,20 @@ def test_calibrate_s_drift_limit_passes_noise_and_refuses_steady_motion(frames):
     moving = measure_frames(_wall_frames(frames, 0.005, rng) + creep).drift
     assert still < 1.1 < drift_limit(frames) < moving
     assert drift_limit(2) == float("inf") and drift_limit(frames) == min(2.5, frames / 2)
+
+
+def test_a_reference_keeps_the_drift_of_its_frames(tmp_path):
+    """A capture while the view creeps a reading's sigma a frame says so (its drift beyond a
+    still view's); a still one does not; one frame has none; the file keeps it."""
+    rng = np.random.default_rng(6)
+    still = build_scene(_wall_frames(5, 0.005, rng), intrinsics=CAMERA)
+    creep = 5 * np.arange(5, dtype=np.uint16)[:, None, None]
+    moving = build_scene(_wall_frames(5, 0.005, rng) + creep, intrinsics=CAMERA)
+    assert still.drift < 1.1 and not still.moved_while_captured
+    assert moving.drift > 2.5 and moving.moved_while_captured
+    assert build_scene(_wall_frames(1, 0.005, rng), intrinsics=CAMERA).drift is None
+    moving.save(tmp_path / "moving.npz")
+    assert SceneModel.load(tmp_path / "moving.npz").drift == moving.drift
 
 
 def test_calibrating_replaces_the_sigma_with_the_measured_one():

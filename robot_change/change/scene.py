@@ -42,7 +42,7 @@ from robot_change.errors import (
     SceneMismatchError,
 )
 from robot_change.mixture.model import Mixture, fit_mixture
-from robot_change.noise.estimate import measure_frames
+from robot_change.noise.estimate import FrameNoise, drift_limit, measure_frames
 from robot_change.noise.profile import (
     DEFAULT_PROFILE,
     RAISE_TOLERANCE,
@@ -95,7 +95,10 @@ class SceneModel:
     ``version`` (robot_change's); ``source`` (e.g. the depth URI); ``mount``: the camera's
     mounting on the base when the reference was captured (None: not recorded); ``noise``:
     the camera's noise profile (robot_change.noise), raised where the fused frames showed
-    more noise, and what they showed (``noise.measured``, ``noise.flicker_*``).
+    more noise, and what they showed (``noise.measured``, ``noise.flicker_*``); ``drift``: how
+    far the last fused frame lies from the first against consecutive ones
+    (robot_change.noise.estimate.FrameNoise.drift: about 1 for a still view, None for one
+    frame), and :attr:`moved_while_captured` whether that says the view moved.
     """
 
     depth: np.ndarray
@@ -115,6 +118,14 @@ class SceneModel:
     mount: CameraMount | None = None
     noise: NoiseProfile = dataclasses.field(
         default_factory=lambda: builtin_profile(DEFAULT_PROFILE))
+    drift: float | None = None
+
+    @property
+    def moved_while_captured(self) -> bool:
+        """Whether the fused frames drift beyond a still view's
+        (robot_change.noise.estimate.drift_limit): the camera or the scene moved while they
+        were taken, so the reference is blurred and its noise profile raised by the motion."""
+        return self.drift is not None and self.drift > drift_limit(self.n_frames)
 
     def __post_init__(self) -> None:
         d = self.depth
@@ -359,7 +370,8 @@ def build_scene(
     stack, camera, (ts0, ts1, i0, i1) = _to_stack(frames, intrinsics)
     n_frames = int(stack.shape[0])
     fused = fuse_depth(np.ascontiguousarray(stack), params.min_valid(n_frames))
-    profile = measured_profile(stack, noise or builtin_profile(DEFAULT_PROFILE), source)
+    profile, measured = measured_profile(stack, noise or builtin_profile(DEFAULT_PROFILE),
+                                         source)
     t1 = time.perf_counter()
     cloud = clean_cloud(fused, camera, params.cloud)
     t2 = time.perf_counter()
@@ -389,20 +401,24 @@ def build_scene(
         last_index=i1, seconds=seconds,
         created=datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
         version=robot_change.__version__, source=source, mount=mount, noise=profile,
+        drift=None if measured is None else measured.drift,
     )
 
 
-def measured_profile(stack: np.ndarray, noise: NoiseProfile, source: str = "") -> NoiseProfile:
-    """``noise`` raised where the frames of ``stack`` ((N, H, W) uint16 mm) are noisier
-    (:meth:`NoiseProfile.raised_by` with ``RAISE_TOLERANCE``); as it is for one frame."""
+def measured_profile(stack: np.ndarray, noise: NoiseProfile, source: str = ""
+                     ) -> tuple[NoiseProfile, FrameNoise | None]:
+    """(``noise`` raised where the frames of ``stack`` ((N, H, W) uint16 mm) are noisier
+    (:meth:`NoiseProfile.raised_by` with ``RAISE_TOLERANCE``), what they measured); (``noise``
+    as it is, None) for one frame."""
     if stack.shape[0] < 2:
-        return noise
+        return noise, None
     found = measure_frames(stack)
     if not found.bins:
-        return noise
+        return noise, found
     said = f"the {stack.shape[0]} frames of {source or 'the reference'}"
     return noise.raised_by(found.bins, said, tolerance=RAISE_TOLERANCE,
-                           flicker_valid=found.flicker_valid, flicker_step=found.flicker_step)
+                           flicker_valid=found.flicker_valid,
+                           flicker_step=found.flicker_step), found
 
 
 def build_scene_from_source(

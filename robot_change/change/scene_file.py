@@ -115,6 +115,7 @@ def header_of(model: SceneModel) -> dict[str, Any]:
         },
         "fit": _record_to_dict(model.mixture.record),
         "noise": model.noise.to_dict(),
+        "drift": model.drift,
     }
 
 
@@ -244,6 +245,7 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
         created=str(header["created"]), version=str(header["library_version"]),
         source=str(header["source"]), mount=_mount_from(header.get("mount")),
         noise=_noise_from(header.get("noise")),
+        drift=None if header.get("drift") is None else _finite(header["drift"], "drift"),
     )
 
 

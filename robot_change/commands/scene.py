@@ -184,7 +184,12 @@ def cmd_capture(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {scene.n_frames} frame(s) fused, {len(scene.points)} points, "
           f"K = {scene.mixture.n_components}, {scene.seconds['total']:.2f} s, noise "
           f"{scene.noise.name}, smallest change seen {_cm(limit.median_m)} at the view's "
-          "median depth" + ("" if mount is None else f", mount {_mount_text(mount)}"))
+          "median depth" + ("" if mount is None else f", mount {_mount_text(mount)}")
+          + ("" if scene.drift is None else f", drift {scene.drift:.2f} (still: about 1)"))
+    if scene.moved_while_captured:
+        print(f"warning: the view moved while its {scene.n_frames} frames were taken (drift "
+              f"{scene.drift:.2f}): the reference is blurred and its noise raised by the "
+              "motion; capture it again with the camera and the scene still", file=sys.stderr)
     if args.format:
         cloud_path = Path(args.out).with_suffix(f".{args.format}")
         _, frame = _write_point_files({cloud_path: (scene.points, None)}, args.format, mount)

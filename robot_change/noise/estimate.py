@@ -18,7 +18,7 @@ from scipy import ndimage
 from robot_change.errors import InputError
 from robot_change.noise.profile import NoiseProfile
 
-__all__ = ["FrameNoise", "measure_frames", "profile_from_frames"]
+__all__ = ["MAX_DRIFT", "FrameNoise", "drift_limit", "measure_frames", "profile_from_frames"]
 
 #: Depth bins of the measurement: BIN_M wide from MIN_BIN_M; a bin needs MIN_BIN_PIXELS
 #: pixels read in every frame, off any edge, to be kept.
@@ -29,6 +29,24 @@ MIN_BIN_PIXELS = 200
 #: A depth edge: neighbouring readings apart by more than this share of the depth (5 %: a
 #: surface tilted 87 degrees from the ray, at a Kinect's angular resolution).
 EDGE_REL_JUMP = 0.05
+
+
+#: A :attr:`FrameNoise.drift` above :func:`drift_limit` says the view moved steadily, which
+#: per-pixel variances take for noise (calibrate refuses it; a capture says so).  Still views
+#: measure 0.98-1.01 (rendered Kinect and RealisticKinect noise, 3 to 30 frames); the SUN3D
+#: Xtion carried by hand, ~1 cm a frame: 1.62-1.89 over 3 frames, 2.27-2.69 over 4, 2.2-3.5
+#: over 5, 9.1 over 30 (sigma 15-20 times the Xtion's); PCL's grabber frames, hand-held 3-10
+#: mm apart: 1.62 over 3 (sigma 17 times the Kinect's).  A drift under a tenth of one
+#: reading's sigma a frame stays under MAX_DRIFT over 30 frames (simulated: 2.58 at a tenth)
+#: and adds up to a third to sigma.
+MAX_DRIFT = 2.5
+
+
+def drift_limit(frames: int) -> float:
+    """The largest drift of a still view over ``frames`` frames: half their number (steady
+    motion drifts towards frames - 1, noise stays at 1), at most :data:`MAX_DRIFT`; two frames
+    cannot tell (their drift is 1 by definition)."""
+    return min(MAX_DRIFT, frames / 2.0) if frames >= 3 else float("inf")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -217,6 +217,11 @@ class Control:
                  "seen %d mm) built in %.0f ms, saved to %s", station, n, len(model),
                  model.mixture.n_components, model.noise.name, smallest_mm,
                  (time.perf_counter() - t0) * 1e3, path)
+        if model.moved_while_captured:  # told, not refused: no still real capture to set that on
+            log.warning("station %s: the view moved while the reference's %d frames were taken "
+                        "(drift %.2f; still: about 1): it is blurred and its noise profile "
+                        "raised (%s); capture it again with the robot still", station, n,
+                        model.drift, model.noise.name)
         # version 4: what the station can see, with the answer
         self._send(Captured(station, smallest_mm, model.noise.name) if self.link.version >= 4
                    else Captured(station))

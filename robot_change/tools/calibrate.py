@@ -17,7 +17,7 @@ import numpy as np
 
 from hw.depth import DepthSource
 from robot_change.errors import InputError
-from robot_change.noise.estimate import FrameNoise, profile_from_frames
+from robot_change.noise.estimate import FrameNoise, drift_limit, profile_from_frames
 from robot_change.noise.profile import NoiseProfile
 
 __all__ = ["calibrate", "calibration_summary"]
@@ -25,21 +25,6 @@ __all__ = ["calibrate", "calibration_summary"]
 #: A measurement this many times noisier than the built-in profile at 1-3 m says the camera or
 #: the scene moved rather than that the camera is that noisy: refused.
 MOVED_FACTOR = 20.0
-#: A :attr:`FrameNoise.drift` above :func:`drift_limit` says the view moved steadily, which
-#: per-pixel variances take for noise: refused.  Still views measure 0.98-1.01 (rendered Kinect
-#: and RealisticKinect noise, 3 to 30 frames); the SUN3D Xtion carried by hand, ~1 cm a frame:
-#: 1.62-1.89 over 3 frames, 2.27-2.69 over 4, 2.2-3.5 over 5, 9.1 over 30 (sigma 15-20 times
-#: the Xtion's, under MOVED_FACTOR); PCL's grabber frames, hand-held 3-10 mm apart: 1.62 over
-#: 3 (sigma 17 times the Kinect's).  A drift under a tenth of one reading's sigma a frame stays
-#: under MAX_DRIFT over 30 frames (simulated: 2.58 at a tenth) and adds up to a third to sigma.
-MAX_DRIFT = 2.5
-
-
-def drift_limit(frames: int) -> float:
-    """The largest drift of a still view over ``frames`` frames: half their number (steady
-    motion drifts towards frames - 1, noise stays at 1), at most :data:`MAX_DRIFT`; two frames
-    cannot tell (their drift is 1 by definition)."""
-    return min(MAX_DRIFT, frames / 2.0) if frames >= 3 else float("inf")
 
 
 def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 30,
