@@ -234,10 +234,13 @@ def _walk_records(f: BinaryIO, p: Path, size: int, header_size: int,
     w, h, fps = info["mode"]  # type: ignore[misc]
     fov = info.get("fov") or (None, None)
     codec = bytes(info["codec"]).decode("ascii", "replace")  # type: ignore[arg-type]
+    stored = info.get("stored")
+    if stored is not None and not (-w <= stored[2] <= 2 * w and -h <= stored[3] <= 2 * h):
+        stored = None  # a principal point nowhere near the image: damaged; the field of view
     return OniInfo(int(w), int(h), int(fps), codec, int(info["frames"]),  # type: ignore[call-overload]
                    int(info["first"]), int(info["last"]),  # type: ignore[call-overload]
                    fov[0], fov[1], version, node_id,  # type: ignore[index]
-                   info.get("stored"), str(info.get("camera", "")))  # type: ignore[arg-type]
+                   stored, str(info.get("camera", "")))  # type: ignore[arg-type]
 
 
 

@@ -389,3 +389,22 @@ def test_hw_oni_re_exports_the_codec_and_container_modules() -> None:
             if hasattr(module, name):
                 assert getattr(oni, name) is getattr(module, name), name
     assert oni._decode_16z is oni_codec._decode_16z  # the numba kernel the twin above checks
+
+
+def test_the_stored_intrinsics_are_read_and_damaged_ones_passed_over(tmp_path: Path) -> None:
+    """robot_change's intrinsics property is written only where the field of view does not
+    give them back; read back whole; a principal point nowhere near the image (damaged) falls
+    back to the field of view's."""
+    off = Intrinsics(64, 48, 50.0, 52.0, 40.0, 30.0)
+    path = tmp_path / "off.oni"
+    write_oni(path, [np.full((48, 64), 1000, np.uint16)], intrinsics=off)
+    assert read_oni_header(path).intrinsics() == off
+    centred = tmp_path / "centred.oni"
+    write_oni(centred, [np.full((48, 64), 1000, np.uint16)])
+    assert b"robotChange" not in centred.read_bytes()
+    data = bytearray(path.read_bytes())
+    at = data.index(b"robotChangeIntrinsics") + len(b"robotChangeIntrinsics") + 1 + 4
+    data[at + 16: at + 24] = struct.pack("<d", 1e6)  # cx
+    path.write_bytes(bytes(data))
+    got = read_oni_header(path).intrinsics()
+    assert (got.cx, got.cy) == (31.5, 23.5) and got.fx == pytest.approx(50.0, abs=1e-3)
