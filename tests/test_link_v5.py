@@ -72,6 +72,37 @@ def test_a_bases_part_or_need_is_a_wrong_direction_before_version_5(proto):
         assert not naks  # a piece of a command being joined
 
 
+def test_a_module_message_carried_by_the_base_is_a_wrong_direction_once_joined():
+    """A PAUSE is the module's to send: a whole one from the base is answered NAK
+    WRONG_DIRECTION (section 6), and so is one the base carries in PARTs, once joined (it was
+    dropped in silence, and the base carried it for CARRY_TIMEOUT); the module acts on
+    neither."""
+    module = Link(p.Role.MODULE)
+    module.receive(p.encode(p.Hello(p.Role.BASE, 5), 1))
+    module.outgoing()
+    body = p.encode_body(p.Pause(p.PauseCause.CHANGE_CHECK), 9, 0, 5)
+    module.receive(b"".join(p.encode(part, 9, 0, 5) for part in p.split_body(body)))
+    naks = [f for f in frames(module.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+    assert [(f.seq, f.message.reason, f.message.refused_type) for f in naks] == [
+        (9, p.NakReason.WRONG_DIRECTION, p.MsgType.PAUSE)]
+    assert not received(module.events(), p.Pause)
+
+
+def test_a_hello_whose_versions_do_not_meet_is_naked_in_version_1():
+    """The NAK of an incompatible HELLO carries the HELLO's version byte (1), not the last
+    session's (a restarted base offering 6..7 got NAKs of version 5)."""
+    module = Link(p.Role.MODULE)
+    module.receive(p.encode(p.Hello(p.Role.BASE, 5), 1))
+    assert module.version == 5
+    module.outgoing()
+    module.receive(p.encode(p.Hello(p.Role.BASE, 6, proto_min=6, proto_max=7), 1,
+                            version=1))  # as every HELLO is sent
+    naks = [f for f in frames(module.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+    assert naks and all(f.version == 1 and f.message.reason == p.NakReason.BAD_VERSION
+                        for f in naks)
+    assert module.state == LinkState.INCOMPATIBLE
+
+
 @pytest.mark.parametrize("proto", [4, 5])
 def test_the_bases_commands_through_10_percent_byte_corruption(proto):
     """Issue 46 item 1: at 10 % (flipped bytes) every CHECK reaches the module once and the

@@ -333,7 +333,7 @@ class Link:
         if isinstance(message, Hello) and not self._meets(message):
             # docs/protocol.md 7.5: NAKed, not acknowledged, so that the peer learns it too
             self.peer = message
-            self._nak(seq, NakReason.BAD_VERSION, message.TYPE)
+            self._nak(seq, NakReason.BAD_VERSION, message.TYPE, min(frame.version, self.proto_max))
             self._set_state(LinkState.INCOMPATIBLE, f"the {self.peer_role.name.lower()} speaks "
                             f"protocol {message.proto_min}..{message.proto_max}, this end "
                             f"{MIN_VERSION}..{self.proto_max}: update the older side", now)
@@ -396,6 +396,12 @@ class Link:
         inner = decode_body(b"".join(assembly.got[i] for i in range(assembly.count)))
         if type(inner) is DecodeError and inner.nak is not None and inner.seq == seq:
             self._nak(seq, inner.nak, inner.msg_type or 0)  # intact, but not acceptable
+            return
+        if (type(inner) is Frame and inner.seq == seq and inner.message.SEQUENCED
+                and not may_send(self.peer_role, type(inner.message), inner.version)):
+            # intact, its own CRC good, but not the peer's to send: told, as a whole frame is
+            # (section 6), or the peer would carry it until CARRY_TIMEOUT
+            self._nak(seq, NakReason.WRONG_DIRECTION, inner.message.TYPE)
             return
         if (type(inner) is not Frame or inner.seq != seq or not inner.message.SEQUENCED
                 or inner.message.URGENT or isinstance(inner.message, Hello)
@@ -490,8 +496,12 @@ class Link:
         if len(self._seen) > self.config.dedup_memory:
             del self._seen[next(iter(self._seen))]
 
-    def _nak(self, seq: int, reason: NakReason, refused_type: int) -> None:
-        self._out += encode(Nak(reason, refused_type), seq, version=self.version)
+    def _nak(self, seq: int, reason: NakReason, refused_type: int,
+             version: int | None = None) -> None:
+        """NAK in the session's version, or ``version`` (a HELLO's NAK carries the HELLO's
+        version byte, 1: no session version holds for a peer whose range does not meet)."""
+        self._out += encode(Nak(reason, refused_type), seq,
+                            version=self.version if version is None else version)
         self.stats.naks_sent += 1
 
     def _take_seq(self) -> int:
