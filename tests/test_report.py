@@ -75,7 +75,8 @@ def _regions(kind: str, count: int, seed: int, clustered: bool = False) -> tuple
         extent = rng.uniform(0.04, 0.4, 3)
         regions.append(Region(kind, centroid, extent, centroid - extent / 2,
                               centroid + extent / 2, int(rng.integers(20, 3000)), 10, (0,),
-                              np.arange(3)))
+                              np.arange(2), np.array([centroid - extent / 2,
+                                                      centroid + extent / 2], np.float32)))
     return tuple(regions)
 
 

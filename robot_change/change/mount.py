@@ -95,14 +95,6 @@ class CameraMount:
         B = self.base_from_optical()
         return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ B[:3, :3].T + B[:3, 3]
 
-    def box_to_base(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The axis-aligned base-frame box (min (3,), max (3,)) around the optical-frame box
-        ``lo``..``hi``."""
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                            for z in (lo[2], hi[2])])
-        moved = self.to_base(corners)
-        return moved.min(axis=0), moved.max(axis=0)
-
     def offset(self, registration: Registration) -> BaseOffset:
         """The robot's pose now relative to its pose at the reference, in the station pose's
         base frame: ``B T_ref_from_cur B^-1`` with ``B`` = :meth:`base_from_optical`."""

@@ -138,7 +138,7 @@ def group_regions(kind: str, epoch: Epoch, changed: np.ndarray, params: ChangePa
             keep = np.argsort(-mass, kind="stable")
             comps = tuple(int(change_components[k]) for k in keep if mass[k] > 0.05 * len(rows))
         regions.append(Region(kind, pts.mean(axis=0), hi - lo, lo, hi, int(len(rows)),
-                              int(pix_count[rows].sum()), comps, rows))
+                              int(pix_count[rows].sum()), comps, rows, epoch.points[rows]))
     return tuple(regions)
 
 

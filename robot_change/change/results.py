@@ -36,7 +36,8 @@ class Region:
     disappeared).  ``components``: indices of the accepted change components (in
     :attr:`ChangeSet.appeared_mixture` / :attr:`ChangeSet.disappeared_mixture`) that carry the
     most posterior mass of the region's points, most first; empty for the methods without a
-    mixture.  ``point_index``: rows of the region's points in that epoch's cloud.
+    mixture.  ``point_index``: rows of the region's points in that epoch's cloud; ``points``
+    (M, 3) float32 those points (camera optical frame, m).
     """
 
     kind: str
@@ -48,6 +49,7 @@ class Region:
     n_pixels: int
     components: tuple[int, ...]
     point_index: np.ndarray = dataclasses.field(repr=False)
+    points: np.ndarray = dataclasses.field(repr=False)
 
     def to_dict(self, mount: CameraMount | None = None) -> dict:
         """JSON-ready summary (no point indices); with ``mount``, ``"base"`` holds the
@@ -72,8 +74,10 @@ class Region:
         return out
 
     def base_box(self, mount: CameraMount) -> tuple[np.ndarray, np.ndarray]:
-        """(min (3,), max (3,)) of the region's box in base_link, metres."""
-        return mount.box_to_base(self.bbox_min, self.bbox_max)
+        """(min (3,), max (3,)) of the region's points in base_link, metres: the tight box
+        (the box round the camera-frame box turned into base_link was up to 12 cm taller)."""
+        moved = mount.to_base(self.points)
+        return moved.min(axis=0), moved.max(axis=0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -193,7 +193,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     if args.format:
         cloud_path = Path(args.out).with_suffix(f".{args.format}")
         _, frame = _write_point_files({cloud_path: (scene.points, None)}, args.format, mount)
-        print(f"wrote {cloud_path}: the clean cloud, {frame.replace('_', ' ')} frame")
+        print(f"wrote {cloud_path}: the clean cloud, {frame} frame")
     return 0
 
 
