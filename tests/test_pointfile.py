@@ -358,7 +358,7 @@ def test_cli_detect_and_capture_write_point_files_and_say_the_frame(tmp_path):
     captured = run("capture", "--source", str(reference), "--frames", "3", "--mount", MOUNT,
                    "--format", "ply", "--out", str(tmp_path / "station.scene.npz"))
     assert captured.returncode == 0, captured.stderr
-    assert "station.scene.ply: the clean cloud, base link frame" in captured.stdout
+    assert "station.scene.ply: the clean cloud, base_link frame" in captured.stdout
     comments, raw = parse_ply(tmp_path / "station.scene.ply")
     assert comments[0].startswith("frame base_link") and len(raw) > 10_000
     out = tmp_path / "check"
