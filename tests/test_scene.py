@@ -504,6 +504,8 @@ def test_missing_array_is_refused(saved, tmp_path):
     (lambda h, a: a.update(pixel_voxel=a["pixel_voxel"] + 10**6), "outside the cloud"),
     (lambda h, a: a.update(weights=a["weights"] * 2), "valid scene"),
     (lambda h, a: h.pop("n_frames"), "n_frames"),
+    (lambda h, a: h.update(drift="still"), "drift = 'still' is not a finite number"),
+    (lambda h, a: h.update(drift=True), "drift = True"),
 ])
 def test_invalid_content_with_a_valid_checksum_is_refused(saved, tmp_path, edit, match):
     header, arrays = read_npz(saved)
