@@ -8,6 +8,10 @@ fingerprint differs from the one stamped beside the cache, every cached kernel o
 packages is removed before any is loaded, and compiled afresh.
 
     clear_stale_kernels()          # before the first kernel runs (robot_change's import)
+
+A warm-up that loaded every kernel marks the cache warm (:func:`mark_kernels_warm`) for these
+sources, this numba and this Python; :func:`kernels_warm` tells the next one whether it will
+only load (robot_change.service.warmup compiles a cold cache in helper processes).
 """
 
 from __future__ import annotations
@@ -15,11 +19,12 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import sys
 from pathlib import Path
 
 from hw.atomic import write_atomically
 
-__all__ = ["clear_stale_kernels", "source_fingerprint"]
+__all__ = ["clear_stale_kernels", "kernels_warm", "mark_kernels_warm", "source_fingerprint"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +64,36 @@ def _stamp_path(packages: tuple[Path, ...]) -> Path:
     root = os.environ.get("NUMBA_CACHE_DIR")
     folder = _cache_folder(packages[0]) if root else packages[0] / "__pycache__"
     return folder / "kernel-sources.sha256"
+
+
+def _warm_text(packages: tuple[Path, ...]) -> str:
+    """What marks the cache warm: the sources' fingerprint, numba's and Python's versions (a
+    cache of another numba or Python is compiled again)."""
+    import numba
+
+    return (f"{source_fingerprint(packages)} numba {numba.__version__} "
+            f"python {'.'.join(map(str, sys.version_info[:3]))}\n")
+
+
+def kernels_warm(packages: tuple[Path, ...] = PACKAGES) -> bool:
+    """A warm-up of these sources, this numba and this Python loaded every kernel into the
+    cache (:func:`mark_kernels_warm`), and the cache was not removed since."""
+    try:
+        return (_stamp_path(packages).with_name("kernels-warm").read_text()
+                == _warm_text(packages))
+    except OSError:
+        return False
+
+
+def mark_kernels_warm(packages: tuple[Path, ...] = PACKAGES) -> None:
+    """Mark the cache warm (after a warm-up's whole path ran); never raises: an unwritable
+    cache stays unmarked."""
+    try:
+        marker = _stamp_path(packages).with_name("kernels-warm")
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        write_atomically(marker, _warm_text(packages).encode())
+    except OSError as exc:
+        log.debug("numba cache not marked warm: %s", exc)
 
 
 def clear_stale_kernels(packages: tuple[Path, ...] = PACKAGES) -> int:

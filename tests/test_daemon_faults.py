@@ -1,7 +1,8 @@
 """The real daemon under faults (a subprocess; tests/daemon_rig.py): injected hangs reach the
 base as FAULT STALLED (and PAUSE while watching), the watchdog stops being fed and the process
 exits 70 for systemd to restart it; SIGTERM ends it within 2 s in every state, a cold compile
-and a hung kernel included, with no READY after STOPPING; ``check-config`` and ``run`` refuse
+and a hung kernel included, with no READY after STOPPING; a cold start talks (BOOTING) while
+it compiles; ``check-config`` and ``run`` refuse
 the same files the same way, and a refused reload keeps the old configuration and says so."""
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from daemon_rig import REPO, WATCH_SETUP, Daemon
 
+from robot_change.link.protocol import ModuleState
 from robot_change.service.core import ServiceOptions
 from robot_change.service.daemon import EXIT_STALLED, STALL_GRACE_S
 
@@ -110,6 +113,25 @@ def test_sigterm_during_a_cold_compile_and_no_ready_after_it(tmp_path: Path) -> 
         _sigterm_in(d)
         time.sleep(1.0)
         assert "READY=1" not in d.notes.lines
+
+
+def test_a_cold_start_talks_while_it_compiles(tmp_path: Path) -> None:
+    """A start on an empty numba cache (an update without its warm-up): while the kernels
+    compile the link is up, heartbeats say BOOTING and come no more than the base's silence
+    rule apart (docs/protocol.md 7.6: 400 ms; the compile runs in helper processes, not in
+    the daemon's interpreter), STATUS answers BOOTING, and a CAPTURE_REFERENCE sent then is
+    run once the daemon is READY."""
+    with Daemon(tmp_path, env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cold")}) as d:
+        d.wait_for("STATUS=compiling the numba kernels (or loading them from the cache)")
+        assert d.base("expect HEARTBEAT state=BOOTING 5\nstatus\n"
+                      "expect STATUS state=BOOTING 3\ncapture office\n"
+                      "expect CAPTURED station=office 150\nexpect HEARTBEAT state=IDLE 3") == 0
+        ready = d.wait_for("READY=1", 5)
+        booting = [e.t for e in d.sims[0].log
+                   if e.name == "HEARTBEAT" and e.obj.state == ModuleState.BOOTING]
+        assert ready - booting[0] > 5.0, "the compile was over before the base came"
+        assert max(np.diff(booting)) < 0.4, "the compile held up the heartbeats"
+        assert d.first("CAPTURED") > ready
 
 
 # --------------------------------------------------------------------------- one validation

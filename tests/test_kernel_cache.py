@@ -11,7 +11,12 @@ from pathlib import Path
 
 from conftest import REPO
 
-from robot_change.kernel_cache import clear_stale_kernels, source_fingerprint
+from robot_change.kernel_cache import (
+    clear_stale_kernels,
+    kernels_warm,
+    mark_kernels_warm,
+    source_fingerprint,
+)
 
 CALLER = """
 from numba import njit
@@ -81,3 +86,17 @@ def test_the_fingerprint_covers_every_source_file_and_only_those(tmp_path):
     assert clear_stale_kernels(package) == 1  # the cached index, and the stamp written
     assert (tmp_path / "kern" / "__pycache__" / "kernel-sources.sha256").is_file()
     assert clear_stale_kernels(package) == 0
+
+
+def test_the_warm_mark_holds_for_the_sources_it_was_made_for(tmp_path, monkeypatch):
+    """A cache is warm once marked, for these sources only: a changed file makes it cold
+    (a warm-up then compiles in helper processes: robot_change.service.warmup)."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "mod.py").write_text("x = 1\n")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    assert not kernels_warm((package,))
+    mark_kernels_warm((package,))
+    assert kernels_warm((package,))
+    (package / "mod.py").write_text("x = 2\n")
+    assert not kernels_warm((package,))

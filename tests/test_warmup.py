@@ -6,10 +6,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from robot_change import kernel_cache
+from robot_change.service import warmup
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -27,20 +31,20 @@ class Listener(event.Listener):
     def on_end(self, ev):
         pass
 """
-#: the helper's share, as ``python -m robot_change.service.warmup --helper`` runs it
-_HELPER_COMPILES = _LISTENER + """
-helper = Listener()
-with event.install_listener("numba:compile", helper):
-    warmup._helper_share()
-print(json.dumps(sorted(helper.compiled)))
+#: one helper's share (as ``python -m robot_change.service.warmup --share NAME PID`` runs it),
+#: the kernels it compiled
+_SHARE_COMPILES = _LISTENER + """
+import sys
+share = Listener()
+with event.install_listener("numba:compile", share):
+    warmup.SHARES[sys.argv[1]]()
+print(json.dumps(sorted(share.compiled)))
 """
 _WHOLE_PATH_COMPILES = _LISTENER + """
-own, whole = Listener(), Listener()
-with event.install_listener("numba:compile", own):
-    warmup._own_share(Config())
+whole = Listener()
 with event.install_listener("numba:compile", whole):
     warmup._whole_path(Config())
-print(json.dumps([sorted(own.compiled), sorted(whole.compiled)]))
+print(json.dumps(sorted(whole.compiled)))
 """
 
 
@@ -50,36 +54,60 @@ def _python(code_or_args: list[str], cache: Path, timeout: float = 300.0):
                           capture_output=True, text=True, timeout=timeout)
 
 
+def _share_in(cache: Path, share: str) -> subprocess.Popen:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(REPO))
+    return subprocess.Popen([sys.executable, "-c", _SHARE_COMPILES, share], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def test_the_two_shares_leave_the_kernels_the_whole_path_loads(tmp_path):
-    """After the helper's share has filled an empty cache (in its own process), this
-    process's share compiles none of the helper's kernels, and the capture-and-check path
-    then compiles no kernel at all: the shares left exactly what it needs (same argument
-    types).  No kernel of any copies an array into a slice, and none is compiled for two
-    argument types (a literal bool, a read-only array beside a writable one: each another
-    compile of the whole kernel)."""
-    cache = tmp_path / "cache"
-    cache.mkdir()
-    helper_run = _python(["-c", _HELPER_COMPILES], cache)
-    assert helper_run.returncode == 0, helper_run.stderr
-    helper = json.loads(helper_run.stdout.splitlines()[-1])
-    run = _python(["-c", _WHOLE_PATH_COMPILES], cache)
+    """Each helper's share, on an empty cache of its own (as the two run at once), compiles
+    kernels the other does not (none is compiled twice); with both caches together the
+    capture-and-check path compiles no kernel at all: the shares left exactly what it needs
+    (same argument types).  No kernel of any copies an array into a slice, and none is
+    compiled for two argument types (a literal bool, a read-only array beside a writable one:
+    each another compile of the whole kernel)."""
+    caches = {share: tmp_path / share for share in warmup.SHARES}
+    procs = {share: _share_in(cache, share) for share, cache in caches.items()}
+    compiled = {}
+    for share, proc in procs.items():
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err
+        compiled[share] = json.loads(out.splitlines()[-1])
+    both = tmp_path / "both"
+    for cache in caches.values():  # numba's layout: a folder per source folder, named by its path
+        shutil.copytree(cache, both, dirs_exist_ok=True)
+    run = _python(["-c", _WHOLE_PATH_COMPILES], both)
     assert run.returncode == 0, run.stderr
-    own, whole = json.loads(run.stdout.splitlines()[-1])
+    whole = json.loads(run.stdout.splitlines()[-1])
 
     def ours(names: list[str]) -> list[str]:
         return [name for name in names if name.startswith(("robot_change.", "hw."))]
 
-    assert ours(own), "a cold cache must compile the cloud's and mixture's kernels here"
-    assert ours(helper), "a cold cache must compile the registration's kernels in the helper"
-    again = sorted(set(ours(own)) & set(ours(helper)))
-    assert again == [], f"the helper's kernels compiled again here: {again}"
+    registration, cloud = ours(compiled["registration"]), ours(compiled["cloud"])
+    assert cloud, "a cold cache must compile the cloud's and mixture's kernels in a helper"
+    assert registration, "a cold cache must compile the registration's kernels in a helper"
+    again = sorted(set(registration) & set(cloud))
+    assert again == [], f"kernels both helpers compile: {again}"
     assert ours(whole) == [], f"no share left these for the whole path: {ours(whole)}"
     # an array-to-slice copy in a kernel costs ~2 s of compile for its shape-error message
-    slices = [name for name in helper + own + whole if "raise_with_shape_context" in name]
+    slices = [name for names in (*compiled.values(), whole) for name in names
+              if "raise_with_shape_context" in name]
     assert slices == [], "a kernel copies an array into a slice"
-    twice = sorted({name for names in (ours(helper), ours(own + whole)) for name in names
+    twice = sorted({name for names in (registration, cloud) for name in names
                     if names.count(name) > 1})
     assert twice == [], f"kernels compiled for more than one argument type: {twice}"
+
+
+def test_a_warm_cache_starts_no_helper(monkeypatch):
+    """The session's warm-up (conftest) marked the cache warm: warm_up only loads, no helper
+    process is started (a cold cache's helpers: the test above and tests/test_daemon_faults.py's
+    cold start)."""
+    started = []
+    monkeypatch.setattr(warmup, "_start_helper", started.append)
+    assert kernel_cache.kernels_warm()
+    warmup.warm_up()
+    assert started == []
 
 
 def test_the_helper_ends_when_its_parent_is_gone(tmp_path):

@@ -7,7 +7,7 @@ a pty pair exactly as the robot hands it a camera and ``/dev/robot-base``.
 
 States (``HEARTBEAT.state``, ``robot_change.link.protocol.ModuleState``)::
 
-    BOOTING --start()--> IDLE
+    BOOTING --start()--> IDLE      (open_link() first: the link talks while kernels compile)
     IDLE --CAPTURE_REFERENCE s--> CAPTURING --CAPTURED s | FAULT--> IDLE
     IDLE --CHECK s--> CHECKING --CLEAR s | PAUSE + CHANGE_REPORT | FAULT--> IDLE
     IDLE --WATCH s--> WATCHING --STOP (or a new CAPTURE/CHECK/WATCH)--> IDLE
@@ -192,7 +192,7 @@ class Service(Dispatch, Sending, Control):
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self.started_at = time.monotonic()
         # state (guarded by _lock)
-        self.state = ModuleState.BOOTING
+        self.booting = True  # until start(): the heartbeat's state BOOTING
         self.activity = ModuleState.IDLE  # what the controller does (IDLE/CAPTURING/...)
         self.latched = False
         self.armed = True
@@ -237,8 +237,26 @@ class Service(Dispatch, Sending, Control):
                          status=lambda: status_document(self),
                          versions={"robot_change": robot_change.__version__})
 
+    def open_link(self) -> None:
+        """Start the link thread alone, the heartbeat's state BOOTING: HELLO, heartbeats and
+        the quick commands flow while the kernels compile; CAPTURE_REFERENCE, CHECK and WATCH
+        wait in their queue for :meth:`start`.  Once only (:meth:`start` calls it if not)."""
+        if any(t.name == "rc-link" for t in self._threads):
+            return
+        self._refresh_heartbeat(force=True)
+        self._start_thread("link", self._link_main)
+
+    def _start_thread(self, name: str, target: Callable[[], None]) -> None:
+        thread = threading.Thread(target=self._guard(name, target), name=f"rc-{name}",
+                                  daemon=True)
+        if name != "monitor":
+            self.progress.beat(name)
+        self._threads.append(thread)
+        thread.start()
+
     def start(self) -> None:
-        """Start the link, camera and controller threads (call :func:`warm_up` first)."""
+        """Start the camera and controller threads, and the link's if :meth:`open_link` did
+        not (call :func:`warm_up` first): the state IDLE."""
         self.store.recover()  # references/ and quarantine/; the fleet's spool: Spool()
         if self.options.report_dir is not None:
             reports = Path(self.options.report_dir)
@@ -248,17 +266,13 @@ class Service(Dispatch, Sending, Control):
         self._pool = concurrent.futures.ThreadPoolExecutor(self.options.detector_threads,
                                                            thread_name_prefix="detector")
         self.views.start()
+        self.open_link()
         with self._lock:
-            self.state = ModuleState.IDLE
+            self.booting = False
         self._refresh_heartbeat(force=True)
-        for name, target in (("link", self._link_main), ("camera", self.camera.run),
-                             ("control", self._control_main), ("monitor", self._monitor_main)):
-            thread = threading.Thread(target=self._guard(name, target), name=f"rc-{name}",
-                                      daemon=True)
-            if name != "monitor":
-                self.progress.beat(name)
-            self._threads.append(thread)
-            thread.start()
+        for name, target in (("camera", self.camera.run), ("control", self._control_main),
+                             ("monitor", self._monitor_main)):
+            self._start_thread(name, target)
         if self.fleet is not None:
             self.fleet.start()
             log.info("fleet: reports to %s as robot %s (spool %s: %d waiting)",
@@ -433,6 +447,8 @@ class Service(Dispatch, Sending, Control):
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
         with self._lock:
+            if self.booting:
+                return ModuleState.BOOTING
             if self.stalled or (not self.camera_ok and self._camera_reported is False):
                 return ModuleState.FAULT
             if self.activity == ModuleState.IDLE and self.latched:

@@ -1,11 +1,12 @@
 """The daemon's main loop around a :class:`robot_change.service.core.Service`.
 
-:func:`run_service`: systemd READY once the numba kernels are compiled or loaded
-(:func:`robot_change.service.warmup.warm_up`, in a thread of its own so that SIGTERM is honoured at
-once even during a cold compile), WATCHDOG only while every part makes progress
-(:meth:`Service.healthy`), SIGHUP reloads the configuration (a new camera source is reopened;
-a refused file keeps the old configuration, and STATUS says so), SIGTERM stops within ~1 s in
-every state (a hung kernel is abandoned, not waited for).
+:func:`run_service`: the link first (HELLO, heartbeats of state BOOTING), then systemd READY
+once the numba kernels are compiled or loaded (:func:`robot_change.service.warmup.warm_up`, in
+a thread of its own so that SIGTERM is honoured at once even during a cold compile), WATCHDOG
+only while every part makes progress (:meth:`Service.healthy`), SIGHUP reloads the
+configuration (a new camera source is reopened; a refused file keeps the old configuration,
+and STATUS says so), SIGTERM stops within ~1 s in every state (a hung kernel is abandoned, not
+waited for).
 
 A stall (robot_change.service.liveness) ends the loop: the service has told the base (FAULT STALLED,
 PAUSE when watching); the loop waits up to :data:`STALL_GRACE_S` for the base's ACK of the
@@ -90,8 +91,13 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
     service.stuck = []
     try:
         t0 = time.perf_counter()
-        if warm and not _warm_up(service, stop, wake):
-            return _stop(service)
+        service.open_link()  # HELLO and BOOTING heartbeats while the kernels compile
+        try:
+            if warm and not _warm_up(service, stop, wake):
+                return _stop(service)
+        except BaseException:
+            service.close()
+            raise
         service.start()
         if stop.is_set():
             return _stop(service)

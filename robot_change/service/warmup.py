@@ -1,15 +1,17 @@
 """Warm-up: compile (or load from the numba cache) the kernels before the daemon says READY.
 
-On a cold cache the compile takes most of a minute on one core, so it is shared out: a helper
-process (``python -m robot_change.service.warmup --helper``) compiles the registration's, the
-transport's and two only a check reaches into the cache while this process compiles the
-cloud's, the mixture's, the free-space check's, the regions' and the depth decoders' (the two
-shares take about as long: 21 and 25 s alone on the 2-core test VM of 2026-12-07); then the whole
-capture-and-check path runs here once, loading what the shares left (it compiles none).  A
-kernel the helper did not leave (another argument type, or the helper failed) is compiled here
-then: the split only saves time, it is never needed.
-The helper is started only when this process's share is still running after
-``HELPER_AFTER_S`` (a cold cache): with a warm cache everything loads here in about a second.
+A cold cache (no warm-up of these sources marked it warm: robot_change.kernel_cache) takes
+most of a minute on one core, so it is compiled in two helper processes at once
+(``python -m robot_change.service.warmup --share registration|cloud PID``): the registration's,
+the transport's and two kernels only a check reaches in one; the cloud's, the mixture's, the
+free-space check's, the regions' and the depth decoders' in the other (21 and 25 s alone on
+the 2-core test VM of 2026-12-07).  This process only waits, so its other threads keep the
+interpreter to themselves (the daemon's link: BOOTING heartbeats every 100 ms, none more than
+105 ms apart through a cold compile, where a compile in this process held them up to 318 ms).
+Then the whole capture-and-check path runs here once, loading what the helpers left (it
+compiles none), and the cache is marked warm.  A kernel no helper left (another argument type,
+a helper that failed) is compiled here then: the helpers only save time, they are never needed.
+A warm cache runs the whole path alone: about a second.
 """
 
 from __future__ import annotations
@@ -27,17 +29,14 @@ from robot_change.arrays import readonly_view
 from robot_change.change.detect import detect_changes
 from robot_change.change.scene import build_scene
 from robot_change.errors import EmptySceneError, InputError
-from robot_change.kernel_cache import clear_stale_kernels
+from robot_change.kernel_cache import clear_stale_kernels, kernels_warm, mark_kernels_warm
 from robot_change.service.config import Config
 from robot_change.service.params import change_params
 
 __all__ = ["warm_up"]
 
-#: Longest wait for the helper process before this process compiles the rest itself.
+#: Longest wait for the helper processes before this process compiles the rest itself.
 HELPER_TIMEOUT_S = 120.0
-#: The helper starts when this process's share has run this long (a warm cache loads it
-#: in well under a second).
-HELPER_AFTER_S = 1.0
 
 
 def _synthetic_room(width: int, height: int, box: bool = False) -> np.ndarray:
@@ -65,8 +64,8 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
                                                       _synthetic_room(width, height, box=True))
 
 
-def _helper_share() -> None:
-    """The helper process's share: the registration's kernels (the same argument types as a
+def _registration_share() -> None:
+    """A helper's share: the registration's kernels (the same argument types as a
     check: a read-only reference image, a writable current one), two kernels only a check
     reaches (:func:`_check_only_kernels`) and the transport's (the greedy EMD on
     mixture-sized problems; the exact :func:`emd` alone is on no capture or check path)."""
@@ -167,15 +166,16 @@ def _decoder_kernels() -> None:
         decode_compressed_depth(*encode_compressed_depth(depth, codec), "warm-up")
 
 
-def _own_share(config: Config) -> None:
-    """This process's share while the helper runs: the cloud's, the mixture's (a reference
-    built, the current's mixture, the novelty fit over a background), the free-space check's,
-    the regions' and the depth decoders' kernels, without registration or EMD."""
+def _cloud_share() -> None:
+    """The other helper's share: the cloud's, the mixture's (a reference built, the current's
+    mixture, the novelty fit over a background), the free-space check's, the regions' and the
+    depth decoders' kernels, without registration or EMD (the default configuration's
+    argument types: a configuration's values do not change them)."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
 
     cam, rooms = _tiny_scene()
-    params = config.scene_params()
+    params = Config().scene_params()
     for before, _after in (rooms, rooms[::-1]):
         try:
             reference = build_scene(np.stack([before] * 2), params, intrinsics=cam)
@@ -195,59 +195,51 @@ def _own_share(config: Config) -> None:
     _decoder_kernels()
 
 
-def _start_helper() -> subprocess.Popen | None:
-    """The helper process (same interpreter, same numba cache), or None when it cannot start."""
+#: The helpers' shares, by the name their command line gives.
+SHARES = {"registration": _registration_share, "cloud": _cloud_share}
+
+
+def _start_helper(share: str) -> subprocess.Popen | None:
+    """A helper process for ``share`` (same interpreter, same numba cache), or None when it
+    cannot start."""
     try:
         return subprocess.Popen([sys.executable, "-m", "robot_change.service.warmup",
-                                 "--helper", str(os.getpid())],
+                                 "--share", share, str(os.getpid())],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
     except OSError:
         return None
 
 
-def warm_up(config: Config | None = None, helper: bool = True) -> float:
-    """Compile (or load from the numba cache) every kernel a capture and a check use, on a tiny
-    synthetic scene; returns the seconds it took.  ``helper``: share a cold compile with a
-    helper process (see the module's docstring)."""
-    config = config or Config()
-    t0 = time.perf_counter()
-    clear_stale_kernels()  # before any kernel is loaded: a callee's change numba cannot see
-    lock = threading.Lock()
-    procs: list[subprocess.Popen] = []
-    own_done = False
-
-    def start_helper() -> None:
-        with lock:
-            if not own_done:
-                proc = _start_helper()
-                if proc is not None:
-                    procs.append(proc)
-
-    timer = threading.Timer(HELPER_AFTER_S, start_helper)
-    timer.daemon = True
-    if helper:
-        timer.start()
+def _compile_in_helpers() -> None:
+    """Both shares at once, each in a helper process; wait at most HELPER_TIMEOUT_S for them
+    (one that is not done is killed: the whole path compiles what it left)."""
+    procs = [proc for proc in map(_start_helper, SHARES) if proc is not None]
+    end = time.monotonic() + HELPER_TIMEOUT_S
     try:
-        if helper:
-            _own_share(config)
-            with lock:
-                own_done = True
-            timer.cancel()
-            for proc in procs:
-                try:
-                    proc.wait(timeout=HELPER_TIMEOUT_S)
-                except subprocess.TimeoutExpired:
-                    pass
-        _whole_path(config)
+        for proc in procs:
+            try:
+                proc.wait(timeout=max(0.0, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
     finally:
-        timer.cancel()
-        with lock:
-            own_done = True
         for proc in procs:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def warm_up(config: Config | None = None, helper: bool = True) -> float:
+    """Compile (or load from the numba cache) every kernel a capture and a check use, on a tiny
+    synthetic scene; returns the seconds it took.  ``helper``: compile a cold cache in helper
+    processes (see the module's docstring); False: all here."""
+    config = config or Config()
+    t0 = time.perf_counter()
+    clear_stale_kernels()  # before any kernel is loaded: a callee's change numba cannot see
+    if helper and not kernels_warm():
+        _compile_in_helpers()
+    _whole_path(config)
+    mark_kernels_warm()
     return time.perf_counter() - t0
 
 
@@ -318,6 +310,6 @@ def _exit_with_parent(parent: int) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--helper":
-        _exit_with_parent(int(sys.argv[2]))
-        _helper_share()
+    if len(sys.argv) == 4 and sys.argv[1] == "--share" and sys.argv[2] in SHARES:
+        _exit_with_parent(int(sys.argv[3]))
+        SHARES[sys.argv[2]]()
