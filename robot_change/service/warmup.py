@@ -3,11 +3,12 @@
 A cold cache (no warm-up of these sources marked it warm: robot_change.kernel_cache) takes
 most of a minute on one core, so it is compiled in two helper processes at once
 (``python -m robot_change.service.warmup --share registration|cloud PID``): the registration's,
-the transport's and two kernels only a check reaches in one; the cloud's, the mixture's, the
-free-space check's, the regions' and the depth decoders' in the other (21 and 25 s alone on
+the transport's, the depth decoders' and two kernels only a check reaches in one; the cloud's,
+the mixture's, the free-space check's and the regions' in the other (25-26 and 25-27 s alone on
 the 2-core test VM of 2026-12-07).  This process only waits, so its other threads keep the
 interpreter to themselves (the daemon's link: BOOTING heartbeats every 100 ms, none more than
-105 ms apart through a cold compile, where a compile in this process held them up to 318 ms).
+105 ms apart through a cold compile; a compile in this process held them up to 318 ms, its
+garbage collector's full passes holding the interpreter 175-243 ms each).
 Then the whole capture-and-check path runs here once, loading what the helpers left (it
 compiles none), and the cache is marked warm.  A kernel no helper left (another argument type,
 a helper that failed) is compiled here then: the helpers only save time, they are never needed.
@@ -67,8 +68,9 @@ def _tiny_scene() -> tuple[Intrinsics, tuple[np.ndarray, np.ndarray]]:
 def _registration_share() -> None:
     """A helper's share: the registration's kernels (the same argument types as a
     check: a read-only reference image, a writable current one), two kernels only a check
-    reaches (:func:`_check_only_kernels`) and the transport's (the greedy EMD on
-    mixture-sized problems; the exact :func:`emd` alone is on no capture or check path)."""
+    reaches (:func:`_check_only_kernels`), the depth decoders' and the transport's (the greedy
+    EMD on mixture-sized problems; the exact :func:`emd` alone is on no capture or check
+    path)."""
     from robot_change.change import registration
     from robot_change.change.transport import greedy_emd, ground_distance
 
@@ -79,6 +81,7 @@ def _registration_share() -> None:
         registration.register_depth(reference, after.copy(), cam)
     _table_top_kernels()
     _check_only_kernels()
+    _decoder_kernels()
     rng = np.random.default_rng(0)
     for k in (6, 9):
         means_a, means_b = rng.random((k, 3)), rng.random((k + 2, 3))
@@ -168,8 +171,8 @@ def _decoder_kernels() -> None:
 
 def _cloud_share() -> None:
     """The other helper's share: the cloud's, the mixture's (a reference built, the current's
-    mixture, the novelty fit over a background), the free-space check's, the regions' and the
-    depth decoders' kernels, without registration or EMD (the default configuration's
+    mixture, the novelty fit over a background), the free-space check's and the regions'
+    kernels, without registration or EMD (the default configuration's
     argument types: a configuration's values do not change them)."""
     from robot_change.change.greedy import posteriors
     from robot_change.mixture.model import fit_mixture, fit_over_background
@@ -192,7 +195,6 @@ def _cloud_share() -> None:
         del refit
     _free_space_kernels(cam, rooms)
     _region_kernels()
-    _decoder_kernels()
 
 
 #: The helpers' shares, by the name their command line gives.
