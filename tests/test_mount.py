@@ -156,6 +156,7 @@ def test_capture_records_the_mounting_and_detect_uses_it(tmp_path):
     summary = json.loads(result.stdout)
     assert summary["mount"]["xyz_m"] == [0.2, 0.0, 0.45]
     assert summary["mount"]["rpy_deg"] == [0.0, 10.0, 0.0]
+    assert summary["base_frame"] == "base_link"
     assert "warning" not in result.stderr
     # the box about 2.2 m ahead of a camera 45 cm up, tilted down: in base_link it is ahead
     [region] = summary["regions"]
@@ -166,6 +167,12 @@ def test_capture_records_the_mounting_and_detect_uses_it(tmp_path):
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["mount"]["xyz_m"] == [0.0, 0.0, 0.0]
     assert "warning" in result.stderr and "0.2,0,0.45,0,10,0" in result.stderr
+    # no mounting anywhere: the same figures are in the camera's body frame, and say so
+    result = _cli("detect", "--reference", str(scene / "reference.oni"), "--current",
+                  str(scene / "current.oni"))
+    assert result.returncode == 0, result.stderr
+    assert "offset from the station pose (camera_link)" in result.stdout
+    assert "up (camera_link)" in result.stdout and "base_link" not in result.stdout
     result = _cli("capture", "--source", str(scene / "reference.oni"), "--out",
                   str(tmp_path / "x.npz"), "--mount", "0,0,0")
     assert result.returncode == 2 and "six numbers" in result.stderr

@@ -167,6 +167,7 @@ def test_unit_limits_fit_the_soak_and_stop_a_leak():
     s = unit_settings()
     high, top = _size_mb(s["MemoryHigh"][0]), _size_mb(s["MemoryMax"][0])
     assert 2 * (214 + 102) <= high < top <= 1024  # the soak's RSS (daemon + reader), with room
+    assert high >= 660 + 40  # a cold compile: the daemon and its two helpers (PSS), with room
     assert 16 <= int(s["TasksMax"][0]) <= 128
     assert s["PrivateMounts"] == ["yes"]
     # the stall bound is half of WatchdogSec: captures and checks must fit in it

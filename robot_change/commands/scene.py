@@ -272,11 +272,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
     changes = detector[args.method](reference, current, intrinsics=told)
     seconds = time.perf_counter() - started
     summary = changes.summary(mount)
+    known = mount if args.mount or getattr(reference, "mount", None) is not None else None
     summary.update({
         "reference": args.reference, "current": args.current, "seconds": round(seconds, 3),
+        # offset_base and regions[].base: without a mounting the camera stands at the base
+        # origin looking ahead, so they are in its body frame (REP 103's camera_link)
+        "base_frame": "base_link" if known is not None else "camera_link",
     })
     if out is not None:
-        known = mount if args.mount or getattr(reference, "mount", None) is not None else None
         summary["files"], summary["points_frame"] = _write_point_files(
             {out / f"appeared.{args.format}": (changes.appeared_points, APPEARED_COLOR),
              out / f"disappeared.{args.format}": (changes.disappeared_points,
@@ -325,7 +328,7 @@ def _print_change_summary(summary: dict[str, Any]) -> None:
     print(f"{verdict}: {summary['reference']} -> {summary['current']} "
           f"(K {summary['k_reference']} / {summary['k_current']}, {summary['seconds']:.2f} s)")
     offset, reg = summary["offset_base"], summary["registration"]
-    print("  offset from the station pose (base_link): "
+    print(f"  offset from the station pose ({summary['base_frame']}): "
           + " ".join(f"{a} {v * 100:+.1f} cm"
                      for a, v in zip("xyz", offset["translation_m"], strict=False))
           + ", " + " ".join(f"{a} {v:+.2f} deg" for a, v in
@@ -340,7 +343,7 @@ def _print_change_summary(summary: dict[str, Any]) -> None:
         bx, by, bz = region["base"]["centroid_m"]
         print(f"  {region['kind']:11s} {number}: {region['n_points']:5d} points at "
               f"x {x:+.2f} y {y:+.2f} z {z:.2f} m (camera), {bx:.2f} m ahead, {by:+.2f} m "
-              f"left, {bz:+.2f} m up (base), extent "
+              f"left, {bz:+.2f} m up ({summary['base_frame']}), extent "
               + " x ".join(f"{v:.2f}" for v in region["extent_m"]) + " m")
     for path in summary.get("files", []):
         print(f"wrote {path}")
