@@ -29,7 +29,7 @@ from hw.serial_port import FdPort
 from robot_change import npzfile
 from robot_change.change.detect import detect_changes
 from robot_change.errors import InputError, RobotChangeError
-from robot_change.link.protocol import describe
+from robot_change.link.protocol import ModuleState, describe
 from robot_change.service.config import load_config
 from robot_change.service.core import CHECK_FORMAT
 from robot_change.service.params import change_params
@@ -85,16 +85,21 @@ def run_demo(out_dir: Path, fixtures: Path, *, out: TextIO | None = None,
         _say(out, f"  daemon  robot-change run --config {config}  (pid {daemon.pid})")
         _say(out, f"  camera  {reference.relative_to(fixtures.parent)} (looped at 30 fps)")
         _say(out, f"  line    {port_path} <-> the base")
-        up = sim.pump(5.0, until=lambda: sim.link.state.value == "up" or daemon.poll() is not None)
+        def booted() -> bool:  # the link is up and the heartbeats no longer say BOOTING
+            beats = [e.obj.state for e in sim.log if e.name == "HEARTBEAT"]
+            return (sim.link.state.value == "up" and bool(beats)
+                    and beats[-1] != ModuleState.BOOTING) or daemon.poll() is not None
+
+        up = sim.pump(5.0, until=booted)
         if not up:
             _say(out, "  (waiting for the daemon: a first run compiles the numba kernels, which "
-                      "takes a minute or two; later runs load them from the cache)")
-            up = sim.pump(start_timeout, until=lambda: sim.link.state.value == "up"
-                          or daemon.poll() is not None)
+                      "takes a minute or two, its heartbeats saying BOOTING; later runs load "
+                      "them from the cache)")
+            up = sim.pump(start_timeout, until=booted)
         if not up or daemon.poll() is not None:
             _say(out, f"FAIL: the daemon did not answer (see {out_dir / 'daemon.log'})")
             return 1
-        _say(out, f"  link up {time.monotonic() - t0:.1f} s after start "
+        _say(out, f"  module idle {time.monotonic() - t0:.1f} s after start "
                   "(kernels loaded, camera open)\n")
 
         def send(line: str) -> float:
