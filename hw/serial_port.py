@@ -13,6 +13,7 @@ robot_change.
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -23,7 +24,13 @@ import serial
 from hw.backoff import Backoff
 from hw.errors import PortError, UriError
 
+#: The longest a ReopeningPort's write waits for room in the port's buffer, seconds: a peer
+#: that takes no bytes (a base that stopped reading, flow control held) costs the writer this,
+#: not its life.
+WRITE_TIMEOUT_S = 0.2
 #: What open_port() accepts, for error messages.
+log = logging.getLogger(__name__)
+
 SCHEMES = ("a device path (/dev/ttyUSB0, /dev/serial/by-id/..., /dev/pts/N)", "loop://",
            "socket://HOST:PORT", "rfc2217://HOST:PORT")
 
@@ -79,16 +86,21 @@ class ReopeningPort:
     ``read`` returns ``b""`` and ``write`` drops the bytes while the port is away (the link's
     retries and heartbeats cover the gap); ``connected`` and ``last_error`` (a PortError with an
     actionable message) say how it is; ``on_change(connected, error)`` is called on each change.
-    ``wait=False`` makes the first open raise PortError instead of retrying.
+    ``wait=False`` makes the first open raise PortError instead of retrying.  A write the peer
+    takes no room for within ``write_timeout`` s drops what did not fit (``full_writes``
+    counts them) and the next write starts with a lone 0x00, which ends the cut frame
+    (docs/protocol.md 3): the port is there, its reader is not keeping up.
     """
 
     def __init__(self, url: str, baudrate: int = 115200, timeout: float = 0.02, *,
                  backoff: tuple[float, float] = (0.1, 2.0), wait: bool = True,
+                 write_timeout: float = WRITE_TIMEOUT_S,
                  opener: Callable[..., Any] = open_port,
                  on_change: Callable[[bool, PortError | None], None] | None = None,
                  clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep) -> None:
         self.url, self.baudrate, self.timeout = url, baudrate, timeout
+        self.write_timeout = write_timeout
         self.backoff = backoff
         self.on_change = on_change
         self._opener, self._clock, self._sleep = opener, clock, sleep
@@ -99,8 +111,10 @@ class ReopeningPort:
         self.opens = 0
         self.losses = 0
         self.dropped_bytes = 0
+        self.full_writes = 0
+        self._cut = False  # the last write was cut short: start the next with 0x00
         if not wait:
-            self._port = opener(url, baudrate, timeout)
+            self._port = self._open()
             self.opens = 1
         else:
             self._try_open()
@@ -115,7 +129,7 @@ class ReopeningPort:
         if now < self._retry_at:
             return False
         try:
-            self._port = self._opener(self.url, self.baudrate, self.timeout)
+            self._port = self._open()
         except PortError as exc:
             self.last_error = exc
             self._retry_at = now + self._wait.next()
@@ -126,6 +140,10 @@ class ReopeningPort:
         if self.on_change:
             self.on_change(True, None)
         return True
+
+    def _open(self) -> Any:
+        return self._opener(self.url, self.baudrate, self.timeout,
+                            write_timeout=self.write_timeout)
 
     def _lost(self, exc: BaseException) -> None:
         port, self._port = self._port, None
@@ -153,12 +171,26 @@ class ReopeningPort:
             return b""
 
     def write(self, data: bytes) -> int:
-        """Write ``data``; while the port is away the bytes are dropped (and counted)."""
+        """Write ``data``; while the port is away, or the peer takes no bytes for
+        ``write_timeout`` s, the bytes are dropped (and counted)."""
         if self._port is None and not self._try_open():
             self.dropped_bytes += len(data)
             return 0
+        if self._cut:
+            data = b"\x00" + data
         try:
-            return self._port.write(data) or 0
+            written = self._port.write(data) or 0
+            self._cut = False
+            return written
+        except serial.SerialTimeoutException:
+            self.full_writes += 1
+            self.dropped_bytes += len(data)
+            self._cut = True
+            if self.full_writes in (1, 10) or self.full_writes % 1000 == 0:
+                log.warning("serial port %s takes no bytes: a write waited %g s for room "
+                            "(%d such writes, %d bytes dropped): is the other end reading?",
+                            self.url, self.write_timeout, self.full_writes, self.dropped_bytes)
+            return 0
         except (serial.SerialException, OSError) as exc:
             self._lost(exc)
             self.dropped_bytes += len(data)

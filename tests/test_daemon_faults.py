@@ -7,6 +7,7 @@ the same files the same way, and a refused reload keeps the old configuration an
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -132,6 +133,24 @@ def test_a_cold_start_talks_while_it_compiles(tmp_path: Path) -> None:
         assert ready - booting[0] > 5.0, "the compile was over before the base came"
         assert max(np.diff(booting)) < 0.4, "the compile held up the heartbeats"
         assert d.first("CAPTURED") > ready
+
+
+def test_a_base_that_stops_reading_is_no_stall(tmp_path: Path) -> None:
+    """Nobody reads the line (a base that stopped reading: its buffer is full): the link
+    drops what does not fit instead of waiting for room, so the daemon neither stalls nor
+    exits, and a base that reads again is answered (it waited for ever, and exited 70)."""
+    with Daemon(tmp_path) as d:
+        d.wait_for("READY=1", 60)
+        os.set_blocking(d.slave, False)
+        try:
+            while True:  # the module -> base direction, filled up
+                os.write(d.slave, b"\x01" * 4096)
+        except BlockingIOError:
+            pass
+        time.sleep(3 * BOUND)
+        assert d.proc.poll() is None and "STALLED" not in d.log(), d.log()
+        assert "takes no bytes" in d.log()
+        assert d.base("status\nexpect STATUS state=IDLE 5") == 0
 
 
 # --------------------------------------------------------------------------- one validation

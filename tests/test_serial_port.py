@@ -141,6 +141,40 @@ def test_reopening_port_survives_the_device_vanishing(tmp_path: Path):
         port.close()
 
 
+def test_a_peer_that_takes_no_bytes_does_not_hold_the_writer():
+    """A base that stopped reading: the pty's buffer fills, each write gives up after its
+    timeout and drops what did not fit (counted; the port is not taken for lost), and once the
+    peer reads again the next write starts with a lone 0x00 that ends the cut frame."""
+    master, slave, path = pty_pair()
+    os.close(slave)
+    os.set_blocking(master, False)
+    port = ReopeningPort(path, timeout=0.01, write_timeout=0.05)
+    try:
+        for _ in range(4096):  # 4 MB: more than a pty holds
+            port.write(b"\x01" * 1024)
+            if port.full_writes:
+                break
+        assert port.full_writes == 1 and port.dropped_bytes >= 1024
+        assert port.write(b"\x01" * 1024) == 0 and port.full_writes == 2  # not waited for long
+        drained = b""
+        while chunk := read_for(lambda: _read_some(master), 1, seconds=0.2):
+            drained += chunk
+        assert drained and set(drained) <= {0, 1}  # a cut write may have begun with its 0x00
+        assert port.write(b"\x02\x00") == 3
+        assert read_for(lambda: _read_some(master), 3) == b"\x00\x02\x00"
+        assert port.connected and port.losses == 0
+    finally:
+        port.close()
+        os.close(master)
+
+
+def _read_some(fd: int) -> bytes:
+    try:
+        return os.read(fd, 65536)
+    except BlockingIOError:
+        return b""
+
+
 def test_reopening_port_waits_for_a_device_that_is_not_there_yet(tmp_path: Path):
     link = tmp_path / "ttyLATE"
     with pytest.raises(PortError, match="does not exist"):

@@ -49,6 +49,8 @@ def write_last_check(folder: Path | str | None, config: Config, station: str,
         report = check_report(station, changes, config.camera.mount())
         write_atomically(Path(folder) / f"{station}.last-check.json",
                          (json_text.dumps(report, indent=1) + "\n").encode())
+    except OSError as exc:  # a full disk, a folder gone: said in one line
+        log.warning("could not write the last check of %s to %s: %s", station, folder, exc)
     except Exception:  # noqa: BLE001 -- a picture for people is never worth a fault
         log.warning("could not write the last check of %s to %s", station, folder,
                     exc_info=True)
