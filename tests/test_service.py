@@ -381,6 +381,68 @@ def test_watch_pauses_only_when_the_change_persists_then_clears(tmp_path: Path,
         assert counts["received"] == counts["processed"] + counts["dropped"] + counts["queued"]
 
 
+def _second_object(scene_frames: dict[str, list[Path]], folder: Path) -> list[Path]:
+    """The current epoch's frames with a second object: a 70 x 70 pixel block standing 40 cm
+    nearer, in the half of the image away from the box that was added."""
+    from hw.imagefile import read_image, write_png
+
+    folder.mkdir(exist_ok=True)
+    reference = read_image(scene_frames["reference"][0]).astype(np.int32)
+    current = read_image(scene_frames["current"][0]).astype(np.int32)
+    box_columns = np.nonzero(np.abs(current - reference).max(axis=0) > 50)[0]
+    width = current.shape[1]
+    left = 40 if box_columns.mean() > width / 2 else width - 110
+    out = []
+    for i, path in enumerate(scene_frames["current"]):
+        depth = read_image(path).copy()
+        block = depth[200:270, left:left + 70]
+        depth[200:270, left:left + 70] = np.where(block > 0, block - 400, 0)
+        out.append(folder / f"{i:03d}.png")
+        write_png(out[-1], depth)
+    return out
+
+
+def test_a_watch_pauses_again_for_a_new_change_and_once_it_may(tmp_path: Path,
+                                                                 scene_frames) -> None:
+    """Once per change, but not once per watch: after RESUME the change reported stays
+    accepted, a second object beside it raises PAUSE and its own report; a change reported
+    while disarmed pauses when ARM comes and it is still there (it never did: the watch
+    paused once until a CLEAR)."""
+    frames = dict(scene_frames, second=_second_object(scene_frames, tmp_path / "second"))
+    with Rig(tmp_path, frames) as rig:
+        rig.run("""
+            capture office
+            expect CAPTURED 5
+            set check_interval_ms 100
+            expect PARAM_VALUE value=100
+            watch office
+            expect HEARTBEAT state=WATCHING 1
+        """)
+        rig.show("current")
+        rig.run("""
+            expect PAUSE cause=CHANGE_WATCH 5
+            expect REPORT regions=1 2
+            resume
+            expect HEARTBEAT state=WATCHING paused=0 2
+            expect-none PAUSE 1.5
+        """)
+        rig.show("second")
+        rig.run("""
+            expect PAUSE cause=CHANGE_WATCH 5
+            expect REPORT 2
+            expect HEARTBEAT state=WATCHING paused=1 1
+            stop
+            resume
+            expect HEARTBEAT state=IDLE paused=0 2
+            disarm
+            watch office
+            expect REPORT 5
+            expect-none PAUSE 1.0
+            arm
+            expect PAUSE cause=CHANGE_WATCH 5
+        """)
+
+
 def test_camera_loss_faults_pauses_a_watch_and_recovers(rig: Rig) -> None:
     rig.run("""
         capture office

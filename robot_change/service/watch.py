@@ -4,11 +4,14 @@ WATCH checks the newest frame every ``check_interval_ms`` and at once when a che
 depth gate (:func:`depth_gate`) sees the scene differ from what the last check saw, and raises
 PAUSE when a change is seen in ``watch_m`` of the last ``watch_n`` checks (once per change:
 CLEAR when ``watch_m`` of the last ``watch_n`` checks saw none, after which a new change pauses
-again).  A watch checks only while the base's heartbeat says PARKED or PAUSED.  A check that
-sees nothing to compare (no depth: covered lens, something against the camera) counts as a
-change (PAUSE cause CAMERA_LOST), and so does a check that finds the robot no longer at its
-station (pushed, or crept: FAULT and PAUSE NOT_AT_STATION), since it cannot watch from there.
-Every check registers the view again, starting from the last check's estimate, so a robot
+again; a new change beside the one reported -- regions away from its regions, in
+``watch_m`` of the last ``watch_n`` checks -- is reported and pauses too; a change reported
+while it could not pause -- disarmed, the latch set -- pauses once it may).  A watch checks
+only while the base's heartbeat says PARKED or PAUSED.  A check that sees nothing to compare
+(no depth: covered lens, something against the camera) counts as a change (PAUSE cause
+CAMERA_LOST), and so does a check that finds the robot no longer at its station (pushed, or
+crept: FAULT and PAUSE NOT_AT_STATION), since it cannot watch from there.  Every check
+registers the view again, starting from the last check's estimate, so a robot
 that creeps a few centimetres is followed.
 
 A :class:`StationWatch` is an object the service (robot_change.service.core) makes for each
@@ -45,9 +48,14 @@ from robot_change.link.protocol import FaultCode, PauseCause
 from robot_change.noise.profile import NoiseProfile
 from robot_change.service.liveness import Progress
 
-__all__ = ["GateOptions", "StationWatch", "WatchHost", "depth_gate"]
+__all__ = ["EPISODE_MARGIN_M", "GateOptions", "StationWatch", "WatchHost", "depth_gate"]
 
 log = logging.getLogger(__name__)
+
+#: A region of a later check is part of the change already reported when its box comes within
+#: this many metres of one of that change's regions (the same object seen again, its box a
+#: little different each time); one farther off is a new change, and pauses again.
+EPISODE_MARGIN_M = 0.1
 
 
 def depth_gate(reference: np.ndarray, depth: np.ndarray, noise: NoiseProfile, sigmas: float,
@@ -152,6 +160,9 @@ class StationWatch:
         self._next_check = 0.0
         self._gate_baseline: int | None = None
         self._episode = False  # a change is being reported (PAUSE sent or report made)
+        self._episode_paused = False  # ... and it raised PAUSE (else it does once it may)
+        self._episode_boxes: list[tuple[np.ndarray, np.ndarray]] = []  # its regions, widened
+        self._new_window: collections.deque[bool] = collections.deque(maxlen=params["watch_n"])
         self._blind_reported = False
         self._error_reported = False
         self._latest: DepthFrame | None = None
@@ -166,10 +177,24 @@ class StationWatch:
         self._change = change
         if self.window.maxlen != params["watch_n"]:
             self.window = collections.deque(self.window, maxlen=params["watch_n"])
+            self._new_window = collections.deque(self._new_window, maxlen=params["watch_n"])
+
+    @staticmethod
+    def _widened(changes: ChangeSet) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The regions' boxes (camera frame, m), widened by EPISODE_MARGIN_M each way."""
+        return [(r.bbox_min - EPISODE_MARGIN_M, r.bbox_max + EPISODE_MARGIN_M)
+                for r in changes.regions]
+
+    def _outside_episode(self, changes: ChangeSet) -> list:
+        """The regions of ``changes`` whose box meets none of the reported change's boxes."""
+        return [r for r in changes.regions
+                if not any(np.all(r.bbox_max >= lo) and np.all(r.bbox_min <= hi)
+                           for lo, hi in self._episode_boxes)]
 
     def camera_lost(self) -> None:
         """The camera was lost: what the window saw and the gate's baseline no longer hold."""
         self.window.clear()
+        self._new_window.clear()
         self._gate_baseline = None
 
     def close(self) -> None:
@@ -299,6 +324,8 @@ class StationWatch:
         has_regions = changes is not None and bool(changes.regions)
         changed = has_regions or blind
         self.window.append(changed)
+        new = has_regions and self._episode and bool(self._outside_episode(changes))
+        self._new_window.append(new)
         m, n = self._params["watch_m"], self._params["watch_n"]
         seen = sum(self.window)
         log.debug("watch %s frame %d: %s (%d of the last %d)", self.station, job.frame_index,
@@ -307,21 +334,33 @@ class StationWatch:
                  "changed": changed, "changed_in_window": seen, "action": "",
                  "check_ms": (time.monotonic() - job.submitted) * 1e3}
         self._history.append(entry)
-        if not self._episode and seen >= m:
+        cause = (PauseCause.NOT_AT_STATION if changes is not None
+                 and changes.outcome == "not_at_station" else PauseCause.CAMERA_LOST
+                 if blind and not has_regions else PauseCause.CHANGE_WATCH)
+        if (not self._episode and seen >= m) or sum(self._new_window) >= m:
+            # a change, or a new one beside the change reported (regions outside its boxes)
             entry["action"] = "report"
-            self._episode = True
+            self._episode, self._episode_paused = True, False
+            self._new_window.clear()
             log.warning("WATCH %s: change in %d of the last %d checks (frame %d)", self.station,
                         seen, len(self.window), job.frame_index)
             if host.may_pause():
                 entry["action"] = "pause"
-                off = changes is not None and changes.outcome == "not_at_station"
-                host.send_pause(PauseCause.NOT_AT_STATION if off else PauseCause.CAMERA_LOST
-                                if blind and not has_regions else PauseCause.CHANGE_WATCH)
+                self._episode_paused = True
+                host.send_pause(cause)
             if changes is not None and has_regions:
+                self._episode_boxes += self._widened(changes)
                 host.send_report(self.station, changes)
+        elif self._episode and changed and not self._episode_paused and host.may_pause():
+            # reported while it could not pause (disarmed, pause_on_change 0, the latch of an
+            # earlier PAUSE set): still there once it may (ARM, RESUME), so it pauses now
+            entry["action"] = "pause"
+            self._episode_paused = True
+            host.send_pause(cause)
         elif (self._episode and len(self.window) - seen >= min(m, n) and not changed
               and changes is not None):  # (not changed: the check gave a ChangeSet)
             self._episode = False
+            self._episode_boxes = []
             entry["action"] = "clear"
             log.info("WATCH %s: the change is gone", self.station)
             host.send_no_change(self.station, changes)
