@@ -152,9 +152,10 @@ class ReopeningPort:
         except Exception:  # noqa: BLE001 - the device is gone; closing may fail any way it likes
             pass
         self.losses += 1
+        what = "the network and the bridge" if "://" in self.url else "the USB cable and adapter"
         self.last_error = PortError(
             f"serial port {self.url} vanished ({exc}); reopening every {self.backoff[1]:g} s at "
-            "most: check the USB cable and adapter")
+            f"most: check {what}")
         self._retry_at = self._clock() + self._wait.current
         if self.on_change:
             self.on_change(False, self.last_error)

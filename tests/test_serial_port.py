@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -173,6 +174,27 @@ def _read_some(fd: int) -> bytes:
         return os.read(fd, 65536)
     except BlockingIOError:
         return b""
+
+
+def test_a_network_port_that_drops_names_the_network():
+    """socket://: a peer that closes is a loss like an unplugged adapter, told as a network's
+    (the operator's look: it said "check the USB cable")."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = ReopeningPort(f"socket://127.0.0.1:{server.getsockname()[1]}", timeout=0.02,
+                         backoff=(0.05, 0.1))
+    try:
+        peer, _ = server.accept()
+        peer.close()
+        deadline = time.monotonic() + 2.0
+        while port.connected and time.monotonic() < deadline:
+            port.read(16)
+        assert not port.connected and port.losses == 1
+        assert "check the network and the bridge" in str(port.last_error)
+    finally:
+        port.close()
+        server.close()
 
 
 def test_reopening_port_waits_for_a_device_that_is_not_there_yet(tmp_path: Path):
