@@ -24,13 +24,13 @@ import serial
 from hw.backoff import Backoff
 from hw.errors import PortError, UriError
 
+log = logging.getLogger(__name__)
+
 #: The longest a ReopeningPort's write waits for room in the port's buffer, seconds: a peer
 #: that takes no bytes (a base that stopped reading, flow control held) costs the writer this,
 #: not its life.
 WRITE_TIMEOUT_S = 0.2
 #: What open_port() accepts, for error messages.
-log = logging.getLogger(__name__)
-
 SCHEMES = ("a device path (/dev/ttyUSB0, /dev/serial/by-id/..., /dev/pts/N)", "loop://",
            "socket://HOST:PORT", "rfc2217://HOST:PORT")
 
