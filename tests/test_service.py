@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from daemon_rig import WATCH_SETUP
 
 from hw.depth import open_depth
 from hw.serial_port import FdPort, open_port
@@ -410,14 +411,7 @@ def test_a_watch_pauses_again_for_a_new_change_and_once_it_may(tmp_path: Path,
     paused once until a CLEAR)."""
     frames = dict(scene_frames, second=_second_object(scene_frames, tmp_path / "second"))
     with Rig(tmp_path, frames) as rig:
-        rig.run("""
-            capture office
-            expect CAPTURED 5
-            set check_interval_ms 100
-            expect PARAM_VALUE value=100
-            watch office
-            expect HEARTBEAT state=WATCHING 1
-        """)
+        rig.run(WATCH_SETUP)
         rig.show("current")
         rig.run("""
             expect PAUSE cause=CHANGE_WATCH 5
