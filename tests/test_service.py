@@ -437,6 +437,24 @@ def test_a_watch_pauses_again_for_a_new_change_and_once_it_may(tmp_path: Path,
         """)
 
 
+def test_a_refused_command_leaves_a_watch_running(rig: Rig) -> None:
+    """A WATCH or CHECK of a station without a reference is refused (FAULT) and changes
+    nothing: the watch in progress goes on and still pauses for a change (it ended in
+    silence, the base believing its station watched)."""
+    rig.run(WATCH_SETUP)
+    rig.run("""
+        watch kitchen
+        expect FAULT code=REFERENCE_MISSING 5
+        check kitchen
+        expect FAULT code=REFERENCE_MISSING 5
+        expect-none HEARTBEAT state=IDLE 0.5
+        expect HEARTBEAT state=WATCHING 1
+    """)
+    assert rig.service.station == "office"
+    rig.show("current")
+    rig.run("expect PAUSE cause=CHANGE_WATCH 5")
+
+
 def test_camera_loss_faults_pauses_a_watch_and_recovers(rig: Rig) -> None:
     rig.run("""
         capture office

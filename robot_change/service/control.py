@@ -82,8 +82,7 @@ class Control:
                 self._end_watch()
         self._refresh_heartbeat()
 
-    def _start_watch(self, station: str) -> None:
-        reference = self.store.load(station)
+    def _start_watch(self, station: str, reference: SceneModel) -> None:
         o = self.options
         with self._lock:
             self._watch = StationWatch(station, reference, self, self.params,
@@ -129,19 +128,22 @@ class Control:
 
     def _run_command(self, m: Any) -> None:
         self._cancel.clear()
-        self._end_watch()
-        with self._lock:
-            self.station = m.station
         # a capture or check reads frames and fits: it has more time than a thread turn
         work = self.progress.begin("control", f"{m.TYPE.name} {m.station}",
                                    self.progress.bound_s + self.options.command_allowance_s)
         try:
+            # the station's reference first: a CHECK or WATCH refused for it (none, damaged)
+            # leaves a watch in progress running; one that runs ends it
+            reference = self.store.load(m.station) if isinstance(m, (Check, Watch)) else None
+            self._end_watch()
+            with self._lock:
+                self.station = m.station
             if isinstance(m, CaptureReference):
                 self._capture(m.station)
             elif isinstance(m, Check):
-                self._check(m.station)
+                self._check(m.station, reference)
             elif isinstance(m, Watch):
-                self._start_watch(m.station)
+                self._start_watch(m.station, reference)
         except ReferenceMissing as exc:
             if exc.quarantined is not None:
                 log.error("station %s: corrupt reference quarantined at %s", m.station,
@@ -226,9 +228,8 @@ class Control:
         self._send(Captured(station, smallest_mm, model.noise.name) if self.link.version >= 4
                    else Captured(station))
 
-    def _check(self, station: str) -> None:
+    def _check(self, station: str, reference: SceneModel) -> None:
         self._set_activity(ModuleState.CHECKING)
-        reference = self.store.load(station)
         mount = self.config.camera.mount()
         if reference.mount is not None and reference.mount != mount:
             log.warning("station %s: its reference was captured with the camera mounted at "
