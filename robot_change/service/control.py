@@ -132,8 +132,9 @@ class Control:
         work = self.progress.begin("control", f"{m.TYPE.name} {m.station}",
                                    self.progress.bound_s + self.options.command_allowance_s)
         try:
-            with self._lock:  # STATUS's station: the command's, or the one still watched
-                self.station = m.station if self._watch is None else self._watch.station
+            if self._watch is None:  # STATUS's station; during a watch, the watched one
+                with self._lock:
+                    self.station = m.station
             # the station's reference first: a CHECK or WATCH refused for it (none, damaged)
             # leaves a watch in progress running; one that runs ends it
             reference = self.store.load(m.station) if isinstance(m, (Check, Watch)) else None
