@@ -3,7 +3,8 @@
     python tests/hang_daemon.py WHERE ARM_FILE run --config FILE
 
 WHERE: ``detector`` / ``check`` (robot_change.change.detect.detect_changes), ``capture``
-(robot_change.change.scene.build_scene) or ``camera`` (the image-folder source's read).  Once
+(robot_change.change.scene.build_scene), ``camera`` (the image-folder source's read) or
+``warmup`` (the daemon's kernel warm-up, robot_change.service.warmup.warm_up).  Once
 ``ARM_FILE`` exists, the next call blocks for good (as a kernel stuck in native code would)
 after creating ``ARM_FILE.entered``.  Everything else is ``robot_change.cli.main``.  Used by
 tests/test_daemon_faults.py and bench/bench_stall.py; never by the product.
@@ -23,11 +24,13 @@ def _patch(where: str, arm: Path) -> None:
     import hw.images
     import robot_change.change.detect
     import robot_change.change.scene
+    import robot_change.service.daemon
 
     owner, name = {"detector": (robot_change.change.detect, "detect_changes"),
                    "check": (robot_change.change.detect, "detect_changes"),
                    "capture": (robot_change.change.scene, "build_scene"),
-                   "camera": (hw.images.ImageFolderSource, "read")}[where]
+                   "camera": (hw.images.ImageFolderSource, "read"),
+                   "warmup": (robot_change.service.daemon, "warm_up")}[where]
     real = getattr(owner, name)
     forever = threading.Event()
 

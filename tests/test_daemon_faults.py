@@ -135,6 +135,26 @@ def test_a_cold_start_talks_while_it_compiles(tmp_path: Path) -> None:
         assert d.first("CAPTURED") > ready
 
 
+def test_a_warm_up_past_its_deadline_is_a_stall_told_to_the_base(tmp_path: Path) -> None:
+    """A warm-up that hangs (a compile stuck, or a computer far slower than planned) is no
+    silent BOOTING until systemd's start timeout: at ``[service] warmup_timeout_s`` the base
+    gets FAULT STALLED and heartbeats of state FAULT, and the daemon exits 70, never READY."""
+    (tmp_path / "hang.arm").touch()  # armed from the start: the first warm-up call hangs
+    with Daemon(tmp_path, hang="warmup", config="[service]\nwarmup_timeout_s = 10\n") as d:
+        assert d.base("expect HEARTBEAT state=BOOTING 5\n"
+                      "expect FAULT code=STALLED 15\n"
+                      "expect HEARTBEAT state=FAULT fault=1 2") == 0, \
+            d.transcript.getvalue()[-3000:]
+        code = d.proc.wait(10)
+        stalled = d.first("FAULT")
+        assert code == EXIT_STALLED, d.log()
+        assert 10.0 <= stalled - d.started < 14.0, stalled - d.started
+        assert "READY=1" not in d.notes.lines and d.notes.lines, d.notes.lines
+        assert any(line.startswith("EXTEND_TIMEOUT_USEC=70") for line in d.notes.lines)
+    text = d.log()
+    assert "warmup_timeout_s" in text and "Traceback" not in text, text
+
+
 def test_a_base_that_stops_reading_is_no_stall(tmp_path: Path) -> None:
     """Nobody reads the line (a base that stopped reading: its buffer is full): the link
     drops what does not fit instead of waiting for room, so the daemon neither stalls nor

@@ -343,6 +343,10 @@ class ServiceConfig(_Section):
                           "send WATCHDOG=1 when systemd's WatchdogSec= asks for it (false only "
                           "for debugging: systemd then kills the service after WatchdogSec)")
     log_level: str = _key("info", _choice(LOG_LEVELS), "journal verbosity")
+    warmup_timeout_s: float = _key(240.0, _float(10.0, 3600.0, " seconds"),
+                                   "longest wait for the numba kernels at start (a cold cache "
+                                   "compiles them: ~30 s on 2 x86 cores); past it the start is a "
+                                   "stall: FAULT STALLED to the base, exit 70")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -347,10 +347,11 @@ class Service(Dispatch, Sending, Control):
                 dead = [t.name for t in self._threads if not t.is_alive()]
                 why = f"thread {dead[0]} ended" if dead else ""
             if why:
-                self._on_stall(why)
+                self.report_stall(why)
 
-    def _on_stall(self, why: str) -> None:
-        """Tell the base first: FAULT STALLED, PAUSE when armed and watching (a stalled watcher
+    def report_stall(self, why: str) -> None:
+        """A part stalled (the monitor thread; the daemon, for a warm-up past its deadline).
+        Tell the base first: FAULT STALLED, PAUSE when armed and watching (a stalled watcher
         must stop the robot), the heartbeat's state FAULT.  The lock is not waited for long: a
         hung part may hold it."""
         self.stalled = why
@@ -447,9 +448,11 @@ class Service(Dispatch, Sending, Control):
     def reported_state(self) -> ModuleState:
         """The state HEARTBEAT and STATUS show."""
         with self._lock:
+            if self.stalled:
+                return ModuleState.FAULT
             if self.booting:
                 return ModuleState.BOOTING
-            if self.stalled or (not self.camera_ok and self._camera_reported is False):
+            if not self.camera_ok and self._camera_reported is False:
                 return ModuleState.FAULT
             if self.activity == ModuleState.IDLE and self.latched:
                 return ModuleState.PAUSED

@@ -94,7 +94,7 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
         service.open_link()  # HELLO and BOOTING heartbeats while the kernels compile
         try:
             if warm and not _warm_up(service, stop, wake):
-                return _stop(service)
+                return _stalled(service, service.stalled) if service.stalled else _stop(service)
         except BaseException:
             service.close()
             raise
@@ -130,8 +130,10 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
 
 
 def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> bool:
-    """Compile or load the kernels in a thread while the main thread waits for it or for a
-    signal; False when told to stop first (the thread is abandoned: it only compiles)."""
+    """Compile or load the kernels in a thread while the main thread waits for it, for a
+    signal or for ``[service] warmup_timeout_s``; False when told to stop first, or when the
+    deadline passed (then a stall, told to the base: :meth:`Service.report_stall`; a hung
+    compile is as silent as any hang).  The thread is abandoned then: it only compiles."""
     done = threading.Event()
     failed: list[BaseException] = []
 
@@ -144,12 +146,18 @@ def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> 
             done.set()
             wake.set()
 
-    systemd.extend_timeout(300)
+    limit = service.config.service.warmup_timeout_s
+    systemd.extend_timeout(limit + 60.0)  # time to tell the base before systemd gives up
     systemd.status("compiling the numba kernels (or loading them from the cache)")
     thread = threading.Thread(target=run, name="rc-warmup", daemon=True)
     thread.start()
+    end = time.monotonic() + limit
     while not done.is_set() and not stop.is_set():
-        wake.wait(1.0)
+        if time.monotonic() >= end:
+            service.report_stall(f"kernels not ready {limit:.0f} s after start (a hung or "
+                                 f"slow warm-up: [service] warmup_timeout_s)")
+            break
+        wake.wait(min(1.0, max(0.0, end - time.monotonic())))
         wake.clear()
     if failed:
         raise failed[0]
