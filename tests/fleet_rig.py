@@ -75,11 +75,12 @@ class Certificates:
 class Broker:
     """``mosquitto -c <generated file>`` on 127.0.0.1 (``port``: a free one by default), with
     persistence in ``folder`` (a persistent session's messages outlive a restart), ``tls``
-    certificates and ``accounts`` (user -> password; anonymous clients are then refused)."""
+    certificates, ``accounts`` (user -> password; anonymous clients are then refused) and an
+    ``acl`` (Mosquitto's acl_file lines; :meth:`reload` reads it again)."""
 
     def __init__(self, folder: Path, *, port: int | None = None,
-                 tls: Certificates | None = None, accounts: dict[str, str] | None = None
-                 ) -> None:
+                 tls: Certificates | None = None, accounts: dict[str, str] | None = None,
+                 acl: str | None = None) -> None:
         self.binary = need_mosquitto()
         self.folder = folder
         folder.mkdir(parents=True, exist_ok=True)
@@ -103,6 +104,9 @@ class Broker:
             lines += ["allow_anonymous false", f"password_file {passwords}"]
         else:
             lines.append("allow_anonymous true")
+        if acl is not None:
+            (folder / "acl").write_text(acl)
+            lines.append(f"acl_file {folder / 'acl'}")
         self.config = folder / "mosquitto.conf"
         self.config.write_text("\n".join(lines) + "\n")
         self.proc: subprocess.Popen | None = None
@@ -126,6 +130,16 @@ class Broker:
             except OSError:
                 time.sleep(0.05)
         raise AssertionError(f"mosquitto did not listen on {self.port}:\n{self.log()}")
+
+    def reload(self, acl: str) -> None:
+        """A new ACL, read by the running broker (SIGHUP), logged as read."""
+        (self.folder / "acl").write_text(acl)
+        assert self.proc is not None
+        self.proc.send_signal(signal.SIGHUP)
+        end = time.monotonic() + 10
+        while "Reloading config" not in self.log():
+            assert time.monotonic() < end, self.log()
+            time.sleep(0.05)
 
     def stop(self) -> None:
         """SIGTERM: a clean stop (the persistence file is written)."""

@@ -8,6 +8,7 @@ test CA, wrong credentials.  Skipped with a reason where Debian's mosquitto is n
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -32,13 +33,16 @@ REPO = Path(__file__).resolve().parents[1]
 # the spool and the messages (no broker)
 
 
-def test_spool_keeps_order_drops_the_oldest_when_full_and_survives_a_restart(tmp_path):
+def test_spool_keeps_order_drops_the_oldest_when_full_and_survives_a_restart(tmp_path,
+                                                                              caplog):
     spool = Spool(tmp_path / "spool", max_bytes=1000)
     seqs = [spool.append(f"t/{i}", b"x" * 190) for i in range(5)]  # ~194 bytes each
     assert seqs == [1, 2, 3, 4, 5] and spool.counts()["dropped"] == 0
     assert spool.read(1) == ("t/0", b"x" * 190)
-    spool.append("t/5", b"x" * 190)  # over 1000 bytes: the oldest goes
+    with caplog.at_level(logging.WARNING, "robot_change.fleet.spool"):
+        spool.append("t/5", b"x" * 190)  # over 1000 bytes: the oldest goes
     assert spool.pending() == [2, 3, 4, 5, 6] and spool.counts()["dropped"] == 1
+    assert "the oldest 1 message(s) dropped, 1 in all" in caplog.text  # told, not only counted
     spool.remove(2)
     assert spool.pending(after=3) == [4, 5, 6]
     assert spool.append("big", b"y" * 2000) == -1  # larger than the spool: dropped, counted
@@ -212,6 +216,45 @@ def test_an_untrusted_broker_certificate_and_wrong_credentials_are_clear_errors(
                              password_file=str(tmp_path / "absent"))
     with pytest.raises(FleetError, match="cannot read the password file"):
         missing.password()
+
+
+def test_a_message_the_acl_refuses_stays_spooled_and_is_said_until_the_acl_allows_it(tmp_path):
+    """MQTT 3.1.1 brokers acknowledge a publish their ACL refuses as if they took it (and the
+    report was lost in silence); over MQTT 5 the PUBACK says so: the message stays in the
+    spool, the fleet is down with the topic named, and it goes once the ACL allows it."""
+    only_checks = ("user r1\ntopic write robot-change/r1/status\n"
+                   "topic write robot-change/r1/checks/#\ntopic read robot-change/r1/command\n")
+    everything = "user r1\ntopic readwrite robot-change/r1/#\n"
+    with Broker(tmp_path / "broker", accounts={"r1": "pw", "ops": "pw"},
+                acl=only_checks + "user ops\ntopic read robot-change/#\n") as broker:
+        seen = Collector(broker, username="ops", password="pw")
+        (tmp_path / "pw").write_text("pw\n")
+        settings = BrokerSettings(broker.url, username="r1", password_file=str(tmp_path / "pw"))
+        spool = Spool(tmp_path / "s", 1 << 20)
+        publisher = Publisher(settings, "r1", spool, backoff=(0.1, 1.0))
+        publisher.start()
+        try:
+            publisher.report("office", _report("office", 1), changed=True)
+            deadline = time.monotonic() + 10
+            while "refused the message" not in publisher.counts()["last_error"] and \
+                    time.monotonic() < deadline:
+                time.sleep(0.05)
+            error = publisher.counts()["last_error"]
+            assert "robot-change/r1/changes/office" in error and "ACL" in error, error
+            assert len(spool) == 1 and spool.read(spool.pending()[0])[0].endswith(
+                "/changes/office")
+            seen.wait(lambda c: len(c.of("/checks/")) == 1, 10, "the check's message")
+            assert not seen.of("/changes/")
+            broker.reload(everything + "user ops\ntopic read robot-change/#\n")
+            seen.wait(lambda c: len(c.of("/changes/")) == 1, 15, "the change, once allowed")
+            deadline = time.monotonic() + 5
+            while len(spool) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert len(spool) == 0 and publisher.counts()["connection"] == "up"
+            assert len(seen.of("/checks/")) == 1  # sent once
+        finally:
+            publisher.close(1.0)
+            seen.close()
 
 
 # ---------------------------------------------------------------------------------------------

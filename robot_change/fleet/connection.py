@@ -5,9 +5,11 @@
     client = new_client(settings, "robot-change-robot-7")
     open_connection(client, settings)       # FleetError naming the broker and what to check
 
-Every client speaks MQTT 3.1.1 (what Mosquitto and the dashboards around it all speak) with
-paho-mqtt's 2.x callback API.  The password is read from its file at each connection (a new
-password needs no restart) and never logged or printed.
+The robot's publisher speaks MQTT 5 (Mosquitto >= 1.6): its PUBACKs say when the broker refused
+a message (an ACL that does not allow the topic), where MQTT 3.1.1's acknowledge it as taken
+and drop it.  The fleet's readers speak MQTT 3.1.1.  Both with paho-mqtt's 2.x callback API.
+The password is read from its file at each connection (a new password needs no restart) and
+never logged or printed.
 """
 
 from __future__ import annotations
@@ -111,12 +113,16 @@ def _tls_context(settings: BrokerSettings) -> ssl.SSLContext:
 
 
 def new_client(settings: BrokerSettings, client_id: str, *, clean_session: bool = True,
-               will: tuple[str, bytes, int, bool] | None = None) -> mqtt.Client:
+               will: tuple[str, bytes, int, bool] | None = None, v5: bool = False
+               ) -> mqtt.Client:
     """A paho client for ``settings`` (TLS, user name and password set; not connected yet).
     ``will``: (topic, payload, qos, retain) the broker publishes when the client vanishes.
-    Raises :class:`FleetError` for unreadable TLS or password files."""
-    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
-                         clean_session=clean_session, protocol=mqtt.MQTTv311)
+    ``v5``: MQTT 5, a clean start every connection (``clean_session`` is 3.1.1's); else
+    MQTT 3.1.1.  Raises :class:`FleetError` for unreadable TLS or password files."""
+    client = (mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
+                          protocol=mqtt.MQTTv5) if v5 else
+              mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
+                          clean_session=clean_session, protocol=mqtt.MQTTv311))
     client.connect_timeout = settings.connect_timeout_s
     if settings.tls:
         client.tls_set_context(_tls_context(settings))
@@ -165,6 +171,8 @@ def refusal(settings: BrokerSettings, reason: Any) -> str:
                 "broker has an account and an ACL for this robot")
     elif "identifier" in lowered:
         hint = "the broker refused the client id (robot-change-<robot_id>)"
+    elif "protocol" in lowered:
+        hint = "the robot speaks MQTT 5: the broker must too (Mosquitto 1.6 or later)"
     else:
         hint = "see the broker's log"
     return f"{settings.url}: the broker refused the connection: {text}; {hint}"

@@ -11,9 +11,11 @@ Threads and queues (nothing grows without bound, nothing here is waited for by t
               counted: queue_dropped); never blocks, never touches the disk or the network
     writer    queue -> envelope (robot, boot id, report id, time) -> spool (atomic files)
     network   spool -> broker, oldest first, QoS 1, up to ``inflight`` unacknowledged; a
-              message leaves the spool on the broker's PUBACK; the retained status (every
-              ``status_every_s`` when it changed, and on request) with its Last Will;
-              read-only requests on the command topic; reconnects with hw.backoff
+              message leaves the spool on the broker's PUBACK (MQTT 5: one that says
+              refused keeps it, and the connection is dropped as refused, retried at the
+              longest backoff); the retained status (every ``status_every_s`` when it
+              changed, and on request) with its Last Will; read-only requests on the
+              command topic; reconnects with hw.backoff
 
 A report is written to the spool before it is sent, so a broker that is down, a network that
 drops, or a daemon that is killed loses nothing the spool can hold: what was not acknowledged
@@ -98,7 +100,9 @@ class Publisher:
         self._client: mqtt.Client | None = None
         self._up = False
         self._refused = ""
+        self._held = False  # the broker refused a message: reconnect at the longest backoff
         self._inflight: dict[int, int] = {}  # mid -> spool seq
+        self._topics: dict[int, str] = {}  # mid -> topic, of the messages not acknowledged
         self._sent_upto = 0
         self._requests: list[tuple[Any, Any, str]] = []  # (id, request, error)
         self._status_sent: dict | None = None
@@ -224,7 +228,7 @@ class Publisher:
                     continue
             if not self._turn():
                 self._drop_connection()
-                self._stop.wait(self._backoff.next())
+                self._stop.wait(self._backoff.cap if self._held else self._backoff.next())
         self._say_goodbye()
 
     def _set_state(self, state: str, error: str | None = None) -> None:
@@ -236,11 +240,12 @@ class Publisher:
     def _connect(self) -> bool:
         will = (self.topics.status, messages.encode(self._offline("connection lost")), 1, True)
         self._set_state("connecting")
-        self._up, self._refused = False, ""
+        self._up, self._refused, self._held = False, "", False
         self._inflight.clear()
+        self._topics.clear()
         self._sent_upto = 0
         try:
-            client = new_client(self.settings, f"robot-change-{self.robot}", will=will)
+            client = new_client(self.settings, f"robot-change-{self.robot}", will=will, v5=True)
             client.on_connect = self._on_connect
             client.on_publish = self._on_publish
             client.on_message = self._on_message
@@ -318,7 +323,7 @@ class Publisher:
                 reply["error"] = error
             else:
                 reply["status"] = self._status_message()
-            if client.publish(self.topics.reply, messages.encode(reply), 1).rc:
+            if self._publish(client, self.topics.reply, messages.encode(reply)).rc:
                 return False
             if not error:
                 self._status_at = 0.0  # the retained status too
@@ -329,7 +334,8 @@ class Publisher:
             message = self._status_message()
             body = {k: v for k, v in message.items() if k not in ("time", "time_unix")}
             if body != self._status_sent:
-                if client.publish(self.topics.status, messages.encode(message), 1, True).rc:
+                if self._publish(client, self.topics.status, messages.encode(message),
+                                 retain=True).rc:
                     return False
                 self._status_sent = body
         room = self._inflight_max - len(self._inflight)
@@ -339,11 +345,19 @@ class Publisher:
                 message = self.spool.read(seq)
                 if message is None:
                     continue
-                info = client.publish(message[0], message[1], 1)
+                info = self._publish(client, *message)
                 if info.rc:
                     return False
                 self._inflight[info.mid] = seq
         return True
+
+    def _publish(self, client: mqtt.Client, topic: str, payload: bytes, *,
+                 retain: bool = False) -> mqtt.MQTTMessageInfo:
+        """QoS 1 publish, its topic kept until the broker acknowledges (or refuses) it."""
+        info = client.publish(topic, payload, 1, retain)
+        if not info.rc:
+            self._topics[info.mid] = topic
+        return info
 
     def _status_message(self) -> dict[str, Any]:
         try:
@@ -368,7 +382,8 @@ class Publisher:
             return
         if self._up:
             message = {**self._offline("stopped"), "time": messages.utc_text(time.time())}
-            info = client.publish(self.topics.status, messages.encode(message), 1, True)
+            info = self._publish(client, self.topics.status, messages.encode(message),
+                                 retain=True)
             self._offline_mid = info.mid
             end = time.monotonic() + 0.3
             while (not info.rc and not self._offline_acked.is_set()
@@ -412,8 +427,19 @@ class Publisher:
         log.info("fleet: connected to %s as %s; %d report message(s) in the spool",
                  self.settings.url, self.robot, len(self.spool))
 
-    def _on_publish(self, _client: mqtt.Client, _userdata: Any, mid: int, _reason: Any,
+    def _on_publish(self, _client: mqtt.Client, _userdata: Any, mid: int, reason: Any,
                     _properties: Any) -> None:
+        topic = self._topics.pop(mid, "?")
+        if reason is not None and reason.is_failure:
+            # kept: a spooled message stays for the next connection, after the longest
+            # backoff; the ACL is the operator's to fix (what was refused is the log's)
+            self._inflight.pop(mid, None)
+            self._held = True
+            self._refused = (f"{self.settings.url}: the broker refused the message on {topic}: "
+                             f"{reason}; check its ACL lets this robot's user "
+                             f"({self.settings.username or 'anonymous'}) publish on "
+                             f"{self.topics.base}/#; reports wait in the spool")
+            return
         seq = self._inflight.pop(mid, None)
         if seq is not None:
             # counted before it leaves the spool, so a reader never sees it in neither

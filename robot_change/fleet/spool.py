@@ -5,9 +5,10 @@ One file per message, ``<seq>.msg`` (12 digits, in order), holding the topic, a 
 payload, each written atomically (:mod:`hw.atomic`: a reader or a crash sees the whole file or
 none).  A message leaves the spool when the broker has acknowledged it (QoS 1 PUBACK).  When a
 new message would take the spool past ``max_bytes``, the oldest ones are dropped and counted;
-the count is kept in ``dropped.count`` (atomically too), so it outlives restarts, and shows in
-the robot's status.  A file that cannot be read back is moved to ``bad/`` and counted, never
-sent and never deleted.
+the count (of messages: a report with a change is two, its check's and its change's) is kept
+in ``dropped.count`` (atomically too), so it outlives restarts, and shows in the robot's
+status; a drop is logged (at most once a minute).  A file that cannot be read back is moved
+to ``bad/`` and counted, never sent and never deleted.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import threading
 from pathlib import Path
 
 from hw.atomic import remove_temp_files, write_atomically
+from robot_change.throttle import Throttled
 
 __all__ = ["Spool"]
 
@@ -41,6 +43,7 @@ class Spool:
         self.max_bytes = int(max_bytes)
         self.folder.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
+        self._throttled = Throttled(log, every=60.0)
         self._sizes: collections.OrderedDict[int, int] = collections.OrderedDict()
         self.bad = 0
         remove_temp_files(self.folder)  # an interrupted write: never a message
@@ -80,6 +83,11 @@ class Spool:
         if victims:
             with self._lock:
                 self._count_dropped(len(victims))
+                dropped = self.dropped
+            self._throttled("full", logging.WARNING, "fleet spool: full (%d bytes): the oldest "
+                            "%d message(s) dropped, %d in all; the broker is not taking them "
+                            "(see the fleet's last error) or fleet.spool_mb is too small",
+                            self.max_bytes, len(victims), dropped)
         write_atomically(self._path(seq), data)
         with self._lock:
             self._sizes[seq] = len(data)
