@@ -331,3 +331,15 @@ def test_check_config_reads_the_fleets_files_but_never_prints_the_password(tmp_p
     (tmp_path / "pw").write_text("\n")
     with pytest.raises(ConfigError, match="must hold the password alone on one line"):
         load_checked_config(write(tmp_path, text))
+
+
+def test_check_config_refuses_a_ca_file_that_holds_no_certificate(tmp_path):
+    """An mqtts:// broker's CA file is loaded as the daemon will (it was only checked to be a
+    readable file, and the fleet failed at start)."""
+    from robot_change.service.params import load_checked_config
+
+    (tmp_path / "ca.crt").write_text("not a certificate\n")
+    text = (f'[store]\nstate_dir = "{tmp_path}"\n[fleet]\nbroker = "mqtts://b"\n'
+            'ca_file = "ca.crt"\n')
+    with pytest.raises(ConfigError, match=r"cannot use the CA file .*ca.crt.*PEM certificates"):
+        load_checked_config(write(tmp_path, text))

@@ -25,7 +25,7 @@ import paho.mqtt.client as mqtt
 from robot_change import validate
 from robot_change.errors import FleetError
 
-__all__ = ["BrokerSettings", "new_client", "open_connection", "refusal"]
+__all__ = ["BrokerSettings", "new_client", "open_connection", "refusal", "tls_context"]
 
 #: Longest password read from ``password_file`` (MQTT allows 65535 bytes).
 MAX_PASSWORD_BYTES = 65535
@@ -94,7 +94,9 @@ class BrokerSettings:
         return text
 
 
-def _tls_context(settings: BrokerSettings) -> ssl.SSLContext:
+def tls_context(settings: BrokerSettings) -> ssl.SSLContext:
+    """The TLS context of an mqtts:// broker: its CA file and the client certificate loaded.
+    Raises :class:`FleetError` naming the file that cannot be used."""
     try:
         context = ssl.create_default_context(cafile=settings.ca_file)
     except (OSError, ssl.SSLError) as exc:
@@ -125,7 +127,7 @@ def new_client(settings: BrokerSettings, client_id: str, *, clean_session: bool 
                           clean_session=clean_session, protocol=mqtt.MQTTv311))
     client.connect_timeout = settings.connect_timeout_s
     if settings.tls:
-        client.tls_set_context(_tls_context(settings))
+        client.tls_set_context(tls_context(settings))
     if settings.username is not None:
         client.username_pw_set(settings.username, settings.password())
     if will is not None:

@@ -14,6 +14,7 @@ from hw.errors import BackendUnavailable, HwError, UriError
 from robot_change.change.params import ChangeParams
 from robot_change.errors import ConfigError, FleetError, InputError
 from robot_change.export.foxglove import sdk
+from robot_change.fleet.connection import tls_context
 from robot_change.service.config import Config, load_config
 
 __all__ = ["change_params", "check_config", "load_checked_config", "scene_params"]
@@ -73,11 +74,14 @@ def _check_fleet_files(where: str, config: Config) -> None:
         if not os.access(path, os.R_OK):
             raise ConfigError(f"{key}: not readable by this user (uid {os.getuid()}); the "
                               "service user must be able to read it")
-    if config.fleet.password_file is not None:
-        try:
-            config.fleet.settings().password()
-        except FleetError as exc:
-            raise ConfigError(f"{where}: fleet.password_file: {exc}") from None
+    settings = config.fleet.settings() if config.fleet.enabled else None
+    try:
+        if settings is not None and settings.password_file is not None:
+            settings.password()
+        if settings is not None and settings.tls:  # the CA file holds certificates, ...
+            tls_context(settings)
+    except FleetError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def _check_state_dir(where: str, path: Path) -> None:
