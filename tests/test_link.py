@@ -711,6 +711,24 @@ def test_a_copy_of_a_refused_command_crossing_the_nak_gets_the_same_nak(proto):
     assert len(asked) == 1 and not received(wire.module.events(), p.Check)
 
 
+@pytest.mark.parametrize("proto", [3, p.VERSION])  # whole frame; carried in PARTs (v5)
+def test_a_seq_refused_for_its_content_keeps_its_nak_whatever_comes_with_it_again(proto):
+    """docs/protocol.md 7.2: the module remembers how it answered a seq. A SET_PARAM NAKed
+    OUT_OF_RANGE and sent again with the same seq and a good value is NAKed the same and not
+    acted on (it was acted on: the base told two things about one seq)."""
+    wire = Wire(proto_max=proto).connect()
+    seq = 40
+    good = p.encode_body(p.SetParam(1, 3), seq, 0, proto)  # watch_m = 3
+    head = good[:6] + (10_000).to_bytes(4, "little")  # watch_m = 10000: out of range
+    bad = head + p.crc16(head).to_bytes(2, "big")
+    for body in (bad, good):
+        wire.module.receive(p.cobs_encode(body) + b"\x00" if proto < 5 else  # v5: carried
+                            b"".join(p.encode(part, seq, 0, proto) for part in p.split_body(body)))
+        naks = [f for f in frames(wire.module.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+        assert {(f.seq, f.message.reason) for f in naks} == {(seq, p.NakReason.OUT_OF_RANGE)}
+    assert not received(wire.module.events(), p.SetParam)
+
+
 def test_coalesced_answers_replace_the_one_still_waiting():
     wire = Wire(proto_max=2).connect()
     wire.cut = True

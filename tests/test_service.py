@@ -482,6 +482,51 @@ def test_camera_loss_faults_pauses_a_watch_and_recovers(rig: Rig) -> None:
     assert rig.service.camera_losses == 1
 
 
+def test_a_watch_without_its_camera_pauses_once_it_may(rig: Rig) -> None:
+    """A camera lost while disarmed pauses the watch at ARM; a WATCH begun while the camera
+    is lost is told (FAULT CAMERA_LOST naming it) and pauses (both went on in silence: the
+    PAUSE came only at the moment of the loss)."""
+    rig.run(WATCH_SETUP + "disarm\nexpect HEARTBEAT armed=0 1")
+    away = rig.tmp / "camera-away"
+    rig.camera_dir.rename(away)
+    rig.run("""
+        expect FAULT code=CAMERA_LOST 5
+        expect-none PAUSE 1.0
+        arm
+        expect PAUSE cause=CAMERA_LOST 2
+        resume
+        expect HEARTBEAT paused=0 2
+        expect-none PAUSE 1.0
+        stop
+        expect HEARTBEAT state=FAULT 2
+        watch office
+        expect FAULT code=CAMERA_LOST 3
+        expect PAUSE cause=CAMERA_LOST 2
+    """)
+    away.rename(rig.camera_dir)
+    rig.run("expect FAULT code=CLEARED 15\nexpect HEARTBEAT state=WATCHING 2")
+
+
+def test_a_blind_view_in_a_watch_is_told_and_cleared(tmp_path: Path, scene_frames) -> None:
+    """Frames without a reading during a watch: FAULT CAMERA_LOST ("sees nothing") and PAUSE;
+    when the room is seen again, FAULT CLEARED (the base kept "camera lost" for ever)."""
+    from hw.imagefile import read_image, write_png
+
+    folder = tmp_path / "blind"
+    folder.mkdir()
+    blind = []
+    for i, path in enumerate(scene_frames["reference"]):
+        blind.append(folder / f"{i:03d}.png")
+        write_png(blind[-1], np.zeros_like(read_image(path)))
+    with Rig(tmp_path, dict(scene_frames, blind=blind)) as rig:
+        rig.run(WATCH_SETUP)
+        rig.show("blind")
+        rig.run("expect FAULT code=CAMERA_LOST 5\nexpect PAUSE cause=CAMERA_LOST 3")
+        rig.show("reference")
+        rig.run("expect FAULT code=CLEARED 5\nexpect CLEAR 5")
+        assert "sees the room again" in rig.out.getvalue()
+
+
 def test_dummy_device_loss_and_recovery(tmp_path: Path, scene_frames) -> None:
     from hw.openni2 import open_device
 

@@ -292,7 +292,7 @@ class Link:
                 # and a NAK of it would fail an unrelated message of the base with that seq
                 if item.nak is not None and item.msg_type not in (MsgType.ACK, MsgType.NAK,
                                                                   MsgType.NEED):
-                    self._nak(item.seq or 0, item.nak, item.msg_type or 0)
+                    self._refuse(item.seq or 0, item.nak, item.msg_type or 0)
                 continue
             self._on_frame(item, now)  # type: ignore[arg-type]
 
@@ -311,7 +311,7 @@ class Link:
             self._on_nak(seq, message)  # type: ignore[arg-type]
         elif not may_send(self.peer_role, type(message), frame.version) or (
                 isinstance(message, Hello) and message.role != self.peer_role):
-            self._nak(seq, NakReason.WRONG_DIRECTION, kind)
+            self._refuse(seq, NakReason.WRONG_DIRECTION, kind)
         elif kind == MsgType.PART:
             self._on_part(frame, now)
         elif kind == MsgType.NEED:
@@ -354,8 +354,7 @@ class Link:
         if self.admit is not None and not isinstance(message, Hello):
             refusal = self.admit(message)
             if refusal is not None:
-                self._remember(seq, (refusal, message.TYPE))
-                self._nak(seq, refusal, message.TYPE)
+                self._refuse(seq, refusal, message.TYPE)
                 return
         self._ack(frame, now)
         self._remember(seq, None)
@@ -395,13 +394,13 @@ class Link:
         del self._assemblies[seq]
         inner = decode_body(b"".join(assembly.got[i] for i in range(assembly.count)))
         if type(inner) is DecodeError and inner.nak is not None and inner.seq == seq:
-            self._nak(seq, inner.nak, inner.msg_type or 0)  # intact, but not acceptable
+            self._refuse(seq, inner.nak, inner.msg_type or 0)  # intact, but not acceptable
             return
         if (type(inner) is Frame and inner.seq == seq and inner.message.SEQUENCED
                 and not may_send(self.peer_role, type(inner.message), inner.version)):
             # intact, its own CRC good, but not the peer's to send: told, as a whole frame is
             # (section 6), or the peer would carry it until CARRY_TIMEOUT
-            self._nak(seq, NakReason.WRONG_DIRECTION, inner.message.TYPE)
+            self._refuse(seq, NakReason.WRONG_DIRECTION, inner.message.TYPE)
             return
         if (type(inner) is not Frame or inner.seq != seq or not inner.message.SEQUENCED
                 or inner.message.URGENT or isinstance(inner.message, Hello)
@@ -495,6 +494,17 @@ class Link:
         self._seen[seq] = refused
         if len(self._seen) > self.config.dedup_memory:
             del self._seen[next(iter(self._seen))]
+
+    def _refuse(self, seq: int, reason: NakReason, refused_type: int) -> None:
+        """NAK a message of the peer (7.3) and, once its HELLO was heard, remember how
+        (7.2): a later frame or PART of that seq, whatever it holds, is answered with the same
+        NAK and never acted on (the sender is told one thing about one seq)."""
+        if self.peer is not None and seq:
+            if seq not in self._seen:
+                self._remember(seq, (reason, refused_type))
+            elif self._seen[seq] is not None:
+                reason, refused_type = self._seen[seq]
+        self._nak(seq, reason, refused_type)
 
     def _nak(self, seq: int, reason: NakReason, refused_type: int,
              version: int | None = None) -> None:

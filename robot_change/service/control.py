@@ -94,6 +94,10 @@ class Control:
             self.activity = ModuleState.WATCHING
         log.info("WATCH %s: a change in %d of %d checks, every %d ms", station,
                  self.params["watch_m"], self.params["watch_n"], self.params["check_interval_ms"])
+        if self._camera_reported is False:  # watching blind from the start: as unsafe
+            self.send_fault(FaultCode.CAMERA_LOST, f"WATCH {station}: the camera is lost "
+                            f"({self.camera_error}); the watch begins when it is back")
+            self._lost_pause_due = True
         self._refresh_heartbeat(force=True)
 
     def _end_watch(self) -> None:
@@ -106,25 +110,26 @@ class Control:
         self.progress.forget("watch")
 
     def _camera_transitions(self) -> None:
-        """Tell the base when the camera is lost (FAULT CAMERA_LOST; PAUSE while watching and
-        armed) and when it is back (FAULT CLEARED)."""
+        """Tell the base when the camera is lost (FAULT CAMERA_LOST) and when it is back (FAULT
+        CLEARED); a watch without its camera pauses the robot once, as soon as it may (armed,
+        the latch clear: at the loss, or at a later ARM or WATCH)."""
         ok = self.camera_ok
-        if ok == self._camera_reported:
-            return
-        if ok:
-            if self._camera_reported is False:
-                self.send_fault(FaultCode.CLEARED, "camera delivering frames again")
-        else:
-            if not self.camera_error:
-                return  # still opening at start: nothing has failed yet
-            self.send_fault(FaultCode.CAMERA_LOST, f"{self.camera_error}; retrying")
-            watch = self._watch
-            if watch is not None:
-                watch.camera_lost()
-                if self.armed and not self.latched:
-                    self.send_pause(PauseCause.CAMERA_LOST)
-        self._camera_reported = ok
-        self._refresh_heartbeat(force=True)
+        if ok != self._camera_reported and (ok or self.camera_error):  # (still opening: no)
+            if ok:
+                if self._camera_reported is False:
+                    self.send_fault(FaultCode.CLEARED, "camera delivering frames again")
+                self._lost_pause_due = False
+            else:
+                where = f"WATCH {self.station}: " if self._watch is not None else ""
+                self.send_fault(FaultCode.CAMERA_LOST, f"{where}{self.camera_error}; retrying")
+                self._lost_pause_due = True
+                if self._watch is not None:
+                    self._watch.camera_lost()
+            self._camera_reported = ok
+            self._refresh_heartbeat(force=True)
+        if self._lost_pause_due and self._watch is not None and self.armed and not self.latched:
+            self._lost_pause_due = False
+            self.send_pause(PauseCause.CAMERA_LOST)
 
     def _run_command(self, m: Any) -> None:
         self._cancel.clear()

@@ -203,6 +203,7 @@ class Service(Dispatch, Sending, Control):
         self._watch: StationWatch | None = None
         self._report_id = 0
         self._camera_reported = None  # what the controller last told the base: True ok / False lost
+        self._lost_pause_due = False  # the camera is lost: a watch pauses once it may
         self.last_frame_index = 0
         # liveness: the camera's reads may take their timeout, and then some
         self.progress = Progress(self.options.stall_after_s, {

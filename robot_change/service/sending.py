@@ -110,9 +110,10 @@ class Sending:
     def _answer_not_at_station(self, station: str, changes: ChangeSet, what: str) -> None:
         """CHECK_RESULT NOT_AT_STATION (version 2), or FAULT COMMAND_REFUSED (version 1)."""
         offset = self.config.camera.mount().offset(changes.registration)
-        text = (f"{what} {station}: not at the station ({changes.not_at_station_reason}); "
-                f"offset {[round(v, 2) for v in offset.translation_m]} m "
-                f"{[round(v, 1) for v in offset.rpy_deg]} deg")
+        # the offset first: a FAULT's text is cut at 200 bytes, the reason is the long part
+        text = (f"{what} {station}: not at the station: offset "
+                f"{[round(v, 2) for v in offset.translation_m]} m "
+                f"{[round(v, 1) for v in offset.rpy_deg]} deg ({changes.not_at_station_reason})")
         log.warning("%s", text)
         self.counters["not_at_station"] += 1
         if self.link.version >= 2:

@@ -293,6 +293,10 @@ class StationWatch:
         changes: ChangeSet | None = None
         if exc is None:
             changes = job.future.result()
+            if self._blind_reported or self._error_reported:  # what was told is over
+                host.send_fault(FaultCode.CLEARED, f"WATCH {self.station}: "
+                                + ("the camera sees the room again" if self._blind_reported
+                                   else "checks work again"))
             self._error_reported = self._blind_reported = False
             if changes.outcome == "not_at_station":
                 blind = True  # cannot watch from here: as unsafe as a change
