@@ -201,7 +201,9 @@ def test_list_devices_without_a_camera_says_so():
         (["fleet-tail", "--broker", "http://broker"], "must be a broker URL mqtt://HOST"),
         (["fleet-tail", "--broker", "mqtt://127.0.0.1:1"], "connection refused; is the broker"),
         (["fleet-tail", "--broker", "mqtt://127.0.0.1:1", "--username", "u", "--password-file",
-          "/nonexistent/pw"], "cannot read the password file /nonexistent/pw"),
+          "/nonexistent/pw"], "cannot read the password file /nonexistent/pw ("),
+        (["fleet-tail", "--broker", "mqtt://127.0.0.1:1", "--username", "u", "--password-file",
+          "/nonexistent/pw"], "check --password-file and"),  # its option, not the daemon's key
         (["fleet-tail", "--broker", "mqtt://127.0.0.1:1", "--robot", "a/b"], "fleet-tail.robot"),
     ],
 )

@@ -10,10 +10,22 @@ import time
 from typing import Any, TextIO
 
 from robot_change import json_text
+from robot_change.errors import FleetError
 from robot_change.fleet.connection import BrokerSettings
 from robot_change.fleet.receiver import Incoming, Receiver
 
 __all__ = ["describe", "run_fleet_tail"]
+
+#: The broker's errors name the daemon's keys; here they are fleet-tail's options.
+_OPTIONS = {"fleet.ca_file": "--ca-file", "fleet.cert_file": "--cert-file",
+            "fleet.key_file": "--key-file", "fleet.username": "--username",
+            "fleet.password_file": "--password-file"}
+
+
+def _in_options(text: str) -> str:
+    for key, option in _OPTIONS.items():
+        text = text.replace(key, option)
+    return text
 
 
 def _when(payload: dict[str, Any]) -> str:
@@ -112,7 +124,7 @@ def run_fleet_tail(settings: BrokerSettings, *, prefix: str, robot: str, checks:
             stop.set()
 
     def state(text: str) -> None:
-        print(f"robot-change fleet-tail: {text}", file=sys.stderr, flush=True)
+        print(f"robot-change fleet-tail: {_in_options(text)}", file=sys.stderr, flush=True)
 
     receiver = Receiver(settings, show, prefix=prefix, robot=robot, checks=checks,
                         session=session, on_state=state)
@@ -120,7 +132,10 @@ def run_fleet_tail(settings: BrokerSettings, *, prefix: str, robot: str, checks:
         timer = threading.Timer(seconds, stop.set)
         timer.daemon = True
         timer.start()
-    receiver.run(stop)
+    try:
+        receiver.run(stop)
+    except FleetError as exc:
+        raise FleetError(_in_options(str(exc)), transient=exc.transient) from None
     if receiver.duplicates:
         state(f"{receiver.duplicates} duplicate report message(s) dropped (same report id)")
     return 0
