@@ -55,6 +55,19 @@ def test_spool_keeps_order_drops_the_oldest_when_full_and_survives_a_restart(tmp
         f"{n:012d}.msg" for n in (3, 4, 5, 6, 7)]
 
 
+def test_fleet_tail_says_a_camera_still_opening_is_not_lost():
+    from robot_change.fleet.receiver import Incoming
+    from robot_change.tools.fleettail import describe
+
+    def line(camera: dict) -> str:
+        return describe(Incoming("robot-change/r1/status", "r1", "status", "",
+                                 {"online": True, "state": "idle", "camera": camera}))
+
+    assert "camera opening" in line({"ok": False, "error": ""})  # said "camera LOST ()"
+    assert "camera LOST (unplugged)" in line({"ok": False, "error": "unplugged"})
+    assert "camera ok" in line({"ok": True, "error": ""})
+
+
 def test_a_damaged_spool_file_is_moved_aside_never_sent(tmp_path):
     spool = Spool(tmp_path / "spool", max_bytes=10_000)
     spool.append("a/b", b"{}")

@@ -228,7 +228,8 @@ def _status_line(service: Service) -> str:
     """systemd's STATUS=: changes only with the state (sent only when it changes)."""
     state = service.reported_state().name.lower()
     where = f" {service.station}" if service.station else ""
-    camera = "camera ok" if service.camera_ok else f"camera lost: {service.camera_error}"
+    camera = ("camera ok" if service.camera_ok else f"camera lost: {service.camera_error}"
+              if service.camera_error else "camera opening")
     fleet = ""
     if service.fleet is not None:
         counts = service.fleet.counts()

@@ -46,7 +46,8 @@ def _status(robot: str, p: dict[str, Any]) -> str:
         [] if p.get("armed", True) else ["disarmed"])
     text = (f"{robot} online: {' '.join(flags)}"
             + (f", station {p['station']}" if p.get("station") else "")
-            + ("; camera ok" if camera.get("ok") else f"; camera LOST ({camera.get('error', '')})")
+            + ("; camera ok" if camera.get("ok") else f"; camera LOST ({camera['error']})"
+               if camera.get("error") else "; camera opening")
             + f"; link {(p.get('link') or {}).get('state', '?')}")
     if last:
         text += f"; last check {last.get('outcome')} at {last.get('station')}"
