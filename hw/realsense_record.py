@@ -28,7 +28,11 @@ import numpy as np
 from hw.depth import DepthFrame
 from hw.errors import BackendUnavailable, DepthFileError, FrameError
 
-__all__ = ["write_realsense_recording"]
+__all__ = ["UNNAMED_CAMERA", "write_realsense_recording"]
+
+#: What a recording names a camera when its frames' source named none (no model: the ``auto``
+#: noise profile's default).
+UNNAMED_CAMERA = "robot-change recording"
 
 
 def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[DepthFrame], *,
@@ -41,9 +45,9 @@ def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[Dep
     ``depth_units``: metres a sample (the frames' samples are written as they are: 0.001 for
     millimetres, 0.0001 for a D405's native tenths).  ``name``: the camera model the recording
     names (the source's, e.g. "Intel RealSense D435": it picks the ``auto`` noise profile);
-    default "robot-change recording", which names no model.  ``compress``: depth as
+    default :data:`UNNAMED_CAMERA`, which names no model.  ``compress``: depth as
     compressedDepth PNG (librealsense's default), else raw Images (about 5x larger; playing
-    them costs about a quarter of the CPU).
+    them costs about 0.4 of the CPU: docs/benchmarks.md).
     ``on_frame(frames, bytes)`` after each.  Raises :class:`DepthFileError` when it cannot be
     written, :class:`FrameError` for no frames or frames that change size,
     :class:`BackendUnavailable` without pyrealsense2."""
@@ -71,7 +75,7 @@ def write_realsense_recording(path: str | os.PathLike[str], frames: Iterable[Dep
         if first is None:
             raise FrameError(f"{target}: no frames to write; a recording needs at least one")
         device, sensor, profile = _software_camera(rs, first, fps, depth_units,
-                                                   name or "robot-change recording", serial)
+                                                   name or UNNAMED_CAMERA, serial)
         recorder = rs.recorder(scratch, device, bool(compress))
         queue = rs.frame_queue(64)
         sensor.open(profile)

@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help=".oni: 16zt: lossless, ~4x smaller than raw on Kinect depth "
                         "(default); 16z: lossless, for unquantised depth; none: raw uint16. "
                         ".db3: png (librealsense's compressedDepth, default) or none (raw: "
-                        "about 5x larger, played with a quarter of the CPU)")
+                        "about 5x larger, played with 0.4 of the CPU)")
     record.set_defaults(func=cmd_record)
 
     devices = commands.add_parser("list-devices", help="list the OpenNI2 and RealSense cameras "

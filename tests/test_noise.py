@@ -5,6 +5,7 @@ profile a reference keeps."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numba
@@ -85,7 +86,7 @@ def test_the_kinect_profile_is_the_published_noise():
 
 
 def test_a_stereo_cameras_noise_grows_with_the_square_of_the_depth_and_a_tofs_does_not():
-    for name in ("realsense_d415", "realsense_d435", "realsense_d455"):
+    for name in ("realsense_d405", "realsense_d415", "realsense_d435", "realsense_d455"):
         p = builtin_profile(name)
         assert p.principle == "stereo"
         assert p.sigma(4.0) / p.sigma(2.0) == pytest.approx(4.0, rel=0.05)
@@ -109,20 +110,29 @@ def test_unknown_profiles_and_bad_fields_are_refused():
         NoiseProfile.from_dict({**good, "gain": 2})
 
 
-def test_auto_picks_the_profile_of_the_camera_model_its_driver_names():
+def test_auto_picks_the_profile_of_the_camera_model_its_driver_names(caplog):
     from robot_change.noise.profile import profile_for_camera, resolve_profile
 
     models = {"Intel RealSense D435": "realsense_d435", "Intel RealSense D435I":
-              "realsense_d435", "Intel RealSense D415": "realsense_d415",
+              "realsense_d435", "Intel RealSense D435F": "realsense_d435",
+              "Intel RealSense D435IF": "realsense_d435", "Intel RealSense D415": "realsense_d415",
               "Intel RealSense D455": "realsense_d455", "Intel RealSense D457": "realsense_d455",
+              "Intel RealSense D455F": "realsense_d455", "Intel RealSense D405": "realsense_d405",
               "PS1080": "xtion", "Xtion PRO LIVE": "xtion", "Kinect": "kinect_v1",
               "Orbbec Astra Pro": "orbbec_astra", "Azure Kinect DK": "azure_kinect",
-              "Intel RealSense D405": "kinect_v1", "robot-change recording": "kinect_v1",
-              None: "kinect_v1", "": "kinect_v1"}
-    for model, name in models.items():
-        assert profile_for_camera(model) == name, model
-        assert resolve_profile("auto", camera=model).name == name
+              "robot-change recording": "kinect_v1", None: "kinect_v1", "": "kinect_v1"}
+    with caplog.at_level(logging.WARNING, logger="robot_change.noise.profile"):
+        for model, name in models.items():
+            assert profile_for_camera(model) == name, model
+            assert resolve_profile("auto", camera=model).name == name
+    assert not caplog.records  # every camera known, or none named
     assert resolve_profile("xtion", camera="Intel RealSense D435").name == "xtion"  # named wins
+    # a camera named but without a built-in profile: the default, and a warning saying so
+    for model in ("Intel RealSense D4XX-Test", "Orbbec Femto Bolt"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="robot_change.noise.profile"):
+            assert profile_for_camera(model) == "kinect_v1"
+        assert model in caplog.text and "calibrate" in caplog.text
 
 
 def test_a_profile_file_round_trips_and_a_bad_one_names_the_file(tmp_path):

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import logging
 import math
 import re
 from pathlib import Path
@@ -34,8 +35,11 @@ from typing import Any
 import numpy as np
 
 from hw.atomic import write_atomically
+from hw.realsense_record import UNNAMED_CAMERA
 from robot_change import validate
 from robot_change.errors import BadValue, InputError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BUILTIN",
@@ -346,6 +350,10 @@ BUILTIN: dict[str, NoiseProfile] = {
                 "built-in: Intel RealSense D435 / D435i (baseline 50 mm, HFOV 87 deg at 848 px, "
                 "ideal range 0.3-3 m; datasheet) with Intel's depth RMS error formula, "
                 "subpixel 0.08"),
+        _stereo("realsense_d405", 0.018, 87.0, 848, 0.07, 1.0,
+                "built-in: Intel RealSense D405 (baseline 18 mm, HFOV 87 deg at 848 px, ideal "
+                "range 7-50 cm; datasheet) with Intel's depth RMS error formula, subpixel 0.08; "
+                "evidence to 1 m"),
         _stereo("realsense_d455", 0.095, 87.0, 848, 0.5, 6.0,
                 "built-in: Intel RealSense D455 (baseline 95 mm, HFOV 87 deg at 848 px, ideal "
                 "range 0.6-6 m; datasheet) with Intel's depth RMS error formula, subpixel "
@@ -378,8 +386,9 @@ def builtin_profile(name: str) -> NoiseProfile:
 AUTO_PROFILE = "auto"
 #: A camera model as its driver names it (a pattern) -> its built-in profile.
 _CAMERA_MODELS = (
-    (r"\bD415\b", "realsense_d415"), (r"\bD43[05]i?\b", "realsense_d435"),
-    (r"\bD45[5-7]\b", "realsense_d455"), (r"Azure Kinect", "azure_kinect"),
+    (r"\bD405\b", "realsense_d405"), (r"\bD415\b", "realsense_d415"),
+    (r"\bD43[05](?:i|f|if)?\b", "realsense_d435"), (r"\bD45[5-7]f?\b", "realsense_d455"),
+    (r"Azure Kinect", "azure_kinect"),
     (r"\bAstra", "orbbec_astra"), (r"Xtion|Carmine|PrimeSense|PS1080", "xtion"),
     (r"Kinect", "kinect_v1"),
 )
@@ -387,10 +396,15 @@ _CAMERA_MODELS = (
 
 def profile_for_camera(model: str | None) -> str:
     """The built-in profile of a camera ``model`` as its driver names it ("Intel RealSense
-    D435", "PS1080", "Kinect"); :data:`DEFAULT_PROFILE` for no model or an unknown one."""
+    D435", "PS1080", "Kinect"); :data:`DEFAULT_PROFILE` for no model or an unknown one (a
+    warning for a camera named but unknown: its noise may be far from the default's)."""
     for pattern, name in _CAMERA_MODELS:
         if model and re.search(pattern, model, re.IGNORECASE):
             return name
+    if model and model != UNNAMED_CAMERA:
+        log.warning("camera %r has no built-in noise profile: %s used; measure it with "
+                    "`robot-change calibrate` or name one ([camera] profile, --profile)",
+                    model, DEFAULT_PROFILE)
     return DEFAULT_PROFILE
 
 
