@@ -23,8 +23,8 @@ import numpy as np
 from hw.errors import DepthFileError
 
 __all__ = ["DEPTH_TOPIC", "camera_info_topics", "depth_units_m", "device_info",
-           "float32_decimal", "is_realsense_depth", "lenient_ros1", "stream_fps",
-           "to_millimetres"]
+           "float32_decimal", "frame_numbers", "is_realsense_depth", "lenient_ros1",
+           "stream_fps", "to_millimetres"]
 
 #: A librealsense recording's depth image topic (raw, or compressedDepth since 2.59).
 DEPTH_TOPIC = re.compile(r"^(/device_\d+/sensor_\d+)/Depth_\d+/image/data(/compressedDepth)?$")
@@ -46,7 +46,9 @@ def camera_info_topics(topic: str) -> list[str]:
 
 def depth_units_m(reader: Any, topic: str, where: str) -> float:
     """Metres per depth sample of a librealsense recording's depth ``topic`` (its sensor's
-    Depth_Units option, a string since 2.59, a Float32 before); 0.001 when it has none."""
+    Depth_Units option, a string since 2.59, a Float32 before) as librealsense holds it, a
+    float32 (0.0001 is 9.9999997e-05: samples convert as its playback converts them); 0.001
+    when it has none."""
     match = DEPTH_TOPIC.match(topic)
     option = match and reader.topics.get(match.group(1) + "/option/Depth_Units/value")
     if not option:
@@ -65,7 +67,31 @@ def depth_units_m(reader: Any, topic: str, where: str) -> float:
     if not (math.isfinite(units) and 1e-6 <= units <= 0.1):
         raise DepthFileError(f"{where}: the RealSense depth units {text!r} on "
                              f"{match.group(1)}/option/Depth_Units/value make no sense")
-    return units
+    return float(np.float32(units))
+
+
+#: A 2.59+ recording's per-frame metadata string: ``Frame number=101;...;timestamp=1033.33;``.
+_FRAME_FIELDS = re.compile(r"(?:^|;)Frame number=(\d+);(?:.*;)?timestamp=([0-9.eE+-]+)(?:;|$)")
+
+
+def frame_numbers(reader: Any, topic: str) -> dict[int, tuple[int, int]]:
+    """What a 2.59+ recording says of each frame of the depth ``topic`` beside it
+    (``<stream>/image/metadata``, a string per frame written with the image's log time): log
+    time (ns) -> (the camera's frame number, its timestamp in µs), as librealsense's playback
+    gives them; the image's header stamp there is only when it was written.  ``{}`` for a
+    recording without them (ROS 1 recordings keep both in the image's header)."""
+    meta = reader.topics.get(topic.split("/image/")[0] + "/image/metadata")
+    if meta is None or meta.msgtype != "std_msgs/msg/String":
+        return {}
+    out = {}
+    for connection, log_time, raw in reader.messages(connections=meta.connections):
+        try:
+            found = _FRAME_FIELDS.search(str(reader.deserialize(raw, connection.msgtype).data))
+        except Exception:  # noqa: BLE001 - a damaged metadata message: that frame has none
+            continue
+        if found:
+            out[log_time] = (int(found.group(1)), round(float(found.group(2)) * 1000))
+    return out
 
 
 def stream_fps(reader: Any, topic: str) -> float:

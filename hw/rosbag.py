@@ -58,6 +58,7 @@ from hw.realsense_bag import (
     depth_units_m,
     device_info,
     float32_decimal,
+    frame_numbers,
     is_realsense_depth,
     lenient_ros1,
     to_millimetres,
@@ -128,6 +129,8 @@ class RosbagSource(DepthSource):
         self._compressed = False
         self._realsense = False
         self._scale = 1.0  # millimetres per sample
+        #: a RealSense recording's log time -> (frame number, timestamp µs) (frame_numbers)
+        self._frame_numbers: dict[int, tuple[int, int]] = {}
         #: the camera the recording names ("name", "serial"; the ``auto`` profile's): a
         #: RealSense recording's device info, or a bag's custom_data (:data:`CAMERA_KEYS`)
         self.info: dict[str, str] = {}
@@ -213,9 +216,13 @@ class RosbagSource(DepthSource):
             raise
         finally:
             self._taken += 1
-        stamp = _stamp_us(message.header.stamp) or log_time // 1000
-        self._count_gaps(getattr(message.header, "seq", None))
-        index = self._position
+        # a 2.59+ RealSense recording's frame number and timestamp are in its metadata
+        number, recorded = self._frame_numbers.get(
+            log_time, (getattr(message.header, "seq", None), None))
+        stamp = recorded if recorded is not None else (_stamp_us(message.header.stamp)
+                                                       or log_time // 1000)
+        self._count_gaps(number)
+        index = number if recorded is not None and not self.loop else self._position
         self._position += 1
         frame = DepthFrame(depth, self._clock.stamp(stamp), index, self.intrinsics)
         self.stats.delivered += 1
@@ -245,6 +252,7 @@ class RosbagSource(DepthSource):
                        if self._realsense else 1.0)
         self.info = (device_info(self._reader, self.topic) if self._realsense
                      else recorded_camera(self._reader))
+        self._frame_numbers = frame_numbers(self._reader, self.topic) if self._realsense else {}
 
     def _image_topic(self) -> str:
         """The topic of the raw image (a compressed topic is ``<image topic>/<transport>``)."""

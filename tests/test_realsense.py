@@ -149,13 +149,31 @@ def test_a_raw_recording_plays_and_reads_the_same(tmp_path, twelve):
 
 def test_depth_units_are_converted_to_millimetres(tmp_path, twelve):
     tenths = [np.minimum(d.astype(np.uint32) * 10, 65535).astype(np.uint16) for d in twelve[:2]]
+    tenths[1] = np.minimum(tenths[1].astype(np.uint32) + 5, 65535).astype(np.uint16)  # x.5 mm
     path = tmp_path / "d405.db3"
     write_realsense_recording(path, frames_of(tenths), depth_units=0.0001)
+    read = {}
     for uri in (f"realsense:{path}", f"rosbag:{path}"):
         with open_depth(uri) as source:
-            frame = source.read()
+            read[uri] = [source.read().depth, source.read().depth]
         near = twelve[0] <= 6553
-        assert np.array_equal(frame.depth[near], twelve[0][near]), uri
+        assert np.array_equal(read[uri][0][near], twelve[0][near]), uri
+    # half millimetres round as librealsense's float32 units round them (9.9999997e-05 m)
+    assert all(np.array_equal(a, b) for a, b in zip(*read.values(), strict=True))
+
+
+def test_both_backends_give_a_frames_own_number_and_time_and_count_the_gaps(tmp_path, twelve):
+    numbers = [100, 101, 103, 104, 105, 109]
+    path = tmp_path / "gaps.db3"
+    write_realsense_recording(path, [DepthFrame(depth, 1_000_000 + (n - 100) * 33_333, n, CAMERA)
+                                     for depth, n in zip(twelve[:6], numbers, strict=True)])
+    seen = {}
+    for uri in (f"realsense:{path}", str(path)):  # librealsense, and the bag backend
+        with open_depth(uri) as source:
+            seen[uri] = [(f.index, f.timestamp_us) for f in source]
+            assert source.stats.dropped == 4, uri  # 102, 106, 107, 108
+    assert seen[str(path)] == seen[f"realsense:{path}"]
+    assert seen[str(path)] == [(n, 1_000_000 + (n - 100) * 33_333) for n in numbers]
 
 
 def test_a_slow_consumer_loses_no_frame(recording, twelve):
