@@ -13,6 +13,7 @@ import collections
 import concurrent.futures
 import io
 import json
+import logging
 import os
 import shutil
 import threading
@@ -602,10 +603,33 @@ def test_reload_takes_a_new_camera_and_keeps_the_old_config_when_the_new_one_fai
     other = tmp_path / "other"
     show(rig.frames, other, "current")
     new = config_from_dict({"camera": {"source": f"images:{other}?rate=30&loop=1"},
-                            "watch": {"watch_m": 1, "watch_n": 1}})
+                            "watch": {"watch_m": 1, "watch_n": 4, "check_interval_ms": 900}})
     _reload(rig.service, lambda: new, lambda c: (lambda: open_depth(c.camera.source)),
             threading.Event())
-    assert rig.service.params["watch_m"] == 1  # the table is reseeded from the new file
+    # the table is reseeded from the new file, but for what the base set (until a restart)
+    assert (rig.service.params["watch_m"], rig.service.params["watch_n"],
+            rig.service.params["check_interval_ms"]) == (2, 4, 900)
+    rig.run("check office\nexpect PAUSE 5\nexpect REPORT regions=1")
+
+
+def test_a_reload_keeps_what_the_base_set_with_set_param(rig: Rig, caplog) -> None:
+    """A file that says pause_on_change = false, the base's SET_PARAM 1, then a reload: a
+    change still pauses (the reload used to put the file's 0 back, in silence)."""
+    assert (rig.service.params["watch_m"], rig.service.params["watch_n"]) == (3, 5)
+    rig.run("capture office\nexpect CAPTURED 5\nset pause_on_change 1\nexpect PARAM_VALUE "
+            "value=1\nset watch_n 3\nexpect PARAM_VALUE value=3")
+    quiet = config_from_dict({"camera": {"source": rig.service.config.camera.source},
+                              "change": {"pause_on_change": False},
+                              "watch": {"watch_m": 4, "watch_n": 5, "check_interval_ms": 700}})
+    with caplog.at_level(logging.WARNING, logger="robot_change.service.core"):
+        _reload(rig.service, lambda: quiet, None, threading.Event())
+    params = rig.service.params
+    assert params["pause_on_change"] == 1 and params["check_interval_ms"] == 700
+    # the file's watch_m 4 against the base's watch_n 3: neither taken, and said
+    assert (params["watch_m"], params["watch_n"]) == (3, 3)
+    assert "watch_m 4 > watch_n 3" in caplog.text
+    rig.run("get pause_on_change\nexpect PARAM_VALUE value=1")
+    rig.show("current")
     rig.run("check office\nexpect PAUSE 5\nexpect REPORT regions=1")
 
 

@@ -178,6 +178,8 @@ class Service(Dispatch, Sending, Control):
         self.store = store
         self.port = port
         self.params: dict[str, int] = dict(config.parameters())
+        #: the values the base set with SET_PARAM since this start: a reload keeps them
+        self.base_params: dict[str, int] = {}
         self.link = Link(Role.MODULE, config=link_config or LinkConfig.for_baud(config.serial.baud),
                          admit=self._admit)
         self._throttled = Throttled(log)
@@ -377,12 +379,20 @@ class Service(Dispatch, Sending, Control):
 
     def reload(self, config: Config,
                camera: DepthSource | Callable[[], DepthSource] | None = None) -> None:
-        """Take a new configuration (SIGHUP): the parameter table is reseeded from it, and a new
-        ``camera`` (when given) replaces the old one: it is closed and the new one opened."""
+        """Take a new configuration (SIGHUP): the parameter table is reseeded from it, but for
+        the values the base set (SET_PARAM: they stay until the next start, docs/protocol.md
+        7.9), and a new ``camera`` (when given) replaces the old one: it is closed and the new
+        one opened."""
         with self._lock:
             old = self.config
             self.config = config
-            self.params = dict(config.parameters())
+            params = dict(config.parameters(), **self.base_params)
+            if params["watch_m"] > params["watch_n"]:  # the file's one against the base's other
+                log.warning("reload: watch_m %d > watch_n %d (the file's and the base's "
+                            "SET_PARAM together): both kept at %d of %d", params["watch_m"],
+                            params["watch_n"], self.params["watch_m"], self.params["watch_n"])
+                params.update(watch_m=self.params["watch_m"], watch_n=self.params["watch_n"])
+            self.params = params
             if self._watch is not None:
                 self._watch.configure(self.params, change_params(config, self.params))
         if config.serial != old.serial:

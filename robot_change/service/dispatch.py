@@ -47,8 +47,8 @@ log = logging.getLogger("robot_change.service.core")  # the service's log lines 
 
 class Dispatch:
     """The link thread of :class:`robot_change.service.core.Service` (a base class of it: the
-    attributes it uses -- runner, link, the command queue, params, counters, the lock -- are
-    the service's)."""
+    attributes it uses -- runner, link, the command queue, params, base_params, counters, the
+    lock -- are the service's)."""
 
     def _link_main(self) -> None:
         while not self._stop.is_set():
@@ -142,6 +142,7 @@ class Dispatch:
                 self._send(ParamValue(pid, self.params[name]), coalesce=("param", pid))
                 return
             self.params = trial
+            self.base_params[name] = value
             if self._watch is not None:
                 self._watch.configure(self.params, change_params(self.config, self.params))
         log.info("parameter %s = %d", name, value)
