@@ -19,6 +19,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
+import stat
 import zipfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -86,13 +88,17 @@ def read(path: str | Path, fmt: str, version: int, names: Iterable[str],
     header is read and before any array is.  ``max_bytes``: the arrays' declared bytes in all.
 
     Raises ``error`` (a message naming the file, what is wrong and ``redo``: what to do) for
-    a file that is unreadable, truncated, not an .npz, of another format, newer, missing
-    arrays, larger than its budget, not what its header declares or changed after it was
-    written; ``FileNotFoundError`` when it does not exist.
+    a file that is unreadable, truncated, not an .npz, not a regular file (a FIFO would block
+    the reader), of another format, newer, missing arrays, larger than its budget, not what
+    its header declares or changed after it was written; ``FileNotFoundError`` when it does not
+    exist, ``PermissionError`` when this user may not read it (the file may be sound).
     """
     path = Path(path)
     names = tuple(names)
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise error(f"{path}: not a regular file (a folder, a FIFO or a device); is this "
+                        "the right file?")
         with open(path, "rb") as probe:
             magic = probe.read(4)
         if magic.startswith(b"\x93NUM"):
@@ -119,7 +125,7 @@ def read(path: str | Path, fmt: str, version: int, names: Iterable[str],
                 except error as exc:
                     raise error(f"{path}: {exc}; {redo}") from None
             arrays = {k: np.array(data[k]) for k in sorted(arrays_only)}
-    except FileNotFoundError:
+    except (FileNotFoundError, PermissionError):
         raise
     except error:
         raise

@@ -3,10 +3,12 @@ reported, never used; a kill -9 in the middle of a save leaves the previous refe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import json
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -180,6 +182,84 @@ def test_a_bad_reference_is_quarantined_reported_and_never_used(tmp_path, scenes
     assert same(store.load_previous("dock"), a)  # only on request
     assert store.info("dock").quarantined == (moved,)
     assert store.stations() == []
+
+
+@contextlib.contextmanager
+def _as_nobody():
+    """This process's file access as the user nobody (root reads every file), then back."""
+    if os.geteuid() != 0:
+        yield
+        return
+    os.setegid(65534)
+    os.seteuid(65534)
+    try:
+        yield
+    finally:
+        os.seteuid(0)
+        os.setegid(0)
+
+
+def test_a_reference_the_service_may_not_read_is_a_storage_error_and_stays(tmp_path, scenes):
+    """A sound file the service's user may not read (a root-owned 0600 copy) is a storage
+    error naming the permissions: not quarantined as damaged, as it was."""
+    a, _ = scenes
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    store.path("dock").chmod(0)
+    with _as_nobody(), pytest.raises(StoreError, match="cannot read .*permissions"):
+        store.load("dock")
+    assert store.path("dock").exists() and not store.quarantine_dir.exists()
+    store.path("dock").chmod(0o600)
+    assert same(store.load("dock"), a)
+
+
+def test_a_quarantine_that_cannot_be_written_is_a_storage_error_and_loses_nothing(
+        tmp_path, scenes):
+    """A damaged reference whose quarantine folder cannot be made (a file in its place, as a
+    folder the service may not write): a storage error naming it, for a check and for the
+    capture that would replace it (they raised an internal error and 'cannot write its
+    reference'), the damaged file left where it was; once fixed, the capture goes through."""
+    a, b = scenes
+    store = ReferenceStore(tmp_path)
+    store.save("dock", a)
+    bad = store.path("dock").read_bytes()[:1000]
+    store.path("dock").write_bytes(bad)
+    store.quarantine_dir.write_text("not a folder")
+    for attempt in (lambda: store.load("dock"), lambda: store.save("dock", b)):
+        with pytest.raises(StoreError, match="failed verification and cannot be moved to "
+                                             f"{store.quarantine_dir}"):
+            attempt()
+        assert store.path("dock").read_bytes() == bad
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dock.scene.npz", "quarantine"]
+    store.quarantine_dir.unlink()
+    store.save("dock", b)
+    assert same(store.load("dock"), b)
+    [moved] = store.info("dock").quarantined
+    assert moved.read_bytes() == bad
+
+
+def test_a_fifo_in_place_of_a_reference_is_quarantined_not_waited_on(tmp_path, scenes):
+    store = ReferenceStore(tmp_path)
+    store.save("dock", scenes[0])
+    store.path("dock").unlink()
+    os.mkfifo(store.path("dock"))
+    raised = []
+    loader = threading.Thread(target=lambda: raised.append(_raised(store.load, "dock")),
+                              daemon=True)
+    loader.start()
+    loader.join(20)
+    assert not loader.is_alive(), "loading a FIFO blocked (waiting for a writer)"
+    [err] = raised
+    assert isinstance(err, ReferenceMissing) and "not a regular file" in str(err)
+    assert err.quarantined is not None and not store.path("dock").exists()
+
+
+def _raised(fn, *args) -> BaseException | None:
+    try:
+        fn(*args)
+    except BaseException as exc:  # noqa: BLE001 - handed to the test's thread
+        return exc
+    return None
 
 
 def test_a_bad_previous_is_quarantined_too(tmp_path, scenes):

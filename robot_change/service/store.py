@@ -177,6 +177,10 @@ class ReferenceStore:
                     self._keep_as_previous(current, self.previous_path(station))
             os.replace(incoming, current)
             _fsync_dir(self.root)
+        except StoreError:  # the damaged current reference cannot be quarantined
+            with contextlib.suppress(OSError):
+                incoming.unlink(missing_ok=True)
+            raise
         except OSError as exc:
             with contextlib.suppress(OSError):  # a folder that cannot be written holds none
                 incoming.unlink(missing_ok=True)
@@ -331,7 +335,8 @@ class ReferenceStore:
                 station=station, quarantined=moved) from exc
         except OSError as exc:
             raise StoreError(f"station {station!r}: cannot read {path} ({exc.strerror}); check "
-                             "the folder's permissions") from exc
+                             "its and its folder's permissions: the service's user must read "
+                             "them") from exc
 
     @staticmethod
     def _previous_hint(prev: Path, previous: bool) -> str:
@@ -340,18 +345,29 @@ class ReferenceStore:
         return f", or use the previous reference {prev.name} (load_previous)"
 
     def _quarantine(self, path: Path, reason: Exception) -> Path:
-        """Move a file that failed verification to quarantine/ with a timestamp and a note."""
+        """Move a file that failed verification to quarantine/ with a timestamp and a note;
+        :class:`StoreError` (the file left where it is) when that folder cannot be written."""
         folder = self.quarantine_dir
-        folder.mkdir(exist_ok=True)
         stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
-        target = folder / f"{path.name}.{stamp}"
-        n = 1
-        while target.exists():
-            target = folder / f"{path.name}.{stamp}-{n}"
-            n += 1
-        os.replace(path, target)
+        try:
+            folder.mkdir(exist_ok=True)
+            target = folder / f"{path.name}.{stamp}"
+            n = 1
+            while target.exists():
+                target = folder / f"{path.name}.{stamp}-{n}"
+                n += 1
+            os.replace(path, target)
+        except OSError as exc:
+            log.error("%s failed verification (%s) and cannot be moved to %s: %s", path, reason,
+                      folder, exc)
+            raise StoreError(f"{path.name} failed verification and cannot be moved to "
+                             f"{folder} ({exc.strerror or exc}); the service's user must be "
+                             "able to write that folder") from exc
         _fsync_dir(self.root)
-        write_atomically(target.with_name(target.name + ".txt"),
-                         f"{path}\nquarantined {stamp}\n{reason}\n".encode())
+        try:
+            write_atomically(target.with_name(target.name + ".txt"),
+                             f"{path}\nquarantined {stamp}\n{reason}\n".encode())
+        except OSError as exc:  # the file is in quarantine: its note is a courtesy
+            log.warning("%s: cannot write its note (%s)", target, exc)
         log.error("%s failed verification (%s); moved to %s", path, reason, target)
         return target
