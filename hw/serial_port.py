@@ -16,6 +16,7 @@ import errno
 import logging
 import os
 import time
+import urllib.parse
 from collections.abc import Callable
 from typing import Any
 
@@ -57,6 +58,32 @@ def _explain(url: str, exc: BaseException) -> str:
     return f"cannot open serial port {url}: {text}"
 
 
+#: The URL schemes open_port() takes, and whether the scheme needs HOST:PORT.
+_URL_SCHEMES = {"loop": False, "socket": True, "rfc2217": True}
+
+
+def check_port_url(url: str) -> None:
+    """A port as :func:`open_port` takes it, checked without opening it: a device path, or a
+    URL of a scheme it knows, with HOST:PORT where the scheme needs them.  Raises
+    :class:`UriError` saying what to give."""
+    if not isinstance(url, str) or not url.strip():
+        raise UriError(f"serial port {url!r}: give {', '.join(SCHEMES)}")
+    if "://" not in url:
+        return
+    scheme = url.split("://", 1)[0].lower()
+    if scheme not in _URL_SCHEMES:
+        raise UriError(f"serial port {url}: unknown scheme {scheme!r}; use {', '.join(SCHEMES)}")
+    if _URL_SCHEMES[scheme]:
+        parts = urllib.parse.urlsplit(url)
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if not parts.hostname or port is None or port == 0:
+            raise UriError(f"serial port {url}: {scheme}:// needs HOST:PORT (a port in 1..65535), "
+                           f"e.g. {scheme}://192.168.1.20:4001")
+
+
 def open_port(url: str, baudrate: int = 115200, timeout: float | None = 0.02,
               **options: Any) -> serial.SerialBase:
     """Open ``url`` (path or pyserial URL) at ``baudrate``, 8N1, raw; reads wait <= ``timeout`` s.
@@ -64,17 +91,12 @@ def open_port(url: str, baudrate: int = 115200, timeout: float | None = 0.02,
     Device paths are locked exclusively (two processes on one port garble each other).  Extra
     ``options`` go to pyserial (``write_timeout``, ``rtscts``...).  Raises PortError / UriError.
     """
-    if not isinstance(url, str) or not url.strip():
-        raise UriError(f"serial port {url!r}: give {', '.join(SCHEMES)}")
+    check_port_url(url)
     if "://" not in url:
         options.setdefault("exclusive", True)
     try:
         return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **options)
     except ValueError as exc:
-        if "protocol" in str(exc) and "not known" in str(exc):
-            scheme = url.split("://", 1)[0]
-            raise UriError(f"serial port {url}: unknown scheme {scheme!r}; use "
-                           f"{', '.join(SCHEMES)}") from exc
         raise PortError(f"serial port {url}: {exc} (check --baud and the port options)") from exc
     except (serial.SerialException, OSError) as exc:
         raise PortError(_explain(url, exc)) from exc

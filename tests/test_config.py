@@ -255,6 +255,36 @@ def test_the_camera_profile_is_a_built_in_or_a_readable_file(tmp_path):
             load_config(path)
 
 
+def test_check_config_refuses_what_run_would_fail_on_the_port_and_the_store(tmp_path):
+    """What `run` failed on with exit 2 (restarted by systemd until its start limit) while
+    check-config and a reload passed it: a serial URL of an unknown scheme or without its
+    port, and a store folder the service cannot use; the reports' folder is not one (its files
+    are lost, never the service)."""
+    from robot_change.service.params import check_config
+
+    state = tmp_path / "state"
+    state.mkdir()
+    ok = f"[store]\nstate_dir = '{state}'\n"
+    check_config(load_config(write(tmp_path, ok + "[serial]\nport = 'socket://127.0.0.1:4001'\n")))
+    for port, said in (("sockt://127.0.0.1:1", "unknown scheme 'sockt'"),
+                       ("socket://127.0.0.1", "needs HOST:PORT"),
+                       ("rfc2217://:4001", "needs HOST:PORT")):
+        with pytest.raises(ConfigError, match=f"serial.port = '{port}': .*{said}"):
+            check_config(load_config(write(tmp_path, ok + f"[serial]\nport = '{port}'\n")))
+    (state / "reports").write_text("not a folder")
+    check_config(load_config(write(tmp_path, ok)))
+    quarantine = state / "references" / "quarantine"
+    quarantine.parent.mkdir()
+    quarantine.write_text("not a folder")
+    with pytest.raises(ConfigError, match=f"{quarantine} is not a folder"):
+        check_config(load_config(write(tmp_path, ok)))
+    quarantine.unlink()
+    quarantine.parent.rmdir()
+    quarantine.parent.write_text("not a folder")
+    with pytest.raises(ConfigError, match=f"{quarantine.parent} is not a folder"):
+        check_config(load_config(write(tmp_path, ok)))
+
+
 def test_viz_defaults_are_off_live_bound_to_localhost_and_keep_twenty(tmp_path):
     viz = load_config(write(tmp_path, "")).viz
     assert (viz.keep_checks, viz.live, viz.live_host, viz.live_port) == (20, False,

@@ -264,8 +264,12 @@ class Service(Dispatch, Sending, Control):
         if self.options.report_dir is not None:
             reports = Path(self.options.report_dir)
             for folder in (reports, reports / "checks"):
-                if remove_temp_files(folder):
-                    log.info("removed temp files left by an interrupted write in %s", folder)
+                try:
+                    if remove_temp_files(folder):
+                        log.info("removed temp files left by an interrupted write in %s", folder)
+                except OSError as exc:  # its files are lost, never the service
+                    log.warning("%s: %s; the checks' files cannot be written there until the "
+                                "service's user owns it", folder, exc.strerror or exc)
         self._pool = concurrent.futures.ThreadPoolExecutor(self.options.detector_threads,
                                                            thread_name_prefix="detector")
         self.views.start()

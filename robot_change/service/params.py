@@ -11,6 +11,7 @@ from pathlib import Path
 
 from hw.depth import open_depth
 from hw.errors import BackendUnavailable, HwError, UriError
+from hw.serial_port import check_port_url
 from robot_change.change.params import ChangeParams
 from robot_change.errors import ConfigError, FleetError, InputError
 from robot_change.export.foxglove import sdk
@@ -42,7 +43,11 @@ def check_config(config: Config) -> None:
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     _check_camera_source(where, config.camera.source)
-    _check_state_dir(where, Path(config.store.state_dir))
+    try:
+        check_port_url(config.serial.port)
+    except UriError as exc:
+        raise ConfigError(f"{where}: serial.port = {config.serial.port!r}: {exc}") from None
+    _check_state_dir(where, Path(config.store.state_dir), config)
     _check_fleet_files(where, config)
     if config.viz.live:
         try:
@@ -84,10 +89,22 @@ def _check_fleet_files(where: str, config: Config) -> None:
         raise ConfigError(f"{where}: {exc}") from None
 
 
-def _check_state_dir(where: str, path: Path) -> None:
+def _check_state_dir(where: str, path: Path, config: Config) -> None:
     """``path`` is a writable folder, or one that can be made (its nearest existing parent is
-    a writable folder)."""
+    a writable folder), and so are the folders in it that the daemon must write (the
+    references, their quarantine, the fleet's spool when it reports) where they exist.  (The
+    reports' folder is not: one that cannot be written costs its files, never the service.)"""
     key = f"{where}: store.state_dir = {str(path)!r}"
+    folders = [config.store.references, config.store.references / "quarantine"]
+    if config.fleet.enabled:
+        folders.append(path / "fleet-spool")
+    for folder in folders:
+        if folder.exists() and not (folder.is_dir() and os.access(folder, os.R_OK | os.W_OK
+                                                                   | os.X_OK)):
+            what = "is not a folder" if not folder.is_dir() else (
+                f"is not readable and writable by this user (uid {os.getuid()})")
+            raise ConfigError(f"{key}: {folder} {what}; the service's user must own it "
+                              "(chown -R it to that user)")
     probe = path
     while not probe.exists():
         if probe.parent == probe:
