@@ -186,6 +186,18 @@ def test_pruning_keeps_the_newest_and_only_touches_check_files(tmp_path: Path) -
     assert prune_checks(tmp_path, 0) and not list(tmp_path.glob("*.mcap"))
 
 
+def test_checks_written_before_the_clock_was_set_back_go_first(tmp_path: Path) -> None:
+    """Files named a day ahead (the clock set back since): pruned as the oldest; they were
+    kept as the newest, and every check written after them was deleted at once."""
+    now = 1_796_000_000_000_000_000
+    ahead = [check_file_name("dock", now + 86_400_000_000_000 + k * 10**9) for k in range(3)]
+    written = [check_file_name("dock", now - 2_000_000_000 + k * 1_000_000_000) for k in range(2)]
+    for name in ahead + written:
+        (tmp_path / name).write_text("x")
+    assert sorted(p.name for p in prune_checks(tmp_path, 2, now_ns=now)) == ahead
+    assert sorted(p.name for p in tmp_path.iterdir()) == written
+
+
 def test_the_real_daemon_serves_a_check_live_to_a_websocket_client(tmp_path: Path) -> None:
     with Daemon(tmp_path, config="[viz]\nlive = true\nlive_port = 0\nkeep_checks = 1\n") as d:
         d.wait_for("READY=1")

@@ -74,10 +74,15 @@ def check_file_name(station: str, stamp_ns: int) -> str:
     return f"{utc}.{ns // 1000:06d}Z-{station}.mcap"
 
 
-def prune_checks(folder: Path, keep: int) -> list[Path]:
+def prune_checks(folder: Path, keep: int, now_ns: int | None = None) -> list[Path]:
     """Delete all but the newest ``keep`` check files in ``folder`` (only files named by
-    :func:`check_file_name`); returns what was deleted."""
-    files = sorted(p for p in folder.iterdir() if _CHECK_FILE.match(p.name))
+    :func:`check_file_name`); returns what was deleted.  A file named more than a minute after
+    ``now_ns`` (the wall clock's now by default) was written before the clock was set back:
+    the oldest, not the newest (it would outlive every check written since)."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    ahead = check_file_name("", now_ns + 60_000_000_000)[:-len("-.mcap")]
+    files = sorted((p for p in folder.iterdir() if _CHECK_FILE.match(p.name)),
+                   key=lambda p: (p.name[:len(ahead)] <= ahead, p.name))
     gone = files[:max(0, len(files) - keep)]
     for path in gone:
         path.unlink(missing_ok=True)
