@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_spool_keeps_order_drops_the_oldest_when_full_and_survives_a_restart(tmp_path,
                                                                               caplog):
-    spool = Spool(tmp_path / "spool", max_bytes=1000)
+    spool = Spool(tmp_path / "spool", max_bytes=1000, block_bytes=1)
     seqs = [spool.append(f"t/{i}", b"x" * 190) for i in range(5)]  # ~194 bytes each
     assert seqs == [1, 2, 3, 4, 5] and spool.counts()["dropped"] == 0
     assert spool.read(1) == ("t/0", b"x" * 190)
@@ -47,12 +47,25 @@ def test_spool_keeps_order_drops_the_oldest_when_full_and_survives_a_restart(tmp
     assert spool.pending(after=3) == [4, 5, 6]
     assert spool.append("big", b"y" * 2000) == -1  # larger than the spool: dropped, counted
     (spool.folder / ".000000000007.msg.abc.tmp").write_bytes(b"half")  # an interrupted write
-    again = Spool(tmp_path / "spool", max_bytes=1000)
+    again = Spool(tmp_path / "spool", max_bytes=1000, block_bytes=1)
     assert again.pending() == [3, 4, 5, 6] and again.counts()["dropped"] == 2
     assert again.append("t/new", b"z") == 7  # numbering goes on after a restart
     assert not list(again.folder.glob(".*.tmp"))
     assert sorted(p.name for p in again.folder.glob("*.msg")) == [
         f"{n:012d}.msg" for n in (3, 4, 5, 6, 7)]
+
+
+def test_the_spool_holds_to_its_size_on_the_disk(tmp_path):
+    """Small messages take whole blocks: counted by their files' sizes, 0.25 MB of spool took
+    0.45 MB of disk."""
+    spool = Spool(tmp_path / "spool", max_bytes=250_000)
+    for i in range(200):
+        spool.append(f"robot-change/r1/checks/{i}", b"x" * 900)
+    used = sum(p.stat().st_blocks * 512 for p in spool.folder.glob("*.msg"))
+    assert 0.8 * spool.max_bytes <= used <= spool.max_bytes
+    assert spool.counts()["bytes"] == used and spool.counts()["dropped"] > 0
+    again = Spool(tmp_path / "spool", max_bytes=250_000)  # counted the same after a restart
+    assert again.counts()["bytes"] == used
 
 
 def test_fleet_tail_says_a_camera_still_opening_is_not_lost():

@@ -4,7 +4,9 @@ restart of the daemon (and a kill -9, and a power cut).
 One file per message, ``<seq>.msg`` (12 digits, in order), holding the topic, a newline and the
 payload, each written atomically (:mod:`hw.atomic`: a reader or a crash sees the whole file or
 none).  A message leaves the spool when the broker has acknowledged it (QoS 1 PUBACK).  When a
-new message would take the spool past ``max_bytes``, the oldest ones are dropped and counted;
+new message would take the spool past ``max_bytes`` on the disk (each file counted in whole
+blocks of the file system: a 900-byte message takes 4 KiB), the oldest ones are dropped and
+counted;
 the count (of messages: a report with a change is two, its check's and its change's) is kept
 in ``dropped.count`` (atomically too), so it outlives restarts, and shows in the robot's
 status; a drop is logged (at most once a minute).  A file that cannot be read back is moved
@@ -34,14 +36,17 @@ _DROPPED = "dropped.count"
 class Spool:
     """A bounded on-disk queue of (topic, payload) messages in ``folder`` (module docstring).
 
-    Thread-safe: one writer appends while another thread reads and removes.  Raises
-    ``OSError`` when the folder cannot be made.
+    Thread-safe: one writer appends while another thread reads and removes.  ``block_bytes``:
+    the file system's block (its ``f_frsize`` by default).  Raises ``OSError`` when the folder
+    cannot be made.
     """
 
-    def __init__(self, folder: str | os.PathLike, max_bytes: int) -> None:
+    def __init__(self, folder: str | os.PathLike, max_bytes: int,
+                 block_bytes: int | None = None) -> None:
         self.folder = Path(folder)
         self.max_bytes = int(max_bytes)
         self.folder.mkdir(parents=True, exist_ok=True)
+        self.block_bytes = max(1, int(block_bytes or os.statvfs(self.folder).f_frsize or 4096))
         self._lock = threading.Lock()
         self._throttled = Throttled(log, every=60.0)
         self._sizes: collections.OrderedDict[int, int] = collections.OrderedDict()
@@ -51,7 +56,7 @@ class Spool:
         for path in self.folder.iterdir():
             match = _NAME.match(path.name)
             if match:
-                found.append((int(match.group(1)), path.stat().st_size))
+                found.append((int(match.group(1)), self._on_disk(path.stat().st_size)))
         for seq, size in sorted(found):
             self._sizes[seq] = size
         self._bytes = sum(self._sizes.values())
@@ -64,15 +69,16 @@ class Spool:
         """Keep a message; returns its sequence number (-1 when it is larger than the whole
         spool and was dropped).  The oldest messages make room (dropped and counted)."""
         data = topic.encode("utf-8") + b"\n" + payload
+        size = self._on_disk(len(data))
         with self._lock:
-            if len(data) > self.max_bytes:
+            if size > self.max_bytes:
                 self._count_dropped(1)
                 log.warning("fleet spool: a message of %d bytes is larger than the spool "
                             "(%d bytes) and was dropped; raise fleet.spool_mb", len(data),
                             self.max_bytes)
                 return -1
             victims = []
-            while self._sizes and self._bytes + len(data) > self.max_bytes:
+            while self._sizes and self._bytes + size > self.max_bytes:
                 seq, size = self._sizes.popitem(last=False)
                 self._bytes -= size
                 victims.append(seq)
@@ -90,9 +96,13 @@ class Spool:
                             self.max_bytes, len(victims), dropped)
         write_atomically(self._path(seq), data)
         with self._lock:
-            self._sizes[seq] = len(data)
-            self._bytes += len(data)
+            self._sizes[seq] = size
+            self._bytes += size
         return seq
+
+    def _on_disk(self, n: int) -> int:
+        """Bytes a file of ``n`` bytes takes on the disk: whole blocks."""
+        return -(-n // self.block_bytes) * self.block_bytes
 
     def remove(self, seq: int) -> None:
         """The broker has the message: forget it (a message dropped meanwhile is no error)."""
@@ -138,7 +148,8 @@ class Spool:
         return text, payload
 
     def counts(self) -> dict[str, int]:
-        """queued (messages), bytes, max_bytes, dropped (ever, this spool), bad."""
+        """queued (messages), bytes (on the disk), max_bytes, dropped (ever, this spool),
+        bad."""
         with self._lock:
             return {"queued": len(self._sizes), "bytes": self._bytes,
                     "max_bytes": self.max_bytes, "dropped": self.dropped, "bad": self.bad}
