@@ -163,14 +163,15 @@ class _RealSenseFeed(FrameFeed):
         for device in rs.context().query_devices():
             with contextlib.suppress(Exception):
                 serials.append(str(device.get_info(rs.camera_info.serial_number)))
-        if not serials:
+        if not serials and not target:
             raise ChildFailure("not_found", "no RealSense camera is connected. " + _NO_CAMERA_HINT)
         if not target:
             return serials[0]
         if target not in serials:
+            connected = f"connected: {', '.join(serials)}" if serials else "none is connected"
             raise ChildFailure("not_found", f"no RealSense camera with serial number {target!r} "
-                                            f"(connected: {', '.join(serials)}). "
-                                            + _NO_CAMERA_HINT)
+                                            f"({connected}; a recording is named by its file, "
+                                            f"e.g. realsense:{target}.db3). " + _NO_CAMERA_HINT)
         return target
 
     def _set_options(self, sensor: Any) -> None:
@@ -286,8 +287,9 @@ def open_realsense(target: str = "", **options: Any) -> RealSenseSource:
     ``rate`` (recordings); ``slots``, ``start_timeout``, ``stall_timeout``, ``lost_after``,
     ``max_restarts`` (both).  Returned unopened."""
     target = target.strip()
-    # a serial number is letters and digits; anything else names a file
-    is_file = not re.fullmatch(r"[0-9A-Za-z_-]*", target.strip("/")) or Path(target).is_file()
+    # a serial number is letters and digits; anything else, or what exists here, names a file
+    is_file = not re.fullmatch(r"[0-9A-Za-z_-]*", target.strip("/")) or \
+        (bool(target) and Path(target).exists())
     camera = {"resolution": _resolution, "fps": _fps, "preset": _preset,
               "emitter": lambda value: flag("RealSense", "emitter", value)}
     for key in options:
@@ -303,10 +305,11 @@ def open_realsense(target: str = "", **options: Any) -> RealSenseSource:
 def _resolution(value: Any) -> tuple[int, int]:
     if isinstance(value, tuple):
         return value
-    match = re.fullmatch(r"\s*(\d{2,5})\s*[xX]\s*(\d{2,5})\s*", str(value))
-    if not match:
-        raise UriError(f"RealSense option resolution={value!r}: WIDTHxHEIGHT, e.g. 640x480 or "
-                       "848x480")
+    match = re.fullmatch(r"\s*(\d{1,5})\s*[xX]\s*(\d{1,5})\s*", str(value))
+    if not match or min(int(match.group(1)), int(match.group(2))) < 16:
+        raise UriError(f"RealSense option resolution={value!r}: a depth mode's WIDTHxHEIGHT, "
+                       "each at least 16 pixels (a D4xx's: 424x240, 480x270, 640x360, 640x480, "
+                       "848x480, 1280x720)")
     return int(match.group(1)), int(match.group(2))
 
 

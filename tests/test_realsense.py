@@ -246,14 +246,23 @@ def test_a_recording_cut_short_ends_with_the_frames_it_has(tmp_path, twelve):
         assert source.read() is None
 
 
-def test_no_camera_is_a_clear_device_not_found_and_options_are_checked():
+def test_no_camera_is_a_clear_device_not_found_and_options_are_checked(tmp_path,
+                                                                       monkeypatch):
     if list_devices():
         pytest.skip("a RealSense camera is connected")
     with pytest.raises(DeviceNotFound, match="no RealSense camera is connected.*udev"):
         open_depth("realsense://").open()
-    with pytest.raises(DeviceNotFound):
+    with pytest.raises(DeviceNotFound, match="serial number '123622270300' .none is connected; "
+                                             r"a recording is named by its file, e\.g\. "
+                                             r"realsense:123622270300\.db3"):
         open_depth("realsense://123622270300?resolution=848x480&fps=30&preset=high_accuracy").open()
+    # a folder or file that is there is a recording's name, never a serial number
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run_bag").mkdir()
+    with pytest.raises(DepthFileError, match="run_bag"):
+        open_depth("realsense:run_bag").open()
     for uri, message in (("realsense://?resolution=big", "WIDTHxHEIGHT"),
+                         ("realsense://?resolution=999x1", "each at least 16 pixels"),
                          ("realsense://?preset=ultra", "one of custom, default"),
                          ("realsense://?fps=0", "fps"), ("realsense://?lopp=1", "unknown"),
                          ("realsense://?loop=1", "for recordings"),
