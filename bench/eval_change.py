@@ -605,6 +605,8 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from robot_change.export import APPEARED_RGB, DISAPPEARED_RGB
+
     folder.mkdir(parents=True, exist_ok=True)
     # the groups with changes to find (not_at_station and the hand-held no-change pairs have none)
     groups = [g for g in report["results"] if "not_at_station" not in g and "hand-held" not in g
@@ -645,7 +647,8 @@ def plots(report: dict, caches: dict, params: ChangeParams, folder: Path) -> Non
             d[d == 0] = np.nan
             ax.imshow(d, cmap="gray_r")
             over = np.zeros(mask.shape + (4,))
-            over[mask] = (1, 0, 0, 0.6) if "appeared" == title.split()[-1] else (0, 0.3, 1, 0.6)
+            over[mask] = (*(APPEARED_RGB if title.endswith(" appeared") else DISAPPEARED_RGB),
+                          0.6)
             ax.imshow(over)
             ax.contour(truth, levels=[0.5], colors="yellow", linewidths=0.7)
             ax.set_title(f"{name} {title} ({int(mask.sum())} px)", fontsize=8)

@@ -26,6 +26,7 @@ from robot_change.commands.common import (
     _read_depth,
     _read_frames,
 )
+from robot_change.export import APPEARED_RGB, DISAPPEARED_RGB
 
 #: ``detect --exit-code``: the exit status of each outcome (2 stays "an error").
 DETECT_EXIT = {"no_change": 0, "changed": 1, "not_at_station": 3}
@@ -42,8 +43,9 @@ def _describe_plane(plane) -> dict[str, Any] | None:
     }
 
 
-#: Colours of the changed points in .pcd / .ply files (r, g, b).
-APPEARED_COLOR, DISAPPEARED_COLOR = (0, 200, 0), (220, 0, 0)
+#: Colours of the changed points in .pcd / .ply files (r, g, b, 0..255).
+APPEARED_COLOR, DISAPPEARED_COLOR = (tuple(round(255 * c) for c in rgb)
+                                     for rgb in (APPEARED_RGB, DISAPPEARED_RGB))
 
 
 def _points_frame(fmt: str, mount: CameraMount | None) -> str:

@@ -37,6 +37,7 @@ from robot_change.change.mount import BODY_FROM_OPTICAL, CameraMount
 from robot_change.change.registration import invert, rpy_deg_to_rotation
 from robot_change.change.results import ChangeSet
 from robot_change.errors import InputError
+from robot_change.export import APPEARED_RGB, DISAPPEARED_RGB
 from robot_change.mixture.model import Mixture
 
 __all__ = [
@@ -80,8 +81,6 @@ SIGMAS = 3.0
 # colours (r, g, b) in 0..1
 _CLOUD_CURRENT = (0.55, 0.75, 1.0)
 _CLOUD_REFERENCE = (1.0, 0.75, 0.5)
-_APPEARED = (0.1, 0.9, 0.2)
-_DISAPPEARED = (0.95, 0.15, 0.1)
 _LOW_WEIGHT = np.array([0.15, 0.35, 1.0])  # the lightest component of a mixture ...
 _HIGH_WEIGHT = np.array([1.0, 0.85, 0.1])  # ... and the heaviest
 
@@ -231,7 +230,7 @@ def _regions(m: Any, stamp: Any, changes: ChangeSet) -> list[Any]:
     up is -y)."""
     out = []
     for number, region in enumerate(changes.regions, 1):
-        rgb = _APPEARED if region.kind == "appeared" else _DISAPPEARED
+        rgb = APPEARED_RGB if region.kind == "appeared" else DISAPPEARED_RGB
         centre = (np.asarray(region.bbox_min) + np.asarray(region.bbox_max)) / 2.0
         top = (centre[0], float(region.bbox_min[1]) - 0.05, centre[2])
         out.append(m.SceneEntity(
@@ -251,9 +250,9 @@ def _novelty(m: Any, stamp: Any, changes: ChangeSet) -> list[Any]:
     accepted ones (the change) drawn stronger."""
     out = []
     for kind, mixture, trace, rgb in (
-            ("appeared", changes.appeared_mixture, changes.greedy_appeared, _APPEARED),
+            ("appeared", changes.appeared_mixture, changes.greedy_appeared, APPEARED_RGB),
             ("disappeared", changes.disappeared_mixture, changes.greedy_disappeared,
-             _DISAPPEARED)):
+             DISAPPEARED_RGB)):
         if mixture is None or trace is None:
             continue
         accepted = {int(k) for k in trace.change}
@@ -325,9 +324,9 @@ def check_messages(reference: Any, current_depth: np.ndarray, changes: ChangeSet
         "/reference/depth/camera_info": _calibration(m, stamp, reference_frame, camera),
         "/current/cloud": _cloud(m, stamp, current, current_points, _CLOUD_CURRENT),
         "/reference/cloud": _cloud(m, stamp, reference_frame, ref.points, _CLOUD_REFERENCE),
-        "/change/appeared": _cloud(m, stamp, current, changes.appeared_points, _APPEARED),
+        "/change/appeared": _cloud(m, stamp, current, changes.appeared_points, APPEARED_RGB),
         "/change/disappeared": _cloud(m, stamp, current, changes.disappeared_points,
-                                      _DISAPPEARED),
+                                      DISAPPEARED_RGB),
         "/reference/mixture": _scene(m, stamp, mixture_entities),
         "/change/novelty": _scene(m, stamp, _novelty(m, stamp, changes)),
         "/change/regions": _scene(m, stamp, _regions(m, stamp, changes)),

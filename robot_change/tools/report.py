@@ -14,6 +14,7 @@ from hw.depth import Intrinsics
 from robot_change.cloud.chain import PIXEL_KEPT, PIXEL_OUTLIER, PIXEL_PLANE, CleanCloud
 from robot_change.cloud.geometry import project_points
 from robot_change.errors import InputError
+from robot_change.export import APPEARED_RGB, DISAPPEARED_RGB
 
 
 def _pyplot():
@@ -130,9 +131,6 @@ def draw_cloud(
         plt.close(figure)
 
 
-#: Colours of the change picture: appeared (current image), disappeared (reference image).
-APPEARED_COLOUR = (0.90, 0.15, 0.15)
-DISAPPEARED_COLOUR = (0.15, 0.40, 0.95)
 
 
 def _depth_range(depth: np.ndarray) -> tuple[float, float]:
@@ -381,10 +379,10 @@ def change_figure(
     # the CLI, report.json and Foxglove count them
     panels = (
         (axes[0], reference_depth, changes.disappeared_mask, tuple(changes.disappeared),
-         changes.disappeared_mixture, DISAPPEARED_COLOUR, "reference: what disappeared",
+         changes.disappeared_mixture, DISAPPEARED_RGB, "reference: what disappeared",
          len(changes.appeared) + 1),
         (axes[1], current_depth, changes.appeared_mask, tuple(changes.appeared),
-         changes.appeared_mixture, APPEARED_COLOUR, "current: what appeared", 1),
+         changes.appeared_mixture, APPEARED_RGB, "current: what appeared", 1),
     )
     try:
         to_label = []
