@@ -120,10 +120,11 @@ class CameraConfig(_Section):
                                      "frames")
     read_timeout_s: float = _key(1.0, _float(0.0, 30.0, " seconds", lo_open=True),
                                  "longest wait for one frame before the camera counts as lost")
-    mount_xyz_m: tuple = _key((0.0, 0.0, 0.0), _triple(10.0, " m"),
+    mount_xyz_m: tuple = _key((0.0, 0.0, 0.0), _triple(10.0, " m", "[0.2, 0.0, 0.45]"),
                               "the camera on the base: its body frame (x forward, y left, z up) "
                               "in base_link, metres")
-    mount_rpy_deg: tuple = _key((0.0, 0.0, 0.0), _triple(180.0, " degrees"),
+    mount_rpy_deg: tuple = _key((0.0, 0.0, 0.0),
+                                _triple(180.0, " degrees", "[0.0, 10.0, 0.0] (tilted 10 deg down)"),
                                 "the camera on the base: roll, pitch, yaw of its body frame in "
                                 "base_link, degrees (a camera tilted down 10 deg: [0, 10, 0])")
     profile: str = _key(AUTO_PROFILE, _choice((AUTO_PROFILE, *BUILTIN)),

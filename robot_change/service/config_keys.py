@@ -78,11 +78,11 @@ def _broker(owner: str, name: str, value: Any) -> str:
     return value
 
 
-def _triple(limit: float, unit: str) -> Check:
+def _triple(limit: float, unit: str, example: str) -> Check:
     def check(owner: str, name: str, value: Any) -> tuple[float, float, float]:
         if not isinstance(value, (list, tuple)) or len(value) != 3:
             raise BadValue(owner, name, value, f"three numbers, each within +-{limit}{unit}, "
-                           "e.g. [0.2, 0.0, 0.45]", wrong_type=True)
+                           f"e.g. {example}", wrong_type=True)
         return tuple(validate.number(owner, f"{name}[{i}]", v, -limit, limit, unit=unit)
                      for i, v in enumerate(value))  # type: ignore[return-value]
     return check
