@@ -418,6 +418,8 @@ def test_calibrate_measures_a_still_view_and_capture_keeps_the_profile(tmp_path)
     assert result.returncode == 0, result.stderr
     told = json.loads(result.stdout)
     assert told["frames"] == 3 and told["bins"] and told["file"] == str(camera)
+    # the recording's 3 frames, not the 30 asked for by default: said
+    assert "ended after 3 of the 30 frames asked for" in result.stderr, result.stderr
     profile = NoiseProfile.load(camera)
     kinect = builtin_profile("kinect_v1")
     assert profile.name == "measured:kinect_v1" and profile.measured_use == "replace"

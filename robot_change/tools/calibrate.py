@@ -9,6 +9,7 @@ measured quantisation step, flicker and edge figures.
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,8 @@ from hw.depth import DepthSource
 from robot_change.errors import InputError
 from robot_change.noise.estimate import FrameNoise, drift_limit, profile_from_frames
 from robot_change.noise.profile import NoiseProfile
+
+log = logging.getLogger(__name__)
 
 __all__ = ["calibrate", "calibration_summary"]
 
@@ -49,6 +52,10 @@ def calibrate(source: DepthSource, base: NoiseProfile, out: Path, frames: int = 
     if len(stack) < 2:
         raise InputError(f"{uri}: {len(stack)} frame(s) read; calibrating needs at least 2 of "
                          "a still view (a recording that ended, or a camera that stopped?)")
+    if len(stack) < frames:
+        log.warning("%s ended after %d of the %d frames asked for: the profile is measured on "
+                    "%d (its flicker and steps are rough from few frames)", uri, len(stack),
+                    frames, len(stack))
     if all(np.array_equal(stack[0], depth) for depth in stack[1:]):
         raise InputError(f"{uri}: the {len(stack)} frames are identical, so there is no noise "
                          "to measure (one image or frame looped, or a camera repeating its "
