@@ -297,6 +297,22 @@ def test_check_config_accepts_the_example_and_refuses_a_bad_file_with_exit_78(tm
     tomllib.loads(result.stdout)  # the notes are comments: the output still reads back
 
 
+def test_check_config_notes_a_password_sent_in_clear_text(tmp_path):
+    (tmp_path / "pw").write_text("hunter2\n")
+    notes = {}
+    for url in ("mqtt://broker.lan", "mqtts://broker.lan", "mqtt://localhost"):
+        path = tmp_path / "fleet.toml"
+        path.write_text(f'[store]\nstate_dir = "{tmp_path}"\n[fleet]\nbroker = "{url}"\n'
+                        'username = "r7"\npassword_file = "pw"\n')
+        result = run("check-config", str(path))
+        assert result.returncode == 0, result.stderr
+        notes[url] = [line for line in result.stdout.splitlines() if "clear text" in line]
+    assert notes["mqtt://broker.lan"] == ["# note: fleet.broker: the password goes to broker.lan "
+                                          "in clear text over mqtt://: use mqtts:// "
+                                          '(docs/deployment.md, "A fleet on an MQTT broker")']
+    assert notes["mqtts://broker.lan"] == notes["mqtt://localhost"] == []
+
+
 SCENES = REPO / "sim_fixtures" / "scenes"
 
 

@@ -25,6 +25,7 @@ from robot_change.fleet import messages
 from robot_change.fleet.connection import BrokerSettings, new_client, open_connection
 from robot_change.fleet.publisher import Publisher
 from robot_change.fleet.spool import Spool
+from robot_change.service.daemon import fleet_status
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -267,6 +268,8 @@ def test_a_message_the_acl_refuses_stays_spooled_and_is_said_until_the_acl_allow
                 time.sleep(0.05)
             error = publisher.counts()["last_error"]
             assert "robot-change/r1/changes/office" in error and "ACL" in error, error
+            # systemctl status says why too (it said "fleet down" alone)
+            assert fleet_status(publisher.counts()).startswith(f"fleet down ({error[:60]}), ")
             assert len(spool) == 1 and spool.read(spool.pending()[0])[0].endswith(
                 "/changes/office")
             seen.wait(lambda c: len(c.of("/checks/")) == 1, 10, "the check's message")

@@ -61,4 +61,6 @@ def _absent_now(config) -> list[str]:
     port = str(config.serial.port)
     if "://" not in port and not Path(port).exists():
         notes.append(f"serial.port: {port} does not exist now (the daemon waits for it)")
+    if config.fleet.enabled and config.fleet.settings().cleartext_warning():
+        notes.append(f"fleet.broker: {config.fleet.settings().cleartext_warning()}")
     return notes

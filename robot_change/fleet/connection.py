@@ -76,6 +76,15 @@ class BrokerSettings:
     def tls(self) -> bool:
         return self.scheme == "mqtts"
 
+    def cleartext_warning(self) -> str:
+        """Why the password would cross the network readable (a password over ``mqtt://`` to
+        a host other than this machine), or ""."""
+        if self.password_file is None or self.tls or self.host in ("localhost", "127.0.0.1",
+                                                                    "::1"):
+            return ""
+        return (f"the password goes to {self.host} in clear text over mqtt://: use mqtts:// "
+                "(docs/deployment.md, \"A fleet on an MQTT broker\")")
+
     def password(self) -> str | None:
         """The password in ``password_file`` (None without one).  Raises :class:`FleetError`
         naming the file (never its content) when it cannot be read."""

@@ -281,6 +281,8 @@ class Service(Dispatch, Sending, Control):
                              ("monitor", self._monitor_main)):
             self._start_thread(name, target)
         if self.fleet is not None:
+            if self.fleet.settings.cleartext_warning():
+                log.warning("fleet: %s", self.fleet.settings.cleartext_warning())
             self.fleet.start()
             log.info("fleet: reports to %s as robot %s (spool %s: %d waiting)",
                      self.fleet.settings.url, self.fleet.robot, self.fleet.spool.folder,

@@ -230,11 +230,15 @@ def _status_line(service: Service) -> str:
     where = f" {service.station}" if service.station else ""
     camera = ("camera ok" if service.camera_ok else f"camera lost: {service.camera_error}"
               if service.camera_error else "camera opening")
-    fleet = ""
-    if service.fleet is not None:
-        counts = service.fleet.counts()
-        spool = counts["spool"]
-        fleet = (f"; fleet {counts['connection']}, {spool['queued']} spooled"
-                 + (f", {spool['dropped'] + counts['queue_dropped']} dropped"
-                    if spool["dropped"] + counts["queue_dropped"] else ""))
+    fleet = "" if service.fleet is None else "; " + fleet_status(service.fleet.counts())
     return f"{state}{where}; {camera}; link {service.link.state.value}{fleet}"[:200]
+
+
+def fleet_status(counts: dict) -> str:
+    """The fleet's part of STATUS= from :meth:`Publisher.counts`: its connection (down: why,
+    cut short), what waits in the spool, what was dropped."""
+    spool = counts["spool"]
+    dropped = spool["dropped"] + counts["queue_dropped"]
+    why = counts["last_error"] if counts["connection"] == "down" else ""
+    return (f"fleet {counts['connection']}" + (f" ({why[:60]})" if why else "")
+            + f", {spool['queued']} spooled" + (f", {dropped} dropped" if dropped else ""))
