@@ -14,6 +14,7 @@ so far kept as a finished recording.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import logging
 import os
@@ -34,6 +35,9 @@ log = logging.getLogger(__name__)
 #: bag folder with MCAP storage, as ``ros2 bag record -s mcap`` makes) and ``realsense`` (a
 #: RealSense ``.db3``: :func:`hw.realsense_record.write_realsense_recording`).
 FORMATS = ("oni", "rosbag2", "realsense")
+#: A frame stamped before this (µs since 1970: 2001-09-09) carries a camera's clock (time since
+#: it started: OpenNI2, a RealSense's hardware clock) or a frame count, not the time of day.
+CLOCK_TIME_FROM_US = 10**15
 
 
 def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | None = None,
@@ -49,7 +53,9 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
     at 0; ``codec`` ``"16zt"`` (lossless, about 4x smaller than raw on Kinect depth), ``"16z"``
     (lossless, for unquantised depth) or ``"none"``.  ``rosbag2``: ``out_path`` is the bag's
     folder (it must not exist yet), header stamps are the frames' timestamps as they are
-    (:func:`hw.rosbag.write_rosbag2`), the camera's name and serial in its metadata;
+    (:func:`hw.rosbag.write_rosbag2`) when they are times of day, else (a camera's own clock,
+    a frame count: :data:`CLOCK_TIME_FROM_US`) moved to the time of day the first frame was
+    recorded, as ROS tools expect; the camera's name and serial in its metadata;
     ``realsense``: ``out_path`` ends in ``.db3``, frame numbers and timestamps as they are;
     ``codec`` ``"png"`` (librealsense's compressedDepth) or ``"none"`` (raw Images).  Each
     keeps the frames' intrinsics and the camera's name.  ``progress(frames, seconds,
@@ -79,7 +85,8 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
         if format == "rosbag2":
             from hw.rosbag import write_rosbag2
 
-            return write_rosbag2(out_path, everything, camera=info, on_frame=tell)
+            return write_rosbag2(out_path, _times_of_day(everything), camera=info,
+                                 on_frame=tell)
         fps = int(info.get("fps") or 30)
         if format == "realsense":
             from hw.realsense_record import write_realsense_recording
@@ -90,6 +97,21 @@ def record(source: DepthSource, out_path: str | os.PathLike[str], frames: int | 
                                              compress=codec != "none")
         return write_oni(out_path, everything, fps=fps, codec=codec, on_frame=tell,
                          camera=str(info.get("name") or ""))
+
+
+def _times_of_day(frames: Iterator[DepthFrame]) -> Iterator[DepthFrame]:
+    """``frames`` with timestamps that are not times of day (:data:`CLOCK_TIME_FROM_US`) moved
+    by one offset so that the first is now; others as they are."""
+    offset = None
+    for frame in frames:
+        if offset is None:
+            offset = 0 if frame.timestamp_us >= CLOCK_TIME_FROM_US else \
+                time.time_ns() // 1000 - frame.timestamp_us
+            if offset:
+                log.info("the frames are stamped by the camera's clock (%d µs): recorded with "
+                         "the time of day added", frame.timestamp_us)
+        yield dataclasses.replace(frame, timestamp_us=frame.timestamp_us + offset) if offset \
+            else frame
 
 
 @contextlib.contextmanager

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -364,10 +365,15 @@ def test_bare_paths_pick_the_rosbag_backend(tmp_path):
 
 # --- writing: record to a ROS 2 bag ---------------------------------------------------------
 def test_record_to_rosbag2_reads_back_through_rosbags_itself(tmp_path):
+    """Every field read back by rosbags; the .oni's stamps (the camera's clock, from 0) moved
+    to the time of day of the recording, as ROS tools expect (they showed 1970)."""
     originals = read_oni_frames(SCENE / "current.oni")
+    assert originals[0].timestamp_us < 10**7  # the camera's clock
     out = tmp_path / "run1"
+    before = time.time_ns() // 1000
     with open_depth(f"oni:{SCENE / 'current.oni'}") as source:
         assert record(source, out, format="rosbag2") == 3
+    offset = None
     assert sorted(p.name for p in out.iterdir()) == ["metadata.yaml", "run1.mcap"]
     assert [p.name for p in tmp_path.iterdir()] == ["run1"]  # no temp folder left
     with AnyReader([out]) as reader:
@@ -383,18 +389,21 @@ def test_record_to_rosbag2_reads_back_through_rosbags_itself(tmp_path):
         assert (image.encoding, image.is_bigendian, image.step) == ("16UC1", 0, 1280)
         assert image.header.frame_id == info.header.frame_id == "camera_depth_optical_frame"
         stamp_us = image.header.stamp.sec * 1_000_000 + image.header.stamp.nanosec // 1000
-        assert stamp_us == original.timestamp_us and image.header.stamp == info.header.stamp
+        offset = stamp_us - original.timestamp_us if offset is None else offset
+        assert stamp_us == original.timestamp_us + offset
+        assert image.header.stamp == info.header.stamp
         np.testing.assert_array_equal(image.data.view("<u2").reshape(480, 640), original.depth)
         cam = original.intrinsics
         np.testing.assert_allclose(info.k, [cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1])
         assert info.distortion_model == "plumb_bob" and not np.any(info.d)
+    assert before <= originals[0].timestamp_us + offset <= time.time_ns() // 1000
     log_times = [t for topic, t, _ in messages if topic == DEPTH]
-    assert log_times == [f.timestamp_us * 1000 for f in originals]
+    assert log_times == [(f.timestamp_us + offset) * 1000 for f in originals]
     # and our reader gives the frames back as they were
     frames, camera = read_all(f"rosbag:{out}")
     assert camera == originals[0].intrinsics
     for frame, original in zip(frames, originals, strict=True):
-        assert frame.timestamp_us == original.timestamp_us
+        assert frame.timestamp_us == original.timestamp_us + offset
         np.testing.assert_array_equal(frame.depth, original.depth)
 
 
