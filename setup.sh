@@ -35,5 +35,5 @@ fi
 echo "setup.sh: installing robot-change[$extras] into .venv" >&2
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[$extras]"
 # compile the numba kernels now (cached beside the package), so that the first run does not
-echo "setup.sh: compiling the numba kernels (once; about 26 s on a 2-core machine)" >&2
+echo "setup.sh: compiling the numba kernels (once; about 30 s on a 2-core machine)" >&2
 .venv/bin/robot-change warm-up
