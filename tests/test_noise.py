@@ -61,8 +61,9 @@ def test_the_kernels_read_the_profile_as_its_numpy_twin_does():
         table = profile.kernel_table()
         got = _sigmas(table, z)
         np.testing.assert_allclose(got, table_sigma(table, z), rtol=1e-12)
-        inside = (z > 0.4) & (z <= 12.0)  # the table follows the profile's own sigma
-        np.testing.assert_allclose(got[inside], profile.sigma(z[inside]), rtol=2e-3)
+        inside = (z > 0.4) & (z <= 12.0)  # the table follows the profile's own sigma (within
+        np.testing.assert_allclose(got[inside], profile.sigma(z[inside]), rtol=3e-3)  # 0.3 %:
+        # linear between 5 cm samples, the D405's short baseline curves most, 0.27 % at 0.4 m)
         margins = _margins(table, z, 3.0, 0.01, 0.03, 0.004)
         s = table_sigma(table, z)
         np.testing.assert_allclose(margins[0], 3.0 * np.sqrt(2 * s * s + 1e-4), rtol=1e-12)
