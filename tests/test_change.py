@@ -299,6 +299,25 @@ def test_camera_sees_nothing_is_a_typed_error(models):
         detect_changes(ref, too_close, intrinsics=sc.intrinsics)
 
 
+def test_a_view_that_reads_little_of_the_station_is_a_typed_error_not_no_change(models):
+    """A lens covered 90 % (or held up close) left a view whose last tenth registered and
+    compared as unchanged: `no_change`.  Now the share of the reference's readings the view
+    does not read (0.9) says it cannot tell; a view blind on a third of it still compares."""
+    sc, ref, _ = models["office_no_change"]
+    frame = sc.current_frames()[0]
+    covered = frame.copy()
+    covered[:, :576] = 0
+    with pytest.raises(EmptySceneError, match=r"reads nothing where the reference read [89]\d%"):
+        detect_changes(ref, covered, intrinsics=sc.intrinsics)
+    held_close = frame.copy()
+    held_close[:, :576] = 250  # a hand 25 cm away: nearer than the camera's minimum range
+    with pytest.raises(EmptySceneError, match="nearer than the camera's minimum range"):
+        detect_changes(ref, held_close, intrinsics=sc.intrinsics)
+    third = frame.copy()
+    third[:, :213] = 0
+    assert detect_changes(ref, third, intrinsics=sc.intrinsics).outcome == "no_change"
+
+
 # --------------------------------------------------------------------------- numba twins
 
 

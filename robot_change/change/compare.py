@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hw.depth import Intrinsics
+from robot_change.change.blind import unread_share
 from robot_change.change.epoch import (
     Epoch,
     as_epoch,
@@ -39,6 +40,7 @@ from robot_change.change.registration import (
 )
 from robot_change.change.results import ChangeSet, GreedyTrace
 from robot_change.change.scene import SceneModel
+from robot_change.errors import EmptySceneError
 from robot_change.mixture.model import Mixture, fit_mixture
 
 __all__ = [
@@ -154,6 +156,14 @@ def align(reference: Reference, current: Current, params: ChangeParams,
     if isinstance(reg, Exception):
         raise reg
     timings["registration_ms"] = reg.ms
+    unread = unread_share(ref.depth, current_depth, ref.intrinsics, reg.T_ref_from_cur,
+                          params.registration, ref.derived, cur.derived)
+    if unread > params.max_unread_share:
+        raise EmptySceneError(
+            f"the current view reads nothing where the reference read {unread:.0%} of what it "
+            f"sees from here (> max_unread_share = {params.max_unread_share:.0%}): the lens "
+            f"covered, or something nearer than the camera's minimum range; treat it as a "
+            f"fault")
     reason = reg.not_at_station(params.registration)
     if reason:
         return Aligned(ref, cur, reg, reason)
