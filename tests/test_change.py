@@ -287,6 +287,26 @@ def test_mismatched_intrinsics_or_params_raise(models):
         detect_changes(ref, coarse)
 
 
+def test_intrinsics_within_the_tolerance_are_one_camera_and_another_size_is_a_mismatch(models):
+    """check_compatible took fx 1e-6 px apart (INTRINSICS_TOLERANCE_PX) and detect_changes
+    refused it; a frame of another size without intrinsics was a bare InputError."""
+    from hw.depth import Intrinsics
+
+    sc, ref, _ = models["office_box_added"]
+    frame = sc.current_frames()[0]
+    k = ref.intrinsics
+    near = Intrinsics(k.width, k.height, k.fx + 1e-6, k.fy, k.cx - 1e-4, k.cy)
+    same = detect_changes(ref, frame)
+    nearly = detect_changes(ref, frame, intrinsics=near)
+    assert nearly.outcome == same.outcome == "changed"
+    assert np.array_equal(nearly.appeared_points, same.appeared_points)
+    with pytest.raises(SceneMismatchError, match="does not match the reference"):
+        detect_changes(ref, np.ascontiguousarray(frame[::2, ::2]))
+    far = Intrinsics(k.width, k.height, k.fx + 0.01, k.fy, k.cx, k.cy)
+    with pytest.raises(SceneMismatchError, match="fx"):
+        detect_changes(ref, frame, intrinsics=far)
+
+
 def test_camera_sees_nothing_is_a_typed_error(models):
     # Deliberately an error, not "no change": an all-zero frame may be a covered lens or
     # something closer than the sensor's minimum range.

@@ -16,6 +16,7 @@ from robot_change.change.scene import (
     COMPARED_CLOUD_FIELDS,
     SceneModel,
     check_compatible,
+    intrinsics_differences,
 )
 from robot_change.cloud.chain import CloudParams, clean_cloud
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
@@ -132,7 +133,8 @@ def as_epoch(obj: Any, name: str) -> Epoch:
 
 
 def check_pair(ref: Epoch, cur: Epoch, params: ChangeParams) -> None:
-    if ref.depth.shape != cur.depth.shape or ref.intrinsics != cur.intrinsics:
+    if ref.depth.shape != cur.depth.shape or intrinsics_differences(ref.intrinsics,
+                                                                    cur.intrinsics):
         _raise_mismatch(f"reference {ref.depth.shape[::-1]} {ref.intrinsics} and current "
                         f"{cur.depth.shape[::-1]} {cur.intrinsics} differ in image size or "
                         f"intrinsics; take both with the same camera mode, or rebuild the "
@@ -161,7 +163,9 @@ def _raise_mismatch(message: str) -> None:
 def check_current_depth(reference: Epoch, current: np.ndarray, intrinsics: Intrinsics | None,
                         reference_model: Any = None) -> Intrinsics:
     """The checks of a current depth array against the reference (dtype, shape, camera, the
-    reference model's parameters); returns its intrinsics (the reference's when not given)."""
+    reference model's parameters); returns the reference's intrinsics (the current's are
+    those, within :data:`~robot_change.change.scene.INTRINSICS_TOLERANCE_PX`)."""
+    given = intrinsics is not None
     if intrinsics is None:
         intrinsics = reference.intrinsics
     if not isinstance(intrinsics, Intrinsics):
@@ -172,15 +176,16 @@ def check_current_depth(reference: Epoch, current: np.ndarray, intrinsics: Intri
                          f"{current.dtype} of shape {current.shape}")
     if reference_model is not None:
         check_compatible(reference_model, (intrinsics, reference_model.params))
-    if current.shape != (intrinsics.height, intrinsics.width):
+    if given and current.shape != (intrinsics.height, intrinsics.width):
         raise InputError(f"current depth is {current.shape[1]}x{current.shape[0]} but the "
                          f"intrinsics are for {intrinsics.width}x{intrinsics.height}")
-    if current.shape != reference.depth.shape or intrinsics != reference.intrinsics:
+    if current.shape != reference.depth.shape or intrinsics_differences(reference.intrinsics,
+                                                                        intrinsics):
         _raise_mismatch(f"current depth {current.shape[::-1]} with {intrinsics} does not "
                         f"match the reference's {reference.depth.shape[::-1]} "
                         f"{reference.intrinsics}; use the camera mode the reference was "
                         f"taken with, or rebuild the reference")
-    return intrinsics
+    return reference.intrinsics
 
 
 def clean_current(reference: Epoch, current: np.ndarray, intrinsics: Intrinsics,

@@ -54,6 +54,7 @@ __all__ = [
     "FILE_FORMAT",
     "FILE_VERSION",
     "INTRINSICS_TOLERANCE_PX",
+    "intrinsics_differences",
     "MIN_SCENE_POINTS",
     "SceneModel",
     "SceneParams",
@@ -242,7 +243,7 @@ def _to_stack(frames, intrinsics: Intrinsics | None):
                     raise InputError(f"frame {i} (index {f.index}) is {f.shape[1]}x{f.shape[0]},"
                                      f" frame 0 is {items[0].shape[1]}x{items[0].shape[0]}: "
                                      "fuse frames of one camera mode only")
-                diff = _intrinsics_differences(camera, f.intrinsics)
+                diff = intrinsics_differences(camera, f.intrinsics)
                 if diff:
                     raise InputError(f"frame {i} (index {f.index}) has other intrinsics than "
                                      f"frame 0 ({'; '.join(diff)}): fuse frames of one camera "
@@ -465,8 +466,10 @@ def build_scene_from_source(
 # --------------------------------------------------------------------------- compatibility
 
 
-def _intrinsics_differences(ref: Intrinsics, cur: Intrinsics,
-                            tol: float = INTRINSICS_TOLERANCE_PX) -> list[str]:
+def intrinsics_differences(ref: Intrinsics, cur: Intrinsics,
+                           tol: float = INTRINSICS_TOLERANCE_PX) -> list[str]:
+    """What keeps two cameras apart: their image sizes, else each of fx, fy, cx, cy more than
+    ``tol`` pixels apart (``"name ref vs cur px"`` strings; empty: one camera)."""
     if (ref.width, ref.height) != (cur.width, cur.height):
         return [f"image size {ref.width}x{ref.height} vs {cur.width}x{cur.height}"]
     return [f"{name} {getattr(ref, name):.6g} vs {getattr(cur, name):.6g} px"
@@ -502,7 +505,7 @@ def scene_differences(reference: SceneModel, current) -> tuple[list[str], list[s
     params_diff = [f"{name} {getattr(ref_cloud, name)!r} vs {getattr(cloud, name)!r}"
                    for name in COMPARED_CLOUD_FIELDS
                    if getattr(ref_cloud, name) != getattr(cloud, name)]
-    return _intrinsics_differences(reference.intrinsics, cam), params_diff
+    return intrinsics_differences(reference.intrinsics, cam), params_diff
 
 
 def check_compatible(reference: SceneModel, current) -> None:
