@@ -73,15 +73,21 @@ class Intrinsics:
                 raise FrameError(
                     f"intrinsics {name}={value!r}: must be a whole number of pixels in 1..100000"
                 )
+        for name in ("fx", "fy", "cx", "cy"):  # a number, kept as a float (not "525")
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float,
+                                                                              np.number)):
+                raise FrameError(f"intrinsics {name}={value!r}: must be a number of pixels")
+            object.__setattr__(self, name, float(value))
         for name in ("fx", "fy"):
-            value = float(getattr(self, name))
+            value = getattr(self, name)
             if not math.isfinite(value) or value <= 0:
                 raise FrameError(
                     f"intrinsics {name}={value!r}: the focal length must be a finite number of "
                     "pixels > 0 (OpenNI's VGA default is 525)"
                 )
         for name, size in (("cx", self.width), ("cy", self.height)):
-            value = float(getattr(self, name))
+            value = getattr(self, name)
             if not math.isfinite(value) or not -size <= value <= 2 * size:
                 raise FrameError(
                     f"intrinsics {name}={value!r}: the principal point must be finite and near "

@@ -55,17 +55,20 @@ def _is_real(value: Any) -> bool:
 
 
 def number(owner: str, name: str, value: Any, low: float, high: float, *,
-           low_open: bool = False, unit: str = "") -> float:
+           low_open: bool = False, high_open: bool = False, unit: str = "") -> float:
     """A finite real number with ``low <= value <= high`` (``low < value`` when
-    ``low_open``); booleans are refused.  Returns it as a float."""
+    ``low_open``, ``value < high`` when ``high_open``); booleans are refused.  Returns it as
+    a float."""
     if math.isinf(high):
         allowed = f"a number with {name} {'>' if low_open else '>='} {low}{unit}"
     else:
-        allowed = f"a number with {low} {'<' if low_open else '<='} {name} <= {high}{unit}"
+        allowed = (f"a number with {low} {'<' if low_open else '<='} {name} "
+                   f"{'<' if high_open else '<='} {high}{unit}")
     if not _is_real(value) or not math.isfinite(float(value)):
         raise BadValue(owner, name, value, allowed, wrong_type=True)
     as_float = float(value)
-    if not ((as_float > low if low_open else as_float >= low) and as_float <= high):
+    if not ((as_float > low if low_open else as_float >= low)
+            and (as_float < high if high_open else as_float <= high)):
         raise BadValue(owner, name, value, allowed)
     return as_float
 

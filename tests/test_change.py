@@ -260,7 +260,8 @@ def test_baselines(models):
 
 def test_params_are_validated():
     for bad in (dict(novelty_quantile=0.0), dict(ground_distance="l1"), dict(greedy=1),
-                dict(posterior_threshold=1.5), dict(region_connectivity=0),
+                dict(posterior_threshold=1.5), dict(posterior_threshold=1.0),
+                dict(region_connectivity=0),
                 dict(free_space_sigmas=-1.0), dict(novelty_seed="x"),
                 dict(gone_component_share=1.5), dict(gone_component_share="half"),
                 dict(free_space_pose_m=-0.01), dict(free_space_pose_m="1 cm"),
@@ -305,6 +306,22 @@ def test_intrinsics_within_the_tolerance_are_one_camera_and_another_size_is_a_mi
     far = Intrinsics(k.width, k.height, k.fx + 0.01, k.fy, k.cx, k.cy)
     with pytest.raises(SceneMismatchError, match="fx"):
         detect_changes(ref, frame, intrinsics=far)
+
+
+def test_a_library_users_slips_are_named(models):
+    """A list of frames from a source that ended holds None; a DepthFrame passed as the
+    current: each error names what is wrong (it said 'mixes DepthFrames and arrays (item 0)'
+    and "'DepthFrame' object has no attribute 'points'")."""
+    from hw.depth import DepthFrame
+
+    sc, ref, _ = models["office_box_added"]
+    frames = [DepthFrame(d, k, k, sc.intrinsics) for k, d in enumerate(sc.current_frames())]
+    with pytest.raises(InputError, match=r"frame 3 is None \(a source that ended"):
+        build_scene(frames + [None, None])
+    with pytest.raises(InputError, match="current is a DepthFrame: pass its .depth"):
+        detect_changes(ref, frames[0])
+    with pytest.raises(InputError, match=r"np.where\(np.isfinite\(z\)"):
+        detect_changes(ref, frames[0].depth.astype(np.float32) / 1000)
 
 
 def test_camera_sees_nothing_is_a_typed_error(models):

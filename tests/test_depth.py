@@ -38,12 +38,20 @@ def test_parse_reads_four_numbers():
         ({"cy": 5000.0}, "principal point"),
         ({"width": 0}, "width"),
         ({"height": 2.5}, "height"),
+        ({"fx": "525"}, "fx='525': must be a number"),  # was kept as text, failed in a kernel
+        ({"cy": True}, "must be a number"),
     ],
 )
 def test_intrinsics_that_make_no_sense_are_refused(fields, complaint):
     values = dict(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5) | fields
     with pytest.raises(errors.FrameError, match=complaint):
         Intrinsics(**values)
+
+
+def test_intrinsics_keep_their_numbers_as_floats():
+    k = Intrinsics(640, 480, np.float32(612.5), 612, np.float64(321.25), 238)
+    assert all(type(getattr(k, n)) is float for n in ("fx", "fy", "cx", "cy"))
+    assert k == Intrinsics(640, 480, 612.5, 612.0, 321.25, 238.0)
 
 
 def test_frame_checks_dtype_shape_and_intrinsics():

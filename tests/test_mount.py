@@ -143,6 +143,23 @@ def _cli(*args):
                           text=True, env=env, cwd=ROOT, timeout=300)
 
 
+def test_a_summary_says_the_frame_of_its_base_figures():
+    """The library's ChangeSet.summary() without a mounting labelled the zero mounting "in
+    base_link" and summary(None) raised; now it says camera_link, as the CLI's report does."""
+    from robot_change import build_scene, detect_changes
+    from sim_fixtures import load_scene
+
+    sc = load_scene("office_box_added")
+    changes = detect_changes(build_scene(sc.reference_frames(), intrinsics=sc.intrinsics),
+                             sc.current_frames()[0])
+    bare = changes.summary()
+    assert bare["base_frame"] == "camera_link" and bare["mount"] is None
+    assert changes.summary(None) == bare
+    mounted = changes.summary(CameraMount((0.2, 0.0, 0.45), (0.0, 10.0, 0.0)))
+    assert mounted["base_frame"] == "base_link" and mounted["mount"]["xyz_m"] == [0.2, 0.0, 0.45]
+    json.dumps(bare, allow_nan=False)
+
+
 def test_capture_records_the_mounting_and_detect_uses_it(tmp_path):
     scene = SCENES / "office_box_added"
     saved = tmp_path / "ref.npz"

@@ -861,6 +861,12 @@ def test_registration_switched_off_is_the_identity(office_pair):
     given[:3, 3] = (0.01, 0.02, 0.03)
     taken = register_depth(ref, cur, INTR, RegistrationParams(enabled=False), initial=given)
     np.testing.assert_array_equal(taken.T_ref_from_cur, given)
+    # a start that is no rigid transform was taken as it was (a scale of 2: no_change with
+    # fitness 0; a mirror: 65 false regions)
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    for bad in (np.diag([2.0, 2.0, 2.0, 1.0]), mirror, np.ones((4, 4))):
+        with pytest.raises(InputError, match="rigid transform"):
+            register_depth(ref, cur, INTR, initial=bad)
 
 
 def test_a_kept_reference_pyramid_gives_the_same_registration(office_pair):

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from hw.depth import Intrinsics
+from hw.depth import DepthFrame, Intrinsics
 from robot_change.change.params import ChangeParams
 from robot_change.change.scene import (
     COMPARED_CLOUD_FIELDS,
@@ -19,6 +19,7 @@ from robot_change.change.scene import (
     intrinsics_differences,
 )
 from robot_change.cloud.chain import CloudParams, clean_cloud
+from robot_change.cloud.geometry import FROM_METRES
 from robot_change.errors import EmptySceneError, InputError, SceneMismatchError
 from robot_change.mixture.model import Mixture
 from robot_change.noise.profile import (
@@ -108,6 +109,9 @@ def as_epoch(obj: Any, name: str) -> Epoch:
     ``cloud`` or ``points``/``keys``/``pixel_voxel``, ``mixture``, ``params``)."""
     if isinstance(obj, Epoch):
         return obj
+    if isinstance(obj, DepthFrame):
+        raise InputError(f"{name} is a DepthFrame: pass its .depth (the intrinsics are the "
+                         "reference's), or build_scene([frame]) to compare two scenes")
     try:
         depth = obj.depth
         intrinsics = obj.intrinsics
@@ -173,7 +177,7 @@ def check_current_depth(reference: Epoch, current: np.ndarray, intrinsics: Intri
                          f"{type(intrinsics).__name__}")
     if current.ndim != 2 or current.dtype != np.uint16:
         raise InputError(f"current depth must be an (H, W) uint16 array of millimetres, got "
-                         f"{current.dtype} of shape {current.shape}")
+                         f"{current.dtype} of shape {current.shape}; {FROM_METRES}")
     if reference_model is not None:
         check_compatible(reference_model, (intrinsics, reference_model.params))
     if given and current.shape != (intrinsics.height, intrinsics.width):

@@ -242,7 +242,8 @@ class ChangeParams:
         _choice("ground_distance", self.ground_distance, GROUND_DISTANCES)
         _num("accept_min_drop_m", self.accept_min_drop_m, 0.0, 100.0, unit=" metres")
         _num("accept_min_drop_rel", self.accept_min_drop_rel, 0.0, 1.0)
-        _num("posterior_threshold", self.posterior_threshold, 0.0, 1.0, low_open=True)
+        _num("posterior_threshold", self.posterior_threshold, 0.0, 1.0, low_open=True,
+             high_open=True)  # a share > 1.0 never is: 1.0 would switch detection off
         _num("free_space_sigmas", self.free_space_sigmas, 0.0, 100.0, low_open=True,
              unit=" sigmas")
         _num("free_space_pose_m", self.free_space_pose_m, 0.0, 10.0, unit=" metres")

@@ -170,10 +170,14 @@ class ChangeSet:
         """Appeared then disappeared regions."""
         return self.appeared + self.disappeared
 
-    def summary(self, mount: CameraMount = _DEFAULT_MOUNT) -> dict:
+    def summary(self, mount: CameraMount | None = None) -> dict:
         """JSON-ready summary: outcome, registration (camera frames, and as the robot's offset
         from its station pose in base_link given the camera's ``mount``), regions (camera
-        frame and base_link), K of both mixtures, greedy traces, timings."""
+        frame and base_link), K of both mixtures, greedy traces, timings.  Without a ``mount``
+        the offset and the regions' ``base`` are in the camera's body frame (``base_frame``
+        says which: ``base_link`` or ``camera_link``, REP 103)."""
+        frame = "camera_link" if mount is None else "base_link"
+        mount = _DEFAULT_MOUNT if mount is None else mount
         return {
             "outcome": self.outcome,
             "changed": self.changed,
@@ -181,7 +185,8 @@ class ChangeSet:
             "registration": self.registration.to_dict(),
             "unobserved_fraction": round(self.unobserved_fraction, 4),
             "not_at_station_reason": self.not_at_station_reason,
-            "mount": mount.to_dict(),
+            "mount": mount.to_dict() if frame == "base_link" else None,
+            "base_frame": frame,
             "offset_base": mount.offset(self.registration).to_dict(),
             "regions": [r.to_dict(mount) for r in self.regions],
             "n_appeared_points": int(self.appeared_points.shape[0]),

@@ -236,6 +236,9 @@ def _to_stack(frames, intrinsics: Intrinsics | None):
                              f"array, got {type(frames).__name__}") from None
         if not items:
             raise InputError("frames is empty: build a scene from at least one depth frame")
+        if any(f is None for f in items):
+            raise InputError(f"frame {[f is None for f in items].index(True)} is None (a source "
+                             "that ended, or a read that timed out?); pass depth frames only")
         if all(isinstance(f, DepthFrame) for f in items):
             camera = items[0].intrinsics
             for i, f in enumerate(items[1:], 1):

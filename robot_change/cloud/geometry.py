@@ -24,6 +24,9 @@ __all__ = ["check_points", "depth_kernel_args", "depth_to_points", "project_poin
 
 #: Largest depth a uint16 millimetre image can hold, in metres.
 MAX_DEPTH_M = 65.535
+#: How an error about a depth array in metres says to convert it.
+FROM_METRES = ("convert metres (NaN, inf or 0: no reading) with np.where(np.isfinite(z) & "
+               "(z > 0) & (z < 65.535), np.round(z * 1000), 0).astype(np.uint16)")
 
 
 @numba.njit(cache=True, nogil=True)
@@ -161,7 +164,7 @@ def depth_kernel_args(
     if depth.dtype != np.uint16 or depth.ndim != 2:
         raise InputError(
             f"depth must be a 2-D uint16 array of millimetres, got {depth.dtype} of shape "
-            f"{depth.shape}; convert metres with np.round(z * 1000).astype(np.uint16)"
+            f"{depth.shape}; {FROM_METRES}"
         )
     intrinsics = _check_intrinsics(intrinsics)
     height, width = depth.shape

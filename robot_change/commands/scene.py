@@ -273,14 +273,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
     mount = _detect_mount(args, reference)
     changes = detector[args.method](reference, current, intrinsics=told)
     seconds = time.perf_counter() - started
-    summary = changes.summary(mount)
     known = mount if args.mount or getattr(reference, "mount", None) is not None else None
-    summary.update({
-        "reference": args.reference, "current": args.current, "seconds": round(seconds, 3),
-        # offset_base and regions[].base: without a mounting the camera stands at the base
-        # origin looking ahead, so they are in its body frame (REP 103's camera_link)
-        "base_frame": "base_link" if known is not None else "camera_link",
-    })
+    summary = changes.summary(known)
+    summary.update({"reference": args.reference, "current": args.current,
+                    "seconds": round(seconds, 3)})
     if out is not None:
         summary["files"], summary["points_frame"] = _write_point_files(
             {out / f"appeared.{args.format}": (changes.appeared_points, APPEARED_COLOR),

@@ -111,8 +111,11 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
     ref = check_depth("reference", reference, intrinsics)
     cur = check_depth("current", current, intrinsics)
     T = np.eye(4) if initial is None else np.array(initial, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError("initial must be a finite (4, 4) rigid transform")
+    if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(
+            T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0 \
+            or not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError("initial must be a finite (4, 4) rigid transform (a rotation, no "
+                         "scale or mirror, and the last row 0, 0, 0, 1)")
     if not params.enabled:
         return identity_registration(T)
     if noise is not None:
