@@ -3,6 +3,7 @@ the numba kernels against NumPy twins.  Kept fast: four scenes, each built once 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -322,6 +323,25 @@ def test_a_library_users_slips_are_named(models):
         detect_changes(ref, frames[0])
     with pytest.raises(InputError, match=r"np.where\(np.isfinite\(z\)"):
         detect_changes(ref, frames[0].depth.astype(np.float32) / 1000)
+
+
+def test_a_reference_keeps_a_few_results_per_kind_as_parameters_vary(models):
+    """A node that varies its parameters (a tunable slider) grew the reference's derived
+    results by one per value (88 MiB after 40): now at most KEPT_PER_KIND of a kind, and the
+    answers are those of a fresh reference."""
+    from robot_change.change.epoch import KEPT_PER_KIND
+
+    sc, _, _ = models["office_box_added"]
+    ref = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+    frame = sc.current_frames()[0]
+    for i in range(8):
+        got = detect_changes(ref, frame, ChangeParams(free_space_sigmas=2.5 + 0.1 * i,
+                                                      object_fold_deg=20.0 + i))
+    kinds = collections.Counter(k[0] for k in ref.derived)
+    assert max(kinds.values()) <= KEPT_PER_KIND and kinds["segment_pixels"] == KEPT_PER_KIND
+    fresh = build_scene(sc.reference_frames(), intrinsics=sc.intrinsics)
+    again = detect_changes(fresh, frame, ChangeParams(free_space_sigmas=3.2, object_fold_deg=27.0))
+    assert np.array_equal(got.appeared_points, again.appeared_points)
 
 
 def test_camera_sees_nothing_is_a_typed_error(models):

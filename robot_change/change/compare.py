@@ -23,6 +23,7 @@ from robot_change.change.epoch import (
     check_scene_models,
     clean_current,
     current_epoch,
+    kept,
 )
 from robot_change.change.free_space import (
     FreeSpace,
@@ -276,10 +277,8 @@ def reference_limit(ref: Epoch, params: ChangeParams) -> DetectionLimit:
     key = ("detection_limit", params.free_space_sigmas, params.free_space_pose_m,
            params.free_space_pose_deg, params.evidence_min_points, params.min_region_points,
            ref.noise)
-    if key not in ref.derived:
-        ref.derived[key] = detection_limit(ref.depth, ref.noise, params, ref.leaf_m,
-                                           ref.intrinsics.fx)
-    return ref.derived[key]
+    return kept(ref.derived, key, lambda: detection_limit(ref.depth, ref.noise, params,
+                                                          ref.leaf_m, ref.intrinsics.fx))
 
 
 def not_at_station_result(method: str, params: ChangeParams, aligned: Aligned, timings: dict,

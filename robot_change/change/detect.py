@@ -63,7 +63,7 @@ from robot_change.change.compare import (
     geometric_filters,
     not_at_station_result,
 )
-from robot_change.change.epoch import Epoch
+from robot_change.change.epoch import Epoch, kept
 from robot_change.change.greedy import greedy_trace, posteriors
 from robot_change.change.objects import claim_counterparts, complete_objects
 from robot_change.change.parallel import both
@@ -176,15 +176,14 @@ def _self_threshold(base: Epoch, base_mix: Mixture, quantile: float) -> float:
     """The ``quantile`` of ``base_mix``'s log-density on ``base``'s own points (a fixed
     stride subsample of <= 4000); kept in ``base.derived`` when ``base_mix`` is the epoch's
     own mixture (a rigid move changes neither)."""
-    key = ("self_log_density_quantile", quantile)
-    own = base_mix is base.mixture
-    if own and key in base.derived:
-        return base.derived[key]
     step = max(1, base.n_points // 4000)
-    thr = float(np.quantile(base_mix.score_samples(base.points[::step]), quantile))
-    if own:
-        base.derived[key] = thr
-    return thr
+
+    def make() -> float:
+        return float(np.quantile(base_mix.score_samples(base.points[::step]), quantile))
+
+    if base_mix is not base.mixture:
+        return make()
+    return kept(base.derived, ("self_log_density_quantile", quantile), make)
 
 
 def _novelty_direction(kind, base: Epoch, other: Epoch, base_mix: Mixture, params: ChangeParams,

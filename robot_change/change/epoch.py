@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -38,8 +39,27 @@ __all__ = [
     "clean_current",
     "current_epoch",
     "epoch_from_depth",
+    "kept",
     "pair_sigma_table",
 ]
+
+#: Results of one kind (a ``derived`` key's first item) an epoch keeps for different
+#: parameters: a caller that varies them (a node's tunable parameter) keeps this many, not one
+#: per value it ever tried (2.3 MB each for the objects' segments).
+KEPT_PER_KIND = 4
+
+
+def kept(derived: dict, key: tuple, make: Callable[[], Any]) -> Any:
+    """``derived[key]``, made by ``make()`` the first time; of one kind (``key[0]``) at most
+    :data:`KEPT_PER_KIND` are kept, the earliest made dropped first."""
+    value = derived.get(key)
+    if value is None:
+        value = make()
+        same = [k for k in list(derived) if isinstance(k, tuple) and k[:1] == key[:1]]
+        for old in same[:max(0, len(same) + 1 - KEPT_PER_KIND)]:
+            derived.pop(old, None)
+        derived[key] = value
+    return value
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -79,13 +99,13 @@ def pair_sigma_table(a: Epoch, b: Epoch) -> np.ndarray:
     """(n,) float64 sigma table (robot_change.noise.kernels.sigma_at) of one reading when a
     reading of ``a`` is compared with one of ``b``: sqrt((sigma_a^2 + sigma_b^2) / 2), so that
     the margin of the two, k sqrt(2 sigma^2 + pose^2), holds both.  Kept in ``a.derived``."""
-    key = ("pair_sigma_table", a.noise, b.noise)
-    table = a.derived.get(key)
-    if table is None:
+    def make() -> np.ndarray:
         ta, tb = sigma_table(a.noise), sigma_table(b.noise)
-        table = a.derived[key] = np.sqrt(0.5 * (ta * ta + tb * tb))
+        table = np.sqrt(0.5 * (ta * ta + tb * tb))
         table.setflags(write=False)
-    return table
+        return table
+
+    return kept(a.derived, ("pair_sigma_table", a.noise, b.noise), make)
 
 
 #: the default cloud parameters (frozen, built once)

@@ -15,7 +15,7 @@ import numpy as np
 
 from hw.depth import Intrinsics
 from robot_change.arrays import readonly_view
-from robot_change.change.epoch import Epoch, pair_sigma_table
+from robot_change.change.epoch import Epoch, kept, pair_sigma_table
 from robot_change.change.params import ChangeParams
 from robot_change.cloud.chain import CloudParams
 from robot_change.errors import InputError
@@ -589,11 +589,8 @@ def free_space_views(base: Epoch, params: ChangeParams
     """:func:`other_views` of ``base``'s depth image with the check's radii, made once and
     kept in ``base.derived`` (a station's reference: once for all its checks)."""
     radii = (params.free_space_pose_radius_px, params.free_space_hole_radius_px)
-    key = ("free_space_views", *radii)
-    views = base.derived.get(key)
-    if views is None:
-        views = base.derived[key] = other_views(base.depth, *radii)
-    return views
+    return kept(base.derived, ("free_space_views", *radii),
+                lambda: other_views(base.depth, *radii))
 
 
 def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams,

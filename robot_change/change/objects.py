@@ -54,7 +54,7 @@ import numba
 import numpy as np
 
 from robot_change.arrays import readonly_view
-from robot_change.change.epoch import Epoch, pair_sigma_table
+from robot_change.change.epoch import Epoch, kept, pair_sigma_table
 from robot_change.change.free_space import free_space_views, land_pixel
 from robot_change.change.params import ChangeParams
 from robot_change.change.registration.pyramid import surface_level
@@ -210,15 +210,16 @@ def _segment_pixels(epoch: Epoch, params: ChangeParams
     reg = params.registration
     key = ("segment_pixels", params.object_cell_px, params.object_fold_deg, reg.band_m,
            reg.band_slope, reg.min_depth_m, reg.max_depth_m)
-    if key not in epoch.derived:
+
+    def make() -> tuple:
         image = surface_segments(epoch, params).astype(np.int32)
         image[epoch.pixel_voxel < 0] = -1
         on = image.ravel() >= 0
         segment, point = image.ravel()[on], epoch.pixel_voxel.ravel()[on].astype(np.int32)
         size = np.bincount(segment, minlength=int(segment.max()) + 1 if segment.size else 0)
-        epoch.derived[key] = (segment, point, size,
-                              np.bincount(point, minlength=epoch.n_points), image)
-    return epoch.derived[key]
+        return segment, point, size, np.bincount(point, minlength=epoch.n_points), image
+
+    return kept(epoch.derived, key, make)
 
 
 def _claim(epoch: Epoch, found: np.ndarray, size: np.ndarray, params: ChangeParams
