@@ -25,8 +25,8 @@ def unread_share(reference: np.ndarray, current: np.ndarray, intrinsics: Intrins
     image when moved by ``T_ref_from_cur`` (4, 4), the share that land on no reading of the
     current (0 when none land there).  ``keep`` / ``keep_current``: where the two pyramids are
     kept (the registration's)."""
-    rl = kept_levels(reference, intrinsics, params, keep)[-1]
-    cl = kept_levels(current, intrinsics, params, keep_current)[-1]
+    rl = kept_levels(np.ascontiguousarray(reference), intrinsics, params, keep)[-1]
+    cl = kept_levels(np.ascontiguousarray(current), intrinsics, params, keep_current)[-1]
     _, _, _, compared, holes, _ = agreement_counts(
         *rl.onto(cl, invert(np.asarray(T_ref_from_cur, dtype=np.float64))), 0.0, 1.0,
         *params.noise_args(0.0), False)
