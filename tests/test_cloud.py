@@ -113,7 +113,7 @@ def test_clean_cloud_bookkeeping(scene):
     assert np.count_nonzero(st == PIXEL_OUTLIER) > 0
     np.testing.assert_array_equal(np.bincount(pv[pv >= 0], minlength=len(cloud)), cloud.counts)
     # each kept pixel's own point lies in the voxel of the point it maps to
-    points, pixels = depth_to_points(depth, INTR, min_depth_m=LEVEL.min_depth_m,
+    points, pixels = depth_to_points(depth, INTR, min_depth_m=LEVEL.near_m(),
                                      max_depth_m=LEVEL.max_depth_m)
     rows = pv.ravel()[pixels]
     kept = rows >= 0
@@ -137,7 +137,7 @@ def test_clean_cloud_equals_the_stages_run_by_hand(scene):
     depth, _ = scene
     params = LEVEL
     cloud = clean_cloud(depth, INTR, params)
-    grid = depth_voxel_grid(depth, INTR, params.leaf_m, min_depth_m=params.min_depth_m,
+    grid = depth_voxel_grid(depth, INTR, params.leaf_m, min_depth_m=params.near_m(),
                             max_depth_m=params.max_depth_m).grid()
     inlier = statistical_outliers(grid.points, grid.keys, params.leaf_m, params.outlier_k,
                                   params.outlier_alpha, params.outlier_cap_leaves)
@@ -208,7 +208,7 @@ def test_clean_cloud_rejects_bad_input():
         ("leaf_m", float("nan")),
         ("leaf_m", "0.02"),
         ("min_depth_m", -0.5),
-        ("max_depth_m", 0.3),  # below min_depth_m = 0.4
+        ("max_depth_m", 0.0),  # beyond 0 (and beyond min_depth_m where set)
         ("remove_outliers", 1),
         ("remove_plane", "yes"),
         ("outlier_k", 0),

@@ -105,7 +105,8 @@ def test_build_from_depth_frames(ref_model, sim):
     assert m.pixel_voxel.shape == (480, 640) and m.pixel_voxel.dtype == np.int32
     assert m.mixture.n_components >= 2 and m.mixture.record.n_points == len(m)
     assert m.mixture.record.reg_covar == pytest.approx(m.params.cloud.leaf_m**2 / 12)
-    assert m.params == SceneParams()
+    # the defaults, with the camera's near range (unset: the Kinect's 0.4 m) recorded
+    assert m.params == SceneParams(cloud=CloudParams(min_depth_m=0.4))
     assert set(m.seconds) == {"fusion", "voxel", "outliers", "plane", "cloud", "fit",
                               "total"}
     assert all(v >= 0 for v in m.seconds.values())

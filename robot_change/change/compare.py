@@ -142,12 +142,13 @@ def align(reference: Reference, current: Current, params: ChangeParams,
             return cur
 
     cur_levels: dict = {}  # the current's pyramid, for its epoch once there is one
+    registration = ref.registration_params(params.registration)  # the reference's camera
 
     def register() -> Registration | Exception:
         try:
-            return register_depth(ref.depth, current_depth, ref.intrinsics, params.registration,
+            return register_depth(ref.depth, current_depth, ref.intrinsics, registration,
                                   initial=initial_pose, keep=ref.derived,
-                                  keep_current=cur_levels, noise=ref.noise)
+                                  keep_current=cur_levels)
         except Exception as exc:  # raised after the pair's own checks, which come first
             return exc
 
@@ -158,14 +159,14 @@ def align(reference: Reference, current: Current, params: ChangeParams,
         raise reg
     timings["registration_ms"] = reg.ms
     unread = unread_share(ref.depth, current_depth, ref.intrinsics, reg.T_ref_from_cur,
-                          params.registration, ref.derived, cur.derived)
+                          registration, ref.derived, cur.derived)
     if unread > params.max_unread_share:
         raise EmptySceneError(
             f"the current view reads nothing where the reference read {unread:.0%} of what it "
             f"sees from here (> max_unread_share = {params.max_unread_share:.0%}): the lens "
             f"covered, or something nearer than the camera's minimum range; treat it as a "
             f"fault")
-    reason = reg.not_at_station(params.registration)
+    reason = reg.not_at_station(registration)
     if reason:
         return Aligned(ref, cur, reg, reason)
     if not reg.is_identity:

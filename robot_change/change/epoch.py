@@ -13,6 +13,7 @@ import numpy as np
 
 from hw.depth import DepthFrame, Intrinsics
 from robot_change.change.params import ChangeParams
+from robot_change.change.registration import RegistrationParams
 from robot_change.change.scene import (
     COMPARED_CLOUD_FIELDS,
     SceneModel,
@@ -90,6 +91,17 @@ class Epoch:
     noise: NoiseProfile = dataclasses.field(
         default_factory=lambda: builtin_profile(DEFAULT_PROFILE), repr=False)
 
+    def registration_params(self, params: RegistrationParams) -> RegistrationParams:
+        """``params`` with this epoch's camera: its noise profile and, where ``params`` sets no
+        ``min_depth_m``, its cloud's near range (registration reads what the cloud reads).
+        Kept in ``derived``: the pyramids registration keeps are found under these."""
+        def make() -> RegistrationParams:
+            near = (self.cloud_params or CloudParams()).near_m(self.noise)
+            return params.replace(noise=self.noise, min_depth_m=near if params.min_depth_m is None
+                                  else params.min_depth_m)
+
+        return kept(self.derived, ("registration_params", params), make)
+
     @property
     def n_points(self) -> int:
         return int(self.points.shape[0])
@@ -117,11 +129,15 @@ def epoch_from_depth(depth: np.ndarray, intrinsics: Intrinsics,
                      mixture: Mixture | None = None, noise: NoiseProfile | None = None
                      ) -> Epoch:
     """Clean the depth image (:func:`robot_change.cloud.chain.clean_cloud`) into an
-    :class:`Epoch` (``noise``: the camera's profile, the default built-in when not given)."""
+    :class:`Epoch` (``noise``: the camera's profile, the default built-in when not given;
+    its near range where ``cloud_params`` sets none)."""
+    noise = noise or builtin_profile(DEFAULT_PROFILE)
+    if isinstance(cloud_params, CloudParams):
+        cloud_params = cloud_params.for_camera(noise)
     cloud = clean_cloud(depth, intrinsics, cloud_params)
     return Epoch(np.ascontiguousarray(depth), intrinsics, cloud.points, cloud.keys,
                  cloud.pixel_voxel, float(cloud_params.leaf_m), mixture, cloud_params,
-                 noise=noise or builtin_profile(DEFAULT_PROFILE))
+                 noise=noise)
 
 
 def as_epoch(obj: Any, name: str) -> Epoch:

@@ -605,7 +605,7 @@ def free_and_observed(other: Epoch, base: Epoch, params: ChangeParams,
     it is seen through at the estimate, not at the pose a little the other way."""
     cp = base.cloud_params or CloudParams()
     T = np.eye(4) if base_from_other is None else np.asarray(base_from_other, dtype=np.float64)
-    depth_range = (cp.min_depth_m, min(cp.max_depth_m, base.noise.max_range_m))
+    depth_range = (cp.near_m(base.noise), min(cp.max_depth_m, base.noise.max_range_m))
 
     votes, total, unseen, core_votes = free_space_votes(
         other.pixel_voxel, other.depth, base.depth, other.n_points, pair_sigma_table(base, other),

@@ -190,7 +190,8 @@ def surface_segments(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     (-1: none), cut on cells of ``params.object_cell_px`` pixels, then pixel by pixel where a
     cell is on a fold or an edge (module docstring)."""
     f = params.object_cell_px
-    level = surface_level(epoch.depth, epoch.intrinsics, f, params.registration, epoch.derived)
+    level = surface_level(epoch.depth, epoch.intrinsics, f,
+                          epoch.registration_params(params.registration), epoch.derived)
     intr = epoch.intrinsics
     cells = level_segments(level, params.object_fold_deg)
     max_step, max_off = SEGMENT_STEP / level.fx, SEGMENT_OFF / level.fx
@@ -207,9 +208,9 @@ def _segment_pixels(epoch: Epoch, params: ChangeParams
     segments as an image (H, W) int32 (-1: none, or no point).  A function of the image and
     the cloud alone, so it is kept in ``epoch.derived``: a station's reference pays for it
     once."""
-    reg = params.registration
+    reg = epoch.registration_params(params.registration)
     key = ("segment_pixels", params.object_cell_px, params.object_fold_deg, reg.band_m,
-           reg.band_slope, reg.min_depth_m, reg.max_depth_m)
+           reg.band_slope, reg.near_m, reg.max_depth_m)
 
     def make() -> tuple:
         image = surface_segments(epoch, params).astype(np.int32)
@@ -243,7 +244,7 @@ def _cell_normals(epoch: Epoch, params: ChangeParams) -> np.ndarray:
     """(H / f, W / f, 3) unit normals of ``epoch``'s cells of ``params.object_cell_px`` pixels
     (0: none), as the segments are cut on them."""
     return surface_level(epoch.depth, epoch.intrinsics, params.object_cell_px,
-                         params.registration, epoch.derived).normal
+                         epoch.registration_params(params.registration), epoch.derived).normal
 
 
 def complete_objects(epoch: Epoch, changed: np.ndarray, observed: np.ndarray,
@@ -387,7 +388,7 @@ def claim_counterparts(epoch: Epoch, changed: np.ndarray, observed: np.ndarray, 
     same, found, hidden, hidden_pairs = _counterparts_kernel(
         image, len(size), readonly_view(np.ascontiguousarray(epoch.depth)),
         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), intr.fx, intr.fy,
-        intr.cx, intr.cy, free_space_views(other, params)[2], float(cp.min_depth_m),
+        intr.cx, intr.cy, free_space_views(other, params)[2], cp.near_m(other.noise),
         float(cp.max_depth_m), readonly_view(np.ascontiguousarray(other.depth)),
         readonly_view(np.ascontiguousarray(other.pixel_voxel, dtype=np.int32)),
         np.ascontiguousarray(other_changed, dtype=np.bool_),

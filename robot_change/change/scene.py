@@ -376,6 +376,8 @@ def build_scene(
     fused = fuse_depth(np.ascontiguousarray(stack), params.min_valid(n_frames))
     profile, measured = measured_profile(stack, noise or builtin_profile(DEFAULT_PROFILE),
                                          source)
+    # the camera's near range where none is set, kept with the scene: its checks clean alike
+    params = dataclasses.replace(params, cloud=params.cloud.for_camera(profile))
     t1 = time.perf_counter()
     cloud = clean_cloud(fused, camera, params.cloud)
     t2 = time.perf_counter()
@@ -493,7 +495,7 @@ def scene_differences(reference: SceneModel, current) -> tuple[list[str], list[s
     if not isinstance(reference, SceneModel):
         raise InputError(f"reference must be a SceneModel, got {type(reference).__name__}")
     if isinstance(current, SceneModel):
-        cam, cloud = current.intrinsics, current.params.cloud
+        cam, cloud = current.intrinsics, current.params.cloud.for_camera(current.noise)
     else:
         try:
             cam, params = current
@@ -504,7 +506,8 @@ def scene_differences(reference: SceneModel, current) -> tuple[list[str], list[s
         if not isinstance(cam, Intrinsics) or not isinstance(cloud, CloudParams):
             raise InputError(f"current must be a SceneModel or an (Intrinsics, SceneParams) "
                              f"pair, got ({type(cam).__name__}, {type(params).__name__})")
-    ref_cloud = reference.params.cloud
+    ref_cloud = reference.params.cloud.for_camera(reference.noise)
+    cloud = cloud.for_camera(reference.noise)  # a pair's unset near range: the reference's
     params_diff = [f"{name} {getattr(ref_cloud, name)!r} vs {getattr(cloud, name)!r}"
                    for name in COMPARED_CLOUD_FIELDS
                    if getattr(ref_cloud, name) != getattr(cloud, name)]

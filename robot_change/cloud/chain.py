@@ -28,6 +28,7 @@ from robot_change.cloud.geometry import MAX_DEPTH_M
 from robot_change.cloud.outliers import statistical_outliers
 from robot_change.cloud.plane import Plane, fit_plane_ransac
 from robot_change.errors import BadValue, InputError
+from robot_change.noise.profile import DEFAULT_NEAR_M, NoiseProfile
 
 __all__ = [
     "PIXEL_KEPT",
@@ -65,9 +66,10 @@ class CloudParams:
     # depth noise at 4 m (sigma_z ~ 3 cm), so voxels hide little the sensor resolves there; a
     # 10 cm object still covers ~3 x 3 voxels per face.  Table-top work wants ~1 cm.
     leaf_m: float = 0.03
-    # Kinect-class sensors read nothing useful nearer than ~0.4 m; beyond 5 m the depth
+    # None: the camera's (:meth:`near_m`: 0.4 m, where Kinect-class sensors read nothing useful
+    # nearer, or the near range of a camera that reads nearer); beyond 5 m the depth
     # quantization step of the disparity (~7 cm at 5 m) exceeds three voxels.
-    min_depth_m: float = 0.4
+    min_depth_m: float | None = None
     max_depth_m: float = 5.0
     # Outlier removal on the voxel cloud: see outliers.statistical_outliers for why k = 4,
     # alpha = 2 and a cap of 2 leaves (PCL's k = 50 assumes the raw cloud's density).
@@ -94,7 +96,8 @@ class CloudParams:
 
     def __post_init__(self) -> None:
         _number("leaf_m", self.leaf_m, 0.001, 1.0, unit=" metres")
-        _number("min_depth_m", self.min_depth_m, 0.0, MAX_DEPTH_M, unit=" metres")
+        if self.min_depth_m is not None:
+            _number("min_depth_m", self.min_depth_m, 0.0, MAX_DEPTH_M, unit=" metres")
         _number("max_depth_m", self.max_depth_m, float(self.min_depth_m)
                 if isinstance(self.min_depth_m, (int, float)) else 0.0, 1000.0, low_open=True,
                 unit=" metres (and above min_depth_m)")
@@ -125,6 +128,21 @@ class CloudParams:
                                "3-vector (x right, y down, z forward)", wrong_type=True)
             object.__setattr__(self, "plane_up", tuple(float(v) for v in up))
             _number("plane_max_tilt_deg", self.plane_max_tilt_deg, 0.0, 90.0, unit=" degrees")
+
+    def near_m(self, noise: NoiseProfile | None = None) -> float:
+        """The nearest depth used, metres: ``min_depth_m``, or where that is None the camera's
+        (``noise.near_m``; :data:`~robot_change.noise.profile.DEFAULT_NEAR_M` for a camera not
+        named)."""
+        if self.min_depth_m is not None:
+            return float(self.min_depth_m)
+        return DEFAULT_NEAR_M if noise is None else noise.near_m
+
+    def for_camera(self, noise: NoiseProfile) -> CloudParams:
+        """These parameters with ``min_depth_m`` set to :meth:`near_m` of ``noise``: what a
+        scene of that camera is made with, and records."""
+        if self.min_depth_m is not None:
+            return self
+        return dataclasses.replace(self, min_depth_m=noise.near_m)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -249,7 +267,7 @@ def clean_cloud(
     if not isinstance(params, CloudParams):
         raise InputError(f"params must be a CloudParams, got {type(params).__name__}")
     start = time.perf_counter()
-    voxels = depth_voxel_grid(depth, intrinsics, params.leaf_m, min_depth_m=params.min_depth_m,
+    voxels = depth_voxel_grid(depth, intrinsics, params.leaf_m, min_depth_m=params.near_m(),
                               max_depth_m=params.max_depth_m)
     t_voxel = time.perf_counter()
 

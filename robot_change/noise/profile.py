@@ -45,6 +45,7 @@ __all__ = [
     "BUILTIN",
     "AUTO_PROFILE",
     "DEFAULT_PROFILE",
+    "DEFAULT_NEAR_M",
     "NoiseProfile",
     "PRINCIPLES",
     "RAISE_TOLERANCE",
@@ -111,6 +112,13 @@ class NoiseProfile:
     # shape carrying it beyond the measured depths: robot-change calibrate).
     measured: tuple[tuple[float, float, int], ...] = ()
     measured_use: str = ""
+
+    @property
+    def near_m(self) -> float:
+        """The nearest depth the module uses from this camera unless told (metres):
+        :data:`DEFAULT_NEAR_M`, or ``min_range_m`` where the camera reads reliably nearer (a
+        RealSense D415 / D435 from 0.3 m, the D405 from 7 cm)."""
+        return min(DEFAULT_NEAR_M, self.min_range_m)
 
     def __post_init__(self) -> None:
         validate.text("NoiseProfile", "name", self.name, max_bytes=64)
@@ -367,6 +375,10 @@ BUILTIN: dict[str, NoiseProfile] = {
                    "2021): 1 mm + 0.1 % of z"),
     )
 }
+#: The nearest depth used unless told (metres; :attr:`NoiseProfile.near_m`): Kinect-class
+#: cameras read nothing useful nearer (their profiles say 0.5 m; what they give at 0.4-0.5 m
+#: is kept).
+DEFAULT_NEAR_M = 0.4
 #: The profile of a camera nobody named: the Kinect v1 (the noise of every PrimeSense design).
 DEFAULT_PROFILE = "kinect_v1"
 

@@ -184,8 +184,9 @@ class CloudConfig(_Section):
 
     NAME: ClassVar[str] = "cloud"
     leaf_m: float = _key(_CLOUD.leaf_m, _cloud("leaf_m"), "voxel size in metres")
-    min_depth_mm: int = _key(round(_CLOUD.min_depth_m * 1000), _int(0, 10_000, " mm"),
-                             "nearer depth is not used")
+    min_depth_mm: int | None = _key(None, _int(0, 10_000, " mm"),
+                                    "nearer depth is not used (left out: the camera's, 400 mm "
+                                    "or its near range where it reads nearer)")
     max_depth_mm: int = _key(PARAM_BY_NAME["max_depth_mm"].default, _param("max_depth_mm"),
                              "depth beyond this is not used")
     remove_outliers: bool = _key(_CLOUD.remove_outliers, _cloud("remove_outliers"),
@@ -214,7 +215,7 @@ class CloudConfig(_Section):
                                             "largest tilt of the plane from plane_up, degrees")
 
     def _cross_check(self) -> None:
-        if self.min_depth_mm >= self.max_depth_mm:
+        if self.min_depth_mm is not None and self.min_depth_mm >= self.max_depth_mm:
             raise ConfigError(f"cloud.min_depth_mm = {self.min_depth_mm}: must be below "
                               f"cloud.max_depth_mm = {self.max_depth_mm}")
         if (self.plane_up is None) != (self.plane_max_tilt_deg is None):
@@ -226,7 +227,8 @@ class CloudConfig(_Section):
     def params(self):
         """The :class:`robot_change.cloud.chain.CloudParams` these keys describe."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        values["min_depth_m"] = values.pop("min_depth_mm") / 1000.0
+        near_mm = values.pop("min_depth_mm")
+        values["min_depth_m"] = None if near_mm is None else near_mm / 1000.0
         values["max_depth_m"] = values.pop("max_depth_mm") / 1000.0
         return CloudParams(**values)
 

@@ -145,6 +145,6 @@ def scene_params(config: Config, params: dict[str, int]):
     applies to references captured after the change.)"""
     base = config.scene_params()
     cloud = dataclasses.replace(base.cloud, max_depth_m=params["max_depth_mm"] / 1000.0)
-    if cloud.min_depth_m >= cloud.max_depth_m:
+    if cloud.min_depth_m is not None and cloud.min_depth_m >= cloud.max_depth_m:
         cloud = base.cloud
     return dataclasses.replace(base, cloud=cloud)

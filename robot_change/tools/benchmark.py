@@ -65,7 +65,7 @@ def bench_preprocess(
         for key in PREPROCESS_STAGES:
             per_stage[key].append(cloud.timings_ms[key])
     result: dict[str, Any] = {"points_ms": round(median_ms(
-        lambda: depth_to_points(depth, intrinsics, min_depth_m=params.min_depth_m,
+        lambda: depth_to_points(depth, intrinsics, min_depth_m=params.near_m(),
                                 max_depth_m=params.max_depth_m), runs, warmup), 3)}
     result.update({key: round(statistics.median(values), 3) for key, values in per_stage.items()})
     result["min_preprocess_ms"] = round(min(per_stage["preprocess_ms"]), 3)

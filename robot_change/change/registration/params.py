@@ -221,8 +221,9 @@ class RegistrationParams:
     seen_through_sigmas: float = 3.0
     max_translation_m: float = 0.16
     max_rotation_deg: float = 8.5
-    # Depth readings outside this range are not used (metres).
-    min_depth_m: float = 0.4
+    # Depth readings outside this range are not used (metres; min_depth_m None: the camera's,
+    # :attr:`near_m`).
+    min_depth_m: float | None = None
     max_depth_m: float = 5.0
     # The camera's noise (robot_change.noise): weighs each residual, makes the inlier band and
     # the seen-through margin.  A check sets it from its reference's profile.
@@ -282,9 +283,16 @@ class RegistrationParams:
                              f"(robot_change.noise), got {type(self.noise).__name__}")
         _num("max_translation_m", self.max_translation_m, 0.0, 100.0, unit=" metres")
         _num("max_rotation_deg", self.max_rotation_deg, 0.0, 180.0)
-        _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
-        _num("max_depth_m", self.max_depth_m, self.min_depth_m, 100.0, low_open=True,
+        if self.min_depth_m is not None:
+            _num("min_depth_m", self.min_depth_m, 0.0, 100.0, unit=" metres")
+        _num("max_depth_m", self.max_depth_m, self.near_m, 100.0, low_open=True,
              unit=" metres")
+
+    @property
+    def near_m(self) -> float:
+        """The nearest depth used, metres: ``min_depth_m``, or where that is None the camera's
+        (``noise.near_m``)."""
+        return self.noise.near_m if self.min_depth_m is None else float(self.min_depth_m)
 
     def replace(self, **changes: Any) -> RegistrationParams:
         """A copy with some fields changed (validated)."""

@@ -220,7 +220,7 @@ def levels(depth: np.ndarray, intrinsics: Intrinsics, params: RegistrationParams
 
 def _cells(depth: np.ndarray, intrinsics: Intrinsics, factor: int, params: RegistrationParams
            ) -> tuple[np.ndarray, np.ndarray]:
-    min_mm = int(math.ceil(params.min_depth_m * 1000.0))
+    min_mm = int(math.ceil(params.near_m * 1000.0))
     max_mm = int(math.floor(params.max_depth_m * 1000.0))
     return _vertex_level(readonly_view(depth), int(factor), intrinsics.fx, intrinsics.fy,
                          intrinsics.cx, intrinsics.cy, min_mm, max_mm, params.band_m,
@@ -236,7 +236,7 @@ def _level(vertex: np.ndarray, intrinsics: Intrinsics, f: int) -> Level:
 
 def _levels_key(intrinsics: Intrinsics, params: RegistrationParams) -> tuple:
     """What :func:`levels` depends on besides the image: the key it is kept under."""
-    return ("registration_levels", intrinsics, params.levels, params.min_depth_m,
+    return ("registration_levels", intrinsics, params.levels, params.near_m,
             params.max_depth_m, params.band_m, params.band_slope)
 
 
