@@ -69,6 +69,38 @@ def test_the_spool_holds_to_its_size_on_the_disk(tmp_path):
     assert again.counts()["bytes"] == used
 
 
+def test_the_spool_holds_to_its_size_when_a_large_message_follows_small_ones(tmp_path):
+    """The message that made room was counted at the size of the last one it dropped: 1 MiB of
+    spool took 1.5 MiB of disk, 0.25 MiB took 2 MiB."""
+    spool = Spool(tmp_path / "spool", max_bytes=1000, block_bytes=1)
+    for i in range(9):
+        spool.append(f"t/{i}", b"x" * 96)  # 100 bytes each
+    spool.append("t/big", b"y" * 700)  # 706 bytes: seven small ones make room
+    on_disk = sum(p.stat().st_size for p in spool.folder.glob("*.msg"))
+    assert spool.counts()["bytes"] == on_disk <= spool.max_bytes
+    assert spool.counts()["dropped"] == 7
+
+
+def test_a_spool_file_that_cannot_be_deleted_stays_counted_and_is_said_once(tmp_path, caplog):
+    """On a read-only disk every acknowledgement raised out of the network thread's callback
+    (a traceback a message) and the status said nothing was queued."""
+    spool = Spool(tmp_path / "spool", max_bytes=10_000, block_bytes=1)
+    seq = spool.append("t/a", b"x" * 10)
+    path = spool.folder / f"{seq:012d}.msg"
+    path.unlink()
+    path.mkdir()  # a directory in its place: deleting it fails as on a read-only disk
+    (path / "inside").write_bytes(b"")
+    with caplog.at_level(logging.ERROR, "robot_change.fleet.spool"):
+        spool.remove(seq)
+        spool.remove(seq)
+    assert spool.pending() == [seq] and spool.counts()["queued"] == 1
+    assert caplog.text.count("cannot delete") == 1 and "goes again after a restart" in caplog.text
+    (path / "inside").unlink()
+    path.rmdir()
+    spool.remove(seq)  # the disk writable again: it goes
+    assert spool.pending() == [] and spool.counts()["bytes"] == 0
+
+
 def test_fleet_tail_says_a_camera_still_opening_is_not_lost():
     from robot_change.fleet.receiver import Incoming
     from robot_change.tools.fleettail import describe

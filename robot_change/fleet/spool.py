@@ -79,9 +79,9 @@ class Spool:
                 return -1
             victims = []
             while self._sizes and self._bytes + size > self.max_bytes:
-                seq, size = self._sizes.popitem(last=False)
-                self._bytes -= size
-                victims.append(seq)
+                old, old_size = self._sizes.popitem(last=False)
+                self._bytes -= old_size
+                victims.append(old)
             seq = self._next
             self._next += 1
         for old in victims:
@@ -105,13 +105,20 @@ class Spool:
         return -(-n // self.block_bytes) * self.block_bytes
 
     def remove(self, seq: int) -> None:
-        """The broker has the message: forget it (a message dropped meanwhile is no error)."""
+        """The broker has the message: forget it (a message dropped meanwhile is no error).  A
+        file that cannot be deleted (a read-only disk) stays, counted, and is said (at most once
+        a minute): it goes again after a restart."""
         with self._lock:
-            size = self._sizes.pop(seq, None)
-            if size is not None:
-                self._bytes -= size
-        if size is not None:
+            if seq not in self._sizes:
+                return
+        try:
             self._path(seq).unlink(missing_ok=True)
+        except OSError as exc:
+            self._throttled("remove", logging.ERROR, "fleet spool: cannot delete %s, which the "
+                            "broker has (%s); it stays, counted, and goes again after a "
+                            "restart", self._path(seq), exc.strerror)
+            return
+        self._forget(seq)
 
     # -- reading --------------------------------------------------------------------------------
 
