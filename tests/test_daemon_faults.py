@@ -245,6 +245,26 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         _sigterm_in(d)
 
 
+def test_a_burst_of_sighups_is_taken_and_sigterm_still_stops_the_daemon(tmp_path: Path) -> None:
+    """Each handler set an Event, whose lock the main thread may hold when a signal comes: a
+    burst of SIGHUPs hung the daemon for good (2 of 3 runs), SIGTERM ignored, no stall
+    detected; a longer one ended it by a traceback and SIGHUP's default action."""
+    import signal
+
+    with Daemon(tmp_path) as d:
+        d.wait_for("READY=1")
+        for i in range(2000):
+            d.proc.send_signal(signal.SIGHUP)
+            if i % 50 == 0:
+                time.sleep(0.01)
+        d.write_config("[watch]\nwatch_m = 2\n")  # a reload after the burst is still taken
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("STATUS=configuration reloaded")
+        assert d.proc.poll() is None and "Traceback" not in d.log(), d.log()[-3000:]
+        assert d.base("capture office\nexpect CAPTURED 10") == 0, d.transcript.getvalue()[-3000:]
+        _sigterm_in(d)
+
+
 def test_a_restart_leaves_no_temp_file_anywhere_the_service_writes(tmp_path: Path) -> None:
     """Issue 44: the daemon killed with SIGKILL while it writes a check's files, and temp files
     as killed writes leave them in every folder the service writes (references and their

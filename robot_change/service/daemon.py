@@ -17,7 +17,9 @@ for systemd to restart it (``Restart=on-failure``).  No READY is sent after STOP
 from __future__ import annotations
 
 import logging
+import select
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -71,29 +73,19 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
     Call from the main thread (signal handlers).
     """
     stop = stop or threading.Event()
-    hup = threading.Event()
-    wake = threading.Event()  # a signal ends the wait at once
+    signals = _Signals()
     in_main = threading.current_thread() is threading.main_thread()
     previous: dict[int, Any] = {}
     if in_main:
-        def on_term(signum: int, _frame: Any) -> None:
-            log.info("signal %s: stopping", signal.Signals(signum).name)
-            stop.set()
-            wake.set()
-
-        def on_hup(_signum: int, _frame: Any) -> None:
-            hup.set()
-            wake.set()
-
-        for sig, handler in ((signal.SIGTERM, on_term), (signal.SIGINT, on_term),
-                             (signal.SIGHUP, on_hup)):
+        for sig, handler in ((signal.SIGTERM, signals.on_term), (signal.SIGINT, signals.on_term),
+                             (signal.SIGHUP, signals.on_hup)):
             previous[sig] = signal.signal(sig, handler)
     service.stuck = []
     try:
         t0 = time.perf_counter()
         service.open_link()  # HELLO and BOOTING heartbeats while the kernels compile
         try:
-            if warm and not _warm_up(service, stop, wake):
+            if warm and not _warm_up(service, stop, signals):
                 return _stalled(service, service.stalled) if service.stalled else _stop(service)
         except BaseException:
             service.close()
@@ -107,12 +99,11 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
         beat = min(interval, 1.0) if interval else 1.0
         last_status = ""
         while not stop.is_set():
-            wake.wait(beat)
-            wake.clear()
+            signals.wait(beat, stop)
             if stop.is_set():
                 break
-            if hup.is_set():
-                hup.clear()
+            if signals.hup:
+                signals.hup = False
                 _reload(service, load, make_camera, stop)
             ok, why = service.healthy()
             if not ok:
@@ -127,9 +118,57 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        signals.close()
 
 
-def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> bool:
+class _Signals:
+    """What SIGTERM / SIGINT and SIGHUP tell the main loop: plain flags, and a byte on a socket
+    that ends its wait at once.  A handler runs on the main thread between two of its
+    bytecodes, maybe inside a lock that thread holds (an Event's: a burst of SIGHUPs hung the
+    daemon for good, SIGTERM too), so it takes none: no Event, no logging."""
+
+    def __init__(self) -> None:
+        # sockets, not a pipe's descriptors: an abandoned warm-up thread that notifies after
+        # close() gets an error, never a descriptor number reused by another file
+        self._read, self._write = socket.socketpair()
+        self._read.setblocking(False)
+        self._write.setblocking(False)
+        self.term = ""  # the stopping signal's name, once one came
+        self.hup = False
+
+    def on_term(self, signum: int, _frame: Any) -> None:
+        self.term = signal.Signals(signum).name
+        self.notify()
+
+    def on_hup(self, _signum: int, _frame: Any) -> None:
+        self.hup = True
+        self.notify()
+
+    def notify(self) -> None:
+        """End a :meth:`wait` now (from a handler or any thread)."""
+        try:
+            self._write.send(b"\0")
+        except OSError:  # its buffer full: a wake is pending anyway; or closed
+            pass
+
+    def wait(self, timeout: float, stop: threading.Event) -> None:
+        """Wait up to ``timeout`` seconds or until notified; a stopping signal sets ``stop``."""
+        select.select([self._read], [], [], max(0.0, timeout))
+        try:
+            while self._read.recv(4096):
+                pass
+        except BlockingIOError:
+            pass
+        if self.term and not stop.is_set():
+            log.info("signal %s: stopping", self.term)
+            stop.set()
+
+    def close(self) -> None:
+        self._read.close()
+        self._write.close()
+
+
+def _warm_up(service: Service, stop: threading.Event, signals: _Signals) -> bool:
     """Compile or load the kernels in a thread while the main thread waits for it, for a
     signal or for ``[service] warmup_timeout_s``; False when told to stop first, or when the
     deadline passed (then a stall, told to the base: :meth:`Service.report_stall`; a hung
@@ -144,7 +183,7 @@ def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> 
             failed.append(exc)
         finally:
             done.set()
-            wake.set()
+            signals.notify()
 
     limit = service.config.service.warmup_timeout_s
     systemd.extend_timeout(limit + 60.0)  # time to tell the base before systemd gives up
@@ -157,8 +196,7 @@ def _warm_up(service: Service, stop: threading.Event, wake: threading.Event) -> 
             service.report_stall(f"kernels not ready {limit:.0f} s after start (a hung or "
                                  f"slow warm-up: [service] warmup_timeout_s)")
             break
-        wake.wait(min(1.0, max(0.0, end - time.monotonic())))
-        wake.clear()
+        signals.wait(min(1.0, max(0.0, end - time.monotonic())), stop)
     if failed:
         raise failed[0]
     if not done.is_set():
