@@ -115,6 +115,16 @@ def _no_components(header, arrays):
         arrays[name] = arrays[name][:0]
 
 
+def _far_mean(header, arrays):
+    arrays["means"] = arrays["means"].copy()
+    arrays["means"][0] = 1e300  # finite, so it passed; the ground distances overflowed
+
+
+def _wide_component(header, arrays):
+    arrays["covariances"] = arrays["covariances"].copy()
+    arrays["covariances"][0] = np.eye(3) * 1e6  # a component a kilometre wide
+
+
 #: name -> (how the good file is changed, what the refusal says).
 CRAFTED = {
     "infinite plane_n_inliers": (
@@ -135,6 +145,8 @@ CRAFTED = {
     "NaN points": (_nan_points, "NaN"),
     "no points": (_no_points, "holds 0 points"),
     "no components": (_no_components, "0 mixture components"),
+    "a mean at 1e300 m": (_far_mean, "means lie outside the cloud"),
+    "a component 1 km wide": (_wide_component, "wider than the cloud"),
 }
 
 

@@ -73,6 +73,10 @@ def arrays_of(model: SceneModel) -> dict[str, np.ndarray]:
     return {k: np.ascontiguousarray(raw[k], dtype=np.dtype(dt)) for k, (dt, _) in _ARRAYS.items()}
 
 
+#: How far (metres) a mixture's means may lie outside its cloud's box (:func:`_check_fitted_to`).
+_FIT_SLACK_M = 0.5
+
+
 def _record_to_dict(record: FitRecord | None) -> dict | None:
     if record is None:
         return None
@@ -230,6 +234,7 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
         )
     mixture = Mixture(arrays["weights"], arrays["means"], arrays["covariances"],
                       _record_from_dict(header["fit"]))
+    _check_fitted_to(mixture, cloud.points)
 
     def opt_int(key, lo=0):
         v = header[key]
@@ -247,6 +252,23 @@ def _model_from(cls, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> S
         noise=_noise_from(header.get("noise")),
         drift=None if header.get("drift") is None else _finite(header["drift"], "drift"),
     )
+
+
+def _check_fitted_to(mixture: Mixture, points: np.ndarray) -> None:
+    """A SceneFileError unless ``mixture`` could have been fitted to ``points`` (M, 3) m: its
+    means within their box and no component wider than it (an EM component is a weighted mean
+    and covariance of the points, plus a regularisation of millimetres); ``_FIT_SLACK_M``
+    spares a version-1 file, whose cloud is made again.  A crafted mean of 1e300 m passed
+    every other check and made the distances infinite deep in a check."""
+    if not len(points):
+        return
+    lo = points.min(axis=0) - _FIT_SLACK_M
+    hi = points.max(axis=0) + _FIT_SLACK_M
+    if not ((mixture.means >= lo) & (mixture.means <= hi)).all():
+        raise SceneFileError("the mixture's means lie outside the cloud it was fitted to")
+    widest = float(((hi - lo) ** 2).max())
+    if float(np.diagonal(mixture.covariances, axis1=1, axis2=2).max()) > widest:
+        raise SceneFileError("a mixture component is wider than the cloud it was fitted to")
 
 
 def _mount_from(d: Any) -> CameraMount | None:
