@@ -245,6 +245,27 @@ def test_a_refused_reload_keeps_the_old_configuration_and_says_so(tmp_path: Path
         _sigterm_in(d)
 
 
+def test_a_configuration_the_reference_was_not_captured_with_is_said_once(tmp_path: Path
+                                                                          ) -> None:
+    """Another camera's profile or other cloud parameters were taken in silence: the check
+    went on with the reference's, and nothing said the configuration was not in force."""
+    import signal
+
+    with Daemon(tmp_path) as d:
+        d.wait_for("READY=1")
+        assert d.base("capture office\nexpect CAPTURED 10") == 0, d.transcript.getvalue()[-3000:]
+        text = d.config.read_text().replace("[camera]\n", '[camera]\nprofile = "realsense_d435"\n')
+        d.config.write_text(text + "[cloud]\nleaf_m = 0.02\n")
+        d.proc.send_signal(signal.SIGHUP)
+        d.wait_for("STATUS=configuration reloaded")
+        assert d.base("check office\nexpect CLEAR 10\ncheck office\nexpect CLEAR 10") == 0
+        said = [line for line in d.log().splitlines() if "its reference was captured with" in line]
+        assert len(said) == 1, said  # once, not at every check
+        assert "noise profile kinect_v1, the configuration says realsense_d435" in said[0]
+        assert "leaf_m 0.03 vs 0.02" in said[0] and "capture the station again" in said[0]
+        _sigterm_in(d)
+
+
 def test_a_burst_of_sighups_is_taken_and_sigterm_still_stops_the_daemon(tmp_path: Path) -> None:
     """Each handler set an Event, whose lock the main thread may hold when a signal comes: a
     burst of SIGHUPs hung the daemon for good (2 of 3 runs), SIGTERM ignored, no stall

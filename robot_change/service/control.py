@@ -83,6 +83,7 @@ class Control:
         self._refresh_heartbeat()
 
     def _start_watch(self, station: str, reference: SceneModel) -> None:
+        self._tell_stale(station, reference)
         o = self.options
         with self._lock:
             self._watch = StationWatch(station, reference, self, self.params,
@@ -236,14 +237,35 @@ class Control:
         self._send(Captured(station, smallest_mm, model.noise.name) if self.link.version >= 4
                    else Captured(station))
 
-    def _check(self, station: str, reference: SceneModel) -> None:
-        self._set_activity(ModuleState.CHECKING)
+    def _tell_stale(self, station: str, reference: SceneModel) -> None:
+        """Say (once for each difference) where the configuration differs from what the
+        station's reference was captured with: the camera's mounting (base-frame results use
+        the configuration's), its noise profile and the cloud's parameters (the reference's
+        are used: the configuration's take effect at the next capture)."""
+        said = []
         mount = self.config.camera.mount()
         if reference.mount is not None and reference.mount != mount:
-            log.warning("station %s: its reference was captured with the camera mounted at "
-                        "%s, the configuration says %s; base-frame results use the "
-                        "configuration (capture the station again if the camera was moved)",
-                        station, reference.mount.to_dict(), mount.to_dict())
+            said.append(f"the camera mounted at {reference.mount.to_dict()}, the configuration "
+                        f"says {mount.to_dict()} (base-frame results use the configuration's)")
+        profile = self.config.camera.noise_profile(self.camera.model).name
+        if profile != reference.noise.name:
+            said.append(f"noise profile {reference.noise.name}, the configuration says "
+                        f"{profile} (the reference's is used)")
+        cloud = scene_params(self.config, self.params).cloud.for_camera(reference.noise)
+        differ = [f"{name} {getattr(reference.params.cloud, name)!r} vs {getattr(cloud, name)!r}"
+                  for name in scene.COMPARED_CLOUD_FIELDS
+                  if getattr(reference.params.cloud, name) != getattr(cloud, name)]
+        if differ:
+            said.append(f"cloud parameters {'; '.join(differ)} (the reference's are used)")
+        text = "; ".join(said)
+        if text and self._stale_told.get(station) != text:
+            log.warning("station %s: its reference was captured with %s; capture the station "
+                        "again for the configuration to take effect", station, text)
+        self._stale_told[station] = text
+
+    def _check(self, station: str, reference: SceneModel) -> None:
+        self._set_activity(ModuleState.CHECKING)
+        self._tell_stale(station, reference)
         n = self.params["fuse_frames"]
         frames = self._fresh_frames(n, f"CHECK {station}")
         t0 = time.perf_counter()
@@ -276,7 +298,8 @@ class Control:
         else:
             self.send_no_change(station, changes)
         # the answers are queued for the link: the view for Foxglove is drawn on its own thread
-        self.views.submit(CheckView(station, reference, depth, changes, mount, stamp_ns))
+        self.views.submit(CheckView(station, reference, depth, changes, self.config.camera.mount(),
+                                    stamp_ns))
 
     def _write_check(self, station: str, reference: SceneModel, depth: np.ndarray,
                      changes: ChangeSet, regions: list[ChangeRegion]) -> None:

@@ -203,6 +203,7 @@ class Service(Dispatch, Sending, Control):
         self._last_pause_cause = PauseCause.CHANGE_CHECK
         self._cancel = threading.Event()
         self._watch: StationWatch | None = None
+        self._stale_told: dict[str, str] = {}  # station -> what was said of its reference
         self._report_id = 0
         self._camera_reported = None  # what the controller last told the base: True ok / False lost
         self._lost_pause_due = False  # the camera is lost: a watch pauses once it may
