@@ -103,6 +103,21 @@ def test_a_hello_whose_versions_do_not_meet_is_naked_in_version_1():
     assert module.state == LinkState.INCOMPATIBLE
 
 
+def test_a_malformed_hello_is_naked_bad_payload_in_version_1():
+    """A HELLO offering 5..3 was NAKed OUT_OF_RANGE (SET_PARAM's reason, 7.3) in the session's
+    version 5, where 7.5 says a HELLO's NAK carries the HELLO's version byte, 1."""
+    module = Link(p.Role.MODULE)
+    module.receive(p.encode(p.Hello(p.Role.BASE, 5), 1))
+    assert module.version == 5
+    module.outgoing()
+    # versions 5..3, role 2 (the base), boot id 6, no software text
+    module.receive(raw_frame(1, p.MsgType.HELLO, 2, 0, bytes((5, 3, 2)) + (6).to_bytes(4, "little")
+                             + b"\x00"))
+    naks = [f for f in frames(module.outgoing()) if f.message.TYPE == p.MsgType.NAK]
+    assert [(f.version, f.seq, f.message.reason) for f in naks] == [
+        (1, 2, p.NakReason.BAD_PAYLOAD)]
+
+
 @pytest.mark.parametrize("proto", [4, 5])
 def test_the_bases_commands_through_10_percent_byte_corruption(proto):
     """Issue 46 item 1: at 10 % (flipped bytes) every CHECK reaches the module once and the

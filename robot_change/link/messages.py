@@ -210,10 +210,11 @@ class Hello(Message):
     def __post_init__(self) -> None:
         o = "HELLO"
         _set(self, "role", _enum(o, "role", self.role, Role))
-        _int(o, "boot_id", self.boot_id, 0, 0xFFFF_FFFF)
+        # a bad field of a HELLO is a bad payload (OUT_OF_RANGE is SET_PARAM's: 7.3)
+        _int(o, "boot_id", self.boot_id, 0, 0xFFFF_FFFF, NakReason.BAD_PAYLOAD)
         _text(o, "software", self.software, 32)
-        _int(o, "proto_min", self.proto_min, 1, 255)
-        _int(o, "proto_max", self.proto_max, self.proto_min, 255)
+        _int(o, "proto_min", self.proto_min, 1, 255, NakReason.BAD_PAYLOAD)
+        _int(o, "proto_max", self.proto_max, self.proto_min, 255, NakReason.BAD_PAYLOAD)
 
     def pack(self) -> bytes:
         return (_HELLO.pack(self.proto_min, self.proto_max, self.role, self.boot_id)

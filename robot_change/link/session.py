@@ -504,7 +504,9 @@ class Link:
                 self._remember(seq, (reason, refused_type))
             elif self._seen[seq] is not None:
                 reason, refused_type = self._seen[seq]
-        self._nak(seq, reason, refused_type)
+        # a HELLO's NAK goes in the HELLO's version byte, 1 (7.5), whatever the session's
+        self._nak(seq, reason, refused_type,
+                  MIN_VERSION if refused_type == MsgType.HELLO else None)
 
     def _nak(self, seq: int, reason: NakReason, refused_type: int,
              version: int | None = None) -> None:
