@@ -135,8 +135,8 @@ def _rvl(body: bytes, where: str) -> np.ndarray:
     out = np.empty(pixels, dtype=np.uint16)
     got = _rvl_decode(np.frombuffer(stream, dtype="<u4").astype(np.uint32), out)
     if got != pixels:
-        raise FrameError(f"{where}: the RVL stream is truncated or corrupt (it decodes "
-                         f"{'past the end of' if got < 0 else got} of {pixels} pixels)")
+        said = f"past the end of its {pixels} pixels" if got < 0 else f"{got} of {pixels} pixels"
+        raise FrameError(f"{where}: the RVL stream is truncated or corrupt (it decodes {said})")
     return out.reshape(height, width)
 
 

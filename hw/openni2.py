@@ -281,7 +281,8 @@ class _OpenNI2Feed(FrameFeed):
                     raw.dataSize < self.width * self.height * 2:
                 raise ChildFailure("file" if self.is_file else "internal",
                                    f"frame {raw.frameIndex} is {raw.width}x{raw.height} "
-                                   f"({raw.dataSize} bytes), expected {self.width}x{self.height}")
+                                   f"in {raw.dataSize} bytes, expected {self.width}x{self.height}"
+                                   f" in {self.width * self.height * 2}")
             row = raw.stride // 2 if raw.stride else self.width
             src = np.ctypeslib.as_array(ctypes.cast(raw.data, ctypes.POINTER(ctypes.c_uint16)),
                                         shape=(self.height * row,))

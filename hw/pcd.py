@@ -53,8 +53,8 @@ def cloud_to_depth(cloud: PcdCloud, where: str) -> tuple[np.ndarray, np.ndarray]
     cloud or one whose points do not lie in front of its camera."""
     if not cloud.organized:
         raise DepthFileError(
-            f"{where}: the cloud is not organized ({cloud.width} x {cloud.height} points: "
-            "HEIGHT 1), so it has no pixel grid to make a depth image of; a depth source needs "
+            f"{where}: the cloud is not organized (WIDTH {cloud.width}, HEIGHT {cloud.height}"
+            "), so it has no pixel grid to make a depth image of; a depth source needs "
             "an organized cloud (WIDTH x HEIGHT = the image), as PCL's OpenNI grabber saves")
     pose = pose_of_viewpoint(cloud.viewpoint)  # camera -> the file's frame
     points = (cloud.points.astype(np.float64) - pose[:3, 3]) @ pose[:3, :3]

@@ -516,7 +516,7 @@ def test_detect_refuses_a_current_taken_with_other_intrinsics(tmp_path):
     assert run("capture", "--source", str(scene / "reference.oni"), "--intrinsics",
                "570.342205,570.342205,320.25,240", "--out", str(odd)).returncode == 0
     result = run("detect", "--reference", str(odd), "--current", str(scene / "current.oni"))
-    told = result.stderr.split("pass --intrinsics ")[1].split()[0]
+    told = result.stderr.split("give the reference's intrinsics ")[1].split()[0]
     assert result.returncode == 2 and told == "570.342205,570.342205,320.25,240"
     assert run("detect", "--reference", str(odd), "--current", str(scene / "current.oni"),
                "--intrinsics", told).returncode == 0

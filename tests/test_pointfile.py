@@ -252,7 +252,7 @@ def test_the_viewpoint_is_applied_both_conventions(tmp_path, frames):
 def test_an_unorganized_pcd_is_refused_as_a_depth_source(tmp_path, points):
     path = write_points(tmp_path / "scattered.pcd", points)  # HEIGHT 1
     assert read_pcd(path).organized is False
-    with pytest.raises(DepthFileError, match="not organized .500 x 1 points: HEIGHT 1."):
+    with pytest.raises(DepthFileError, match="not organized .WIDTH 500, HEIGHT 1."):
         with open_depth(f"pcd:{path}") as source:
             source.read()
 

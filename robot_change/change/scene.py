@@ -531,7 +531,9 @@ def check_compatible(reference: SceneModel, current) -> None:
         exact = ",".join(repr(float(v)).removesuffix(".0") for v in (r.fx, r.fy, r.cx, r.cy))
         parts.append(
             f"intrinsics differ ({'; '.join(cam_diff)}): recapture the reference with this "
-            f"camera and mode, or pass --intrinsics {exact} if it is the reference's camera")
+            f"camera and mode, or give the reference's intrinsics {exact} if it is the "
+            f"reference's camera (--intrinsics on the command line, ?intrinsics= on a source "
+            f"URI)")
     if params_diff:
         parts.append(
             f"cloud parameters differ ({'; '.join(params_diff)}): recapture the reference with "
