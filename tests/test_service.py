@@ -935,6 +935,38 @@ def test_a_flaky_camera_reports_fault_and_cleared_at_most_once_per_backoff(
     assert (gaps[1:] > 1.3 * gaps[:-1]).all(), gaps  # the back-off doubles
 
 
+def test_a_lost_camera_says_so_again_when_the_reason_changes(tmp_path: Path, caplog) -> None:
+    """A reload from one broken source to another left the journal naming the first alone."""
+    from robot_change.service.camera import CameraThread
+    from robot_change.service.liveness import Progress
+
+    stop, wake = threading.Event(), threading.Event()
+    camera = CameraThread(lambda: open_depth(f"oni:{tmp_path / 'first.oni'}"), FrameQueue(),
+                          Progress(10.0), stop, wake, lambda: 1.0)
+    thread = threading.Thread(target=camera.run, daemon=True)
+    with caplog.at_level(logging.ERROR, "robot_change.service.camera"):
+        thread.start()
+        try:
+            _until(lambda: "first.oni" in camera.error)
+            camera.swap(lambda: open_depth(f"images:{tmp_path / 'second'}"))
+            _until(lambda: "second" in camera.error)
+            time.sleep(1.5)  # retries of the same reason: not said again
+        finally:
+            stop.set()
+            thread.join(5)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and "first.oni" in said[0], said
+    assert said[1].startswith("camera still lost, now: ") and "second" in said[1], said
+    assert camera.losses == 1
+
+
+def _until(condition, timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
 def test_a_camera_never_healthy_for_long_enough_stays_lost(tmp_path: Path, scene_frames) -> None:
     from robot_change.service.camera import CAMERA_HEALTHY_FRAMES
 

@@ -209,6 +209,8 @@ class CameraThread:
         if self.ok or not self.error:
             self.losses += 1
             log.error("camera lost: %s", why)
+        elif why != self.error:  # another reason (a reload named another source): said too
+            log.error("camera still lost, now: %s", why)
         self.ok, self.error = False, why
         self._wake.set()
 
