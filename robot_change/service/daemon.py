@@ -91,6 +91,7 @@ def run_service(service: Service, *, load: Callable[[], Config] | None = None,
             service.close()
             raise
         service.start()
+        signals.wait(0.0, stop)  # a SIGTERM that came meanwhile: no READY
         if stop.is_set():
             return _stop(service)
         systemd.ready(status=f"ready in {time.perf_counter() - t0:.1f} s; idle")
