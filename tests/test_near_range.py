@@ -1,4 +1,4 @@
-"""A camera is read from its own near range: a RealSense D405 on a bench 7-40 cm away is
+"""A camera is read from its own near range: a RealSense D405 on a bench 0.2-0.38 m away is
 captured and checked with the defaults, and a Kinect-class camera is read from 0.4 m as before
 (robot_change.noise.profile.NoiseProfile.near_m, CloudParams.min_depth_m and
 RegistrationParams.min_depth_m left unset)."""
