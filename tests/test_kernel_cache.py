@@ -68,7 +68,12 @@ def test_numba_keeps_a_stale_caller_and_the_fingerprint_clears_it(tmp_path):
         root.mkdir()
         _package(root, factor=2)
         assert _run(root, "plain", cache) == 21
-        (root / "kern" / "callee.py").write_text(CALLEE.format(factor=3))  # the callee alone
+        callee = root / "kern" / "callee.py"
+        callee.write_text(CALLEE.format(factor=3))  # the callee alone
+        # a later edit, as an update is: in the same second and at the same size Python takes
+        # its old bytecode for fresh (its .pyc check), and numba compiles that
+        later = callee.stat().st_mtime + 2.0
+        os.utime(callee, (later, later))
         assert _run(root, "plain", cache) == 21, "numba's limit: the caller's stale code ran"
         assert _run(root, "clear", cache) == 31  # cleared, compiled again: the new callee
         assert _run(root, "clear", cache) == 31  # the stamp matches: nothing cleared now
