@@ -95,7 +95,9 @@ def register_depth(reference: np.ndarray, current: np.ndarray, intrinsics: Intri
         Where the current's pyramid is left (for the epoch made of ``current``: the object
         completion's segments start from its finest level).
     noise : robot_change.noise.profile.NoiseProfile, optional
-        The camera's noise (instead of ``params.noise``): a check passes its reference's.
+        The camera's noise (instead of ``params.noise``; with ``min_depth_m`` unset, its near
+        range too).  A check passes parameters that hold its reference's
+        (:meth:`robot_change.change.epoch.Epoch.registration_params`).
 
     Returns
     -------
