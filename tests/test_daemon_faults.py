@@ -263,6 +263,20 @@ def test_a_configuration_the_reference_was_not_captured_with_is_said_once(tmp_pa
         assert len(said) == 1, said  # once, not at every check
         assert "noise profile kinect_v1, the configuration says realsense_d435" in said[0]
         assert "leaf_m 0.03 vs 0.02" in said[0] and "capture the station again" in said[0]
+        # a check needs not the configured profile: a profile file gone after the reload is
+        # said, and the check answers
+        from robot_change.noise.profile import builtin_profile
+        profile = builtin_profile("xtion").save(tmp_path / "camera.json")
+        d.config.write_text(text.replace('[camera]\n', f'[camera]\nprofile_file = "{profile}"\n')
+                            + "[cloud]\nleaf_m = 0.02\n")
+        d.proc.send_signal(signal.SIGHUP)
+        end = time.monotonic() + 20  # the second reload's line
+        while d.log().count("configuration reloaded") < 2:
+            assert time.monotonic() < end, d.log()[-3000:]
+            time.sleep(0.05)
+        profile.unlink()
+        assert d.base("check office\nexpect CLEAR 10") == 0, d.transcript.getvalue()[-3000:]
+        assert "the configuration says an unreadable file" in d.log(), d.log()[-3000:]
         _sigterm_in(d)
 
 

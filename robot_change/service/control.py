@@ -37,6 +37,7 @@ from robot_change.link.protocol import (
     PauseCause,
     Watch,
 )
+from robot_change.noise.profile import ProfileFileError
 from robot_change.service.last_check import write_last_check
 from robot_change.service.params import change_params, scene_params
 from robot_change.service.views import CheckView
@@ -247,14 +248,15 @@ class Control:
         if reference.mount is not None and reference.mount != mount:
             said.append(f"the camera mounted at {reference.mount.to_dict()}, the configuration "
                         f"says {mount.to_dict()} (base-frame results use the configuration's)")
-        profile = self.config.camera.noise_profile(self.camera.model).name
+        try:  # a check does not need the configured profile: an unreadable file fails no check
+            profile = self.config.camera.noise_profile(self.camera.model).name
+        except ProfileFileError as exc:
+            profile = f"an unreadable file ({exc})"
         if profile != reference.noise.name:
             said.append(f"noise profile {reference.noise.name}, the configuration says "
                         f"{profile} (the reference's is used)")
-        cloud = scene_params(self.config, self.params).cloud.for_camera(reference.noise)
-        differ = [f"{name} {getattr(reference.params.cloud, name)!r} vs {getattr(cloud, name)!r}"
-                  for name in scene.COMPARED_CLOUD_FIELDS
-                  if getattr(reference.params.cloud, name) != getattr(cloud, name)]
+        _, differ = scene.scene_differences(
+            reference, (reference.intrinsics, scene_params(self.config, self.params)))
         if differ:
             said.append(f"cloud parameters {'; '.join(differ)} (the reference's are used)")
         text = "; ".join(said)
